@@ -1,0 +1,28 @@
+"""Soft imports for heavy optional dependencies (pyvista, manifold3d, open3d).
+
+``import tiled_gridpull`` never imports them; the first use raises a one-line
+:class:`~tiled_gridpull.errors.MissingDependencyError` telling the user what to install.
+"""
+
+from __future__ import annotations
+
+import importlib
+from types import ModuleType
+
+from .errors import MissingDependencyError
+
+_HINTS = {
+    "pyvista": "pip install pyvista",
+    "manifold3d": "pip install manifold3d",
+    "open3d": "pip install 'tiled-gridpull[bench]'",
+    "matplotlib": "pip install matplotlib",
+}
+
+
+def require(module: str, feature: str) -> ModuleType:
+    """Import ``module`` or raise a clear error naming the ``feature`` that needs it."""
+    try:
+        return importlib.import_module(module)
+    except ImportError as exc:  # pragma: no cover - exercised only without the package
+        hint = _HINTS.get(module, f"pip install {module}")
+        raise MissingDependencyError(f"{feature} needs the optional package '{module}' ({hint}): {exc}") from None

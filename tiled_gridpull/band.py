@@ -1,0 +1,145 @@
+"""Narrow bands around the input points, stored in bricks.
+
+GridPull optimizes only the vertices near the surface. With ``occ`` the cells that hold input points:
+
+* the **pull band** (M1) is ``occ`` dilated by ``m1`` cells (Chebyshev/cube dilation): queries that fall in
+  it carry the pull, surface and gradient losses;
+* the **TV band** (M2) is ``occ`` dilated by ``m2`` cells: the vertices of its cells are the parameters,
+  smoothed by the TV loss. Everything outside keeps its initial value and is never read by marching cubes.
+
+Storage is sparse: the lattice is cut into bricks of 8^3 vertices and only bricks holding a parameter are
+allocated, so memory and time grow with the band, not with R^3. Dilations are separable running-window ORs
+(O(1) per cell whatever the radius), not loops over offsets.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .kernels import BRICK, BRICK_VOLUME, CELL_OCC, CELL_OPT, CELL_PULL, PARAM
+from .kernels import band as kb
+from .lattice import Lattice
+
+__all__ = ["Band", "build_band", "dilate"]
+
+
+def dilate(mask: np.ndarray, lo: int, hi: int | None = None) -> np.ndarray:
+    """Cube dilation of a dense uint8 mask: ``out[i] = any(mask[i-lo .. i+hi])`` on every axis."""
+    hi = lo if hi is None else hi
+    out = np.ascontiguousarray(mask, dtype=np.uint8)
+    for axis in range(3):
+        out = kb.window_any(out, axis, lo, hi)
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class Band:
+    """Brick-sparse description of the optimized region of a lattice.
+
+    Attributes
+    ----------
+    lattice : Lattice
+        The lattice (block) the band lives on.
+    m1, m2 : int
+        Pull-band and TV-band half widths in cells.
+    brick_coords : (nb, 3) int32
+        Brick grid coordinates; brick ``b`` holds vertices ``brick_coords[b] * 8 + [0, 8)^3``.
+    brick_table : (BX, BY, BZ) int32
+        Brick number for every brick of the lattice, -1 where no brick is allocated.
+    neighbors : (nb, 6) int32
+        Face-neighbour bricks (-x, +x, -y, +y, -z, +z), -1 where absent.
+    flags : (nb, 512) uint8
+        Per-slot bits ``PARAM``, ``CELL_OPT``, ``CELL_PULL``, ``CELL_OCC`` (see :mod:`tiled_gridpull.kernels`).
+    """
+
+    lattice: Lattice
+    m1: int
+    m2: int
+    brick_coords: np.ndarray
+    brick_table: np.ndarray
+    neighbors: np.ndarray
+    flags: np.ndarray
+    stats: dict = field(default_factory=dict)
+
+    @property
+    def n_bricks(self) -> int:
+        """Allocated bricks."""
+        return int(self.brick_coords.shape[0])
+
+    @property
+    def n_slots(self) -> int:
+        """Allocated vertex slots (bricks x 512)."""
+        return self.n_bricks * BRICK_VOLUME
+
+    @property
+    def n_params(self) -> int:
+        """Vertices that are optimisation variables."""
+        return int(np.count_nonzero(self.flags & PARAM))
+
+    def dense_mask(self, bit: int) -> np.ndarray:
+        """Dense (X, Y, Z) bool array of one flag bit over the lattice's vertex grid (for tests and plots)."""
+        X, Y, Z = self.lattice.shape
+        out = np.zeros((self.brick_table.shape[0] * BRICK, self.brick_table.shape[1] * BRICK,
+                        self.brick_table.shape[2] * BRICK), bool)
+        bits = (self.flags & bit).reshape(-1, BRICK, BRICK, BRICK) != 0
+        for b, (i, j, k) in enumerate(self.brick_coords):
+            out[i * BRICK:(i + 1) * BRICK, j * BRICK:(j + 1) * BRICK, k * BRICK:(k + 1) * BRICK] = bits[b]
+        return out[:X, :Y, :Z]
+
+    def slot_positions(self) -> np.ndarray:
+        """(nb * 512, 3) int64 lattice index of every slot (slots past the lattice edge included)."""
+        local = np.indices((BRICK, BRICK, BRICK)).reshape(3, -1).T
+        return (self.brick_coords[:, None, :].astype(np.int64) * BRICK + local[None]).reshape(-1, 3)
+
+
+def build_band(index_points: np.ndarray, lattice: Lattice, m1: int = 3, m2: int = 14) -> Band:
+    """Build the pull and TV bands of a cloud.
+
+    Parameters
+    ----------
+    index_points : (N, 3) float array
+        Points in the lattice's index coordinates (see :meth:`Lattice.to_index`); points outside the block
+        are ignored.
+    lattice : Lattice
+    m1, m2 : int
+        Band half widths in cells, ``0 <= m1 <= m2``.
+
+    Returns
+    -------
+    Band
+    """
+    ncell = np.asarray(lattice.n_cells, dtype=np.int64)
+    cells = np.floor(np.asarray(index_points, dtype=np.float64)).astype(np.int64)
+    inside = np.all((cells >= 0) & (cells < ncell), axis=1)
+    cells = cells[inside]
+    occ = kb.mark_cells(cells, ncell)
+    cell_m2 = dilate(occ, m2)
+    cell_m1 = dilate(occ, m1) if m1 != m2 else cell_m2
+    # vertices of band cells: vertex v touches cells v-1 and v on each axis
+    vshape = tuple(int(s) for s in lattice.shape)
+    padded = np.zeros(vshape, np.uint8)
+    padded[:-1, :-1, :-1] = cell_m2
+    vparam = dilate(padded, 1, 0)
+    # optimized cells: all 8 corners are parameters (erosion of the vertex mask over [c, c+1])
+    not_param = (vparam == 0).astype(np.uint8)
+    cell_opt = (dilate(not_param, 0, 1)[:-1, :-1, :-1] == 0).astype(np.uint8)
+    bshape = np.array([-(-s // BRICK) for s in vshape], dtype=np.int64)
+    has = kb.brick_any(vparam, bshape)
+    coords = np.argwhere(has).astype(np.int32)
+    table = np.full(tuple(bshape), -1, np.int32)
+    table[coords[:, 0], coords[:, 1], coords[:, 2]] = np.arange(len(coords), dtype=np.int32)
+    flags = kb.pack_flags(coords, vparam, cell_opt, cell_m1, occ)
+    neighbors = kb.brick_neighbors(coords, table)
+    stats = {
+        "occupied_cells": int(np.count_nonzero(occ)),
+        "pull_cells": int(np.count_nonzero(cell_m1)),
+        "tv_cells": int(np.count_nonzero(cell_m2)),
+        "params": int(np.count_nonzero(vparam)),
+        "bricks": int(len(coords)),
+    }
+    return Band(lattice, int(m1), int(m2), coords, table, neighbors, flags, stats)
+
+
+__all__ += ["PARAM", "CELL_OPT", "CELL_PULL", "CELL_OCC"]

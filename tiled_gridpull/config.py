@@ -1,0 +1,170 @@
+"""Solver settings: one frozen dataclass, validated on construction, loadable from flat YAML.
+
+Units: band widths, query noise and learning rate are in **cells** (the field is stored in cells, see
+:mod:`tiled_gridpull.solver`), so the same settings behave the same at every resolution.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, fields
+from pathlib import Path
+from typing import Any
+
+from .errors import ConfigError
+
+__all__ = ["SolverConfig", "load_config_file", "parse_overrides"]
+
+_CHOICES = {
+    "tv_form": ("squared", "sqrt"),
+    "surface_form": ("abs", "squared"),
+    "mode": ("sdf", "udf"),
+    "init": ("sphere", "normals"),
+}
+
+
+@dataclass(frozen=True)
+class SolverConfig:
+    """Everything that decides a GridPull solve (the paper's defaults unless noted).
+
+    Attributes
+    ----------
+    resolution : int
+        Cells across the padded longest side of a shape (paper: 256). Ignored when a lattice is given.
+    margin : int
+        Empty cells around a shape's bounding box.
+    m1, m2 : int
+        Pull band and TV band half widths in cells (paper: 3 and 14; 25 for scenes).
+    iterations : int
+        Optimizer steps at the finest level (paper: 1600).
+    queries : int
+        Queries per iteration (paper: 50,000).
+    lr, lr_decay, lr_step : float, float, int
+        Adam learning rate in cells per step, multiplied by ``lr_decay`` every ``lr_step`` iterations
+        (paper: 1.0, 0.3, 400).
+    alpha, beta, gamma : float
+        Weights of the TV, surface and gradient-consistency losses (paper: 1, 1, 0.005).
+    tv_form : {"squared", "sqrt"}
+        TV as squared differences (authors' code) or the paper's per-vertex square root.
+    surface_form : {"abs", "squared"}
+        ``|f(s)|`` (paper) or ``f(s)^2`` (authors' code).
+    query_sigma : float
+        Standard deviation of the query noise in cells (paper text: 2 cells; authors' code: ~0.05).
+    init : {"sphere", "normals"}
+        Sphere of ``init_radius`` cells at the lattice centre (paper), or a signed distance to the tangent
+        planes of oriented normals (scenes: orientation from sensor positions).
+    init_radius : float
+        Sphere radius in cells (paper: one or two cells).
+    mode : {"sdf", "udf"}
+        Signed field (default) or unsigned field for open surfaces (CAP-UDF pull, no gradient loss).
+    normal_weight : float
+        Weight of the normal-supervision loss when the input has normals (0 = off).
+    knn : int
+        Candidate list size of the nearest-neighbour cache.
+    seed : int
+        Random seed (queries). Results are bitwise reproducible for a given seed.
+    """
+
+    resolution: int = 256
+    margin: int = 4
+    m1: int = 3
+    m2: int = 14
+    iterations: int = 1600
+    queries: int = 50_000
+    lr: float = 1.0
+    lr_decay: float = 0.3
+    lr_step: int = 400
+    alpha: float = 1.0
+    beta: float = 1.0
+    gamma: float = 0.005
+    tv_form: str = "squared"
+    surface_form: str = "abs"
+    query_sigma: float = 0.1
+    init: str = "sphere"
+    init_radius: float = 2.0
+    mode: str = "sdf"
+    normal_weight: float = 0.0
+    knn: int = 16
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if f.type in ("int", int):
+                if isinstance(value, bool) or not isinstance(value, int):
+                    if isinstance(value, float) and value.is_integer():
+                        object.__setattr__(self, f.name, int(value))
+                    else:
+                        raise ConfigError(f"{f.name} must be an integer, got {value!r}")
+            elif f.type in ("float", float):
+                if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                    raise ConfigError(f"{f.name} must be a finite number, got {value!r}")
+                object.__setattr__(self, f.name, float(value))
+            elif f.type in ("str", str):
+                if value not in _CHOICES[f.name]:
+                    raise ConfigError(f"{f.name} must be one of {', '.join(_CHOICES[f.name])}; got {value!r}")
+        positive = ["resolution", "iterations", "queries", "lr", "lr_step", "knn"]
+        for name in positive:
+            if getattr(self, name) <= 0:
+                raise ConfigError(f"{name} must be positive, got {getattr(self, name)!r}")
+        nonneg = ["margin", "m1", "m2", "alpha", "beta", "gamma", "query_sigma", "init_radius", "normal_weight",
+                  "seed"]
+        for name in nonneg:
+            if getattr(self, name) < 0:
+                raise ConfigError(f"{name} must be >= 0, got {getattr(self, name)!r}")
+        if not 0 < self.lr_decay <= 1:
+            raise ConfigError(f"lr_decay must be in (0, 1], got {self.lr_decay!r}")
+        if self.m1 > self.m2:
+            raise ConfigError(f"m1 ({self.m1}) must not exceed m2 ({self.m2})")
+        if self.resolution < 2 * self.margin + 4:
+            raise ConfigError(f"resolution {self.resolution} is too small for margin {self.margin}")
+
+    def replace(self, **changes: Any) -> "SolverConfig":
+        """Copy with some fields changed (validated)."""
+        unknown = set(changes) - {f.name for f in fields(self)}
+        if unknown:
+            raise ConfigError(f"unknown solver option(s): {', '.join(sorted(unknown))}")
+        return dataclasses.replace(self, **changes)
+
+    def to_dict(self) -> dict:
+        """Plain dict of all settings."""
+        return dataclasses.asdict(self)
+
+
+def parse_overrides(items: list[str]) -> dict[str, Any]:
+    """``["key=value", ...]`` (from ``--set``) -> dict with YAML-typed values."""
+    import yaml
+
+    out: dict[str, Any] = {}
+    for item in items:
+        if "=" not in item:
+            raise ConfigError(f"--set expects key=value, got {item!r}")
+        key, raw = item.split("=", 1)
+        key = key.strip()
+        if not key:
+            raise ConfigError(f"--set expects key=value, got {item!r}")
+        out[key] = yaml.safe_load(raw)
+    return out
+
+
+def load_config_file(path: str | Path) -> dict[str, Any]:
+    """Read a flat YAML mapping of settings; one-line errors for a missing or malformed file."""
+    import yaml
+
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigError(f"config file {p}: not found")
+    try:
+        data = yaml.safe_load(p.read_text())
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" (line {mark.line + 1})" if mark is not None else ""
+        raise ConfigError(f"config file {p}: not valid YAML{where}") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"config file {p}: cannot read ({exc.__class__.__name__})") from None
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"config file {p}: expected a mapping of settings, got {type(data).__name__}")
+    return data

@@ -1,0 +1,161 @@
+"""Per-query GridPull losses and their analytic gradients w.r.t. the vertex values.
+
+For a query ``q`` with nearest input point ``s = NN(q)`` (index coordinates, field in cells):
+
+* pull     ``|q - f(q) n(q) - s|`` with ``n = grad f / |grad f|`` (flows through both f and n);
+* surface  ``|f(s)|`` (paper) or ``f(s)^2`` (authors' code), weight ``beta``;
+* gradient ``1 - cos(grad f(q), grad f(s))``, weight ``gamma`` (0 in UDF mode, where the field is kept
+  non-negative by the optimizer step and the same pull formula is CAP-UDF's);
+* normals  ``1 - cos(grad f(s), N(s))`` when input normals are given, weight ``lam``.
+
+Each query writes its 16 corner slots (8 around q, 8 around s) and the loss gradient at each, so the scatter
+into the vertex array is done afterwards by an owner-computes kernel: no races, and the summation order is
+that of the queries whatever the thread count.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+from .interp import corner_slots, eval_corners, locate, weights
+
+SURFACE_ABS = 0
+SURFACE_SQUARED = 1
+_EPS = 1e-12
+
+
+@njit(cache=True, parallel=True, fastmath=True)
+def query_losses(values, flags, table, shape, q, s, normals, pull_bit,
+                 beta, gamma, lam, surface_form, slots, grads, losses):
+    """Evaluate the losses of every query and the gradient at its 16 corner slots.
+
+    Parameters
+    ----------
+    values : (n_slots,) float32
+        Field in cells.
+    flags : (n_slots,) uint8
+        Slot flags; a query counts only if its cell has ``pull_bit``.
+    table : (BX, BY, BZ) int32
+        Brick table.
+    shape : (3,) int64
+        Lattice vertex counts.
+    q, s : (Nq, 3) float32
+        Queries and their nearest input points (index coordinates).
+    normals : (Nq, 3) float32 or (0, 3)
+        Unit normals at ``s`` (used when ``lam > 0``).
+    beta, gamma, lam : float
+        Weights of the surface, gradient-consistency and normal losses (the pull has weight 1).
+    surface_form : int
+        ``SURFACE_ABS`` or ``SURFACE_SQUARED``.
+    slots : (Nq, 16) int64, out
+        Corner slots (-1 for queries that do not count).
+    grads : (Nq, 16) float32, out
+        d(loss of this query)/d(value at slot).
+    losses : (Nq, 4) float32, out
+        pull, surface, gradient, normal loss of each query (0 where it does not count).
+
+    Returns
+    -------
+    int
+        Number of queries that count.
+    """
+    nq = q.shape[0]
+    nx, ny, nz = shape[0], shape[1], shape[2]
+    valid = np.zeros(nq, np.uint8)
+    use_normals = lam > 0.0 and normals.shape[0] == nq
+    for n in prange(nq):
+        qi, qj, qk, qtx, qty, qtz = locate(q[n, 0], q[n, 1], q[n, 2], nx, ny, nz)
+        si, sj, sk, stx, sty, stz = locate(s[n, 0], s[n, 1], s[n, 2], nx, ny, nz)
+        ok = corner_slots(table, qi, qj, qk, slots[n], 0)
+        ok = corner_slots(table, si, sj, sk, slots[n], 8) and ok
+        if ok:
+            c0 = slots[n, 0]
+            ok = (flags[c0] & pull_bit) != 0
+        if not ok:
+            for c in range(16):
+                slots[n, c] = -1
+                grads[n, c] = 0.0
+            for c in range(4):
+                losses[n, c] = 0.0
+            continue
+        valid[n] = 1
+        fq, gqx, gqy, gqz = eval_corners(values, slots[n], 0, qtx, qty, qtz)
+        fs, gsx, gsy, gsz = eval_corners(values, slots[n], 8, stx, sty, stz)
+        gq = math.sqrt(gqx * gqx + gqy * gqy + gqz * gqz + _EPS)
+        gs = math.sqrt(gsx * gsx + gsy * gsy + gsz * gsz + _EPS)
+        nqx, nqy, nqz = gqx / gq, gqy / gq, gqz / gq
+        nsx, nsy, nsz = gsx / gs, gsy / gs, gsz / gs
+        # --- pull
+        rx = q[n, 0] - fq * nqx - s[n, 0]
+        ry = q[n, 1] - fq * nqy - s[n, 1]
+        rz = q[n, 2] - fq * nqz - s[n, 2]
+        lp = math.sqrt(rx * rx + ry * ry + rz * rz + 1e-20)
+        ux, uy, uz = rx / lp, ry / lp, rz / lp
+        un = ux * nqx + uy * nqy + uz * nqz
+        dfq = -un
+        k = -fq / gq
+        dgqx = k * (ux - un * nqx)
+        dgqy = k * (uy - un * nqy)
+        dgqz = k * (uz - un * nqz)
+        # --- surface at s
+        if surface_form == SURFACE_SQUARED:
+            ls = fs * fs
+            dfs = beta * 2.0 * fs
+        else:
+            ls = abs(fs)
+            dfs = beta * (1.0 if fs > 0.0 else (-1.0 if fs < 0.0 else 0.0))
+        # --- gradient consistency
+        dgsx = 0.0
+        dgsy = 0.0
+        dgsz = 0.0
+        lg = 0.0
+        if gamma > 0.0:
+            cs = nqx * nsx + nqy * nsy + nqz * nsz
+            lg = 1.0 - cs
+            a = -gamma / gq
+            dgqx += a * (nsx - cs * nqx)
+            dgqy += a * (nsy - cs * nqy)
+            dgqz += a * (nsz - cs * nqz)
+            b = -gamma / gs
+            dgsx += b * (nqx - cs * nsx)
+            dgsy += b * (nqy - cs * nsy)
+            dgsz += b * (nqz - cs * nsz)
+        # --- normal supervision at s
+        ln = 0.0
+        if use_normals:
+            Nx, Ny, Nz = normals[n, 0], normals[n, 1], normals[n, 2]
+            cn = nsx * Nx + nsy * Ny + nsz * Nz
+            ln = 1.0 - cn
+            b = -lam / gs
+            dgsx += b * (Nx - cn * nsx)
+            dgsy += b * (Ny - cn * nsy)
+            dgsz += b * (Nz - cn * nsz)
+        for c in range(8):
+            w, wx, wy, wz = weights(qtx, qty, qtz, c)
+            grads[n, c] = dfq * w + dgqx * wx + dgqy * wy + dgqz * wz
+            w, wx, wy, wz = weights(stx, sty, stz, c)
+            grads[n, 8 + c] = dfs * w + dgsx * wx + dgsy * wy + dgsz * wz
+        losses[n, 0] = lp
+        losses[n, 1] = ls
+        losses[n, 2] = lg
+        losses[n, 3] = ln
+    return int(valid.sum())
+
+
+@njit(cache=True, parallel=True)
+def scatter_add(target, slots, grads, scale, n_owners):
+    """``target[slots] += scale * grads`` without races: owner ``t`` adds only slots with ``slot % n_owners == t``.
+
+    Every owner walks the queries in order, so the sum at each slot is accumulated in query order whatever
+    the number of threads (bitwise-reproducible results).
+    """
+    nq, nc = slots.shape
+    for t in prange(n_owners):
+        for n in range(nq):
+            for c in range(nc):
+                sl = slots[n, c]
+                if sl >= 0 and sl % n_owners == t:
+                    target[sl] += scale * grads[n, c]

@@ -1,0 +1,211 @@
+"""Triangle meshes: the container, marching cubes over a field, and topology facts.
+
+Vertices are float64 in the input's world coordinates; faces are int64 indices, counter-clockwise seen from
+outside (normals point towards larger field values, i.e. out of a closed shape).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import cached_property
+
+import numpy as np
+
+from ._optional import require
+from .field import Field
+from .kernels import graph as kg
+from .kernels import mc as kmc
+
+__all__ = ["Mesh", "extract_mesh", "MeshTopology"]
+
+T_CLAMP = 1e-3  # keep crossings off the lattice vertices so no triangle collapses to zero area
+
+
+@dataclass(frozen=True)
+class MeshTopology:
+    """Facts about a mesh's connectivity."""
+
+    n_vertices: int
+    n_faces: int
+    n_edges: int
+    boundary_edges: int
+    nonmanifold_edges: int
+    inconsistent_edges: int
+    components: int
+    euler: int
+
+    @property
+    def watertight(self) -> bool:
+        """Every edge has exactly two faces, oriented oppositely (closed, oriented 2-manifold edges)."""
+        return self.n_faces > 0 and self.boundary_edges == 0 and self.nonmanifold_edges == 0 \
+            and self.inconsistent_edges == 0
+
+    def to_dict(self) -> dict:
+        """Plain dict, ``watertight`` included."""
+        d = dict(self.__dict__)
+        d["watertight"] = self.watertight
+        return d
+
+
+@dataclass(eq=False)
+class Mesh:
+    """A triangle mesh.
+
+    Attributes
+    ----------
+    vertices : (V, 3) float64
+        World coordinates.
+    faces : (F, 3) int64
+    metadata : dict
+        Provenance (config, lattice, version, timings), written beside the mesh.
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    metadata: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.vertices = np.ascontiguousarray(self.vertices, dtype=np.float64).reshape(-1, 3)
+        self.faces = np.ascontiguousarray(self.faces, dtype=np.int64).reshape(-1, 3)
+
+    @property
+    def n_vertices(self) -> int:
+        return int(len(self.vertices))
+
+    @property
+    def n_faces(self) -> int:
+        return int(len(self.faces))
+
+    def __repr__(self) -> str:
+        return f"Mesh({self.n_vertices} vertices, {self.n_faces} faces)"
+
+    # ------------------------------------------------------------------ geometry
+    def triangles(self) -> np.ndarray:
+        """(F, 3, 3) float64 corner positions."""
+        return self.vertices[self.faces]
+
+    def face_normals(self) -> tuple[np.ndarray, np.ndarray]:
+        """Unit face normals (F, 3) and face areas (F,)."""
+        tri = self.triangles()
+        cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        norm = np.linalg.norm(cross, axis=1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            n = cross / norm[:, None]
+        n[norm == 0] = 0.0
+        return n, 0.5 * norm
+
+    @property
+    def area(self) -> float:
+        """Total surface area (world units squared)."""
+        return float(self.face_normals()[1].sum())
+
+    def signed_volume(self) -> float:
+        """Signed enclosed volume (positive for a closed mesh with outward normals)."""
+        tri = self.triangles()
+        return float(np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])).sum() / 6.0)
+
+    # ------------------------------------------------------------------ topology
+    @cached_property
+    def topology(self) -> MeshTopology:
+        """Edge and component counts (computed once)."""
+        F = self.faces
+        if len(F) == 0:
+            return MeshTopology(self.n_vertices, 0, 0, 0, 0, 0, 0, self.n_vertices)
+        directed = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
+        lo = directed.min(axis=1)
+        hi = directed.max(axis=1)
+        key = lo * np.int64(self.n_vertices) + hi
+        order = np.argsort(key, kind="stable")
+        key_sorted = key[order]
+        starts = np.flatnonzero(np.r_[True, key_sorted[1:] != key_sorted[:-1]])
+        counts = np.diff(np.r_[starts, len(key_sorted)])
+        forward = (directed[:, 0] < directed[:, 1])[order]
+        fwd_count = np.add.reduceat(forward.astype(np.int64), starts)
+        n_edges = len(starts)
+        boundary = int(np.count_nonzero(counts == 1))
+        nonmanifold = int(np.count_nonzero(counts > 2))
+        inconsistent = int(np.count_nonzero((counts == 2) & (fwd_count != 1)))
+        used = np.unique(F)
+        labels, _ = kg.vertex_components(self.n_vertices, F)
+        components = int(len(np.unique(labels[used])))
+        euler = int(len(used) - n_edges + len(F))
+        return MeshTopology(self.n_vertices, len(F), n_edges, boundary, nonmanifold, inconsistent, components,
+                            euler)
+
+    def components(self) -> np.ndarray:
+        """Component label of every face (F,) int64."""
+        labels, _ = kg.vertex_components(self.n_vertices, self.faces)
+        return labels[self.faces[:, 0]]
+
+    def submesh(self, face_mask: np.ndarray) -> "Mesh":
+        """Mesh of the selected faces, unreferenced vertices dropped."""
+        faces = self.faces[face_mask]
+        used, inverse = np.unique(faces, return_inverse=True)
+        return Mesh(self.vertices[used], inverse.reshape(-1, 3), dict(self.metadata))
+
+    # ------------------------------------------------------------------ conversions
+    def to_pyvista(self):
+        """A :class:`pyvista.PolyData` (needs pyvista)."""
+        pv = require("pyvista", "Mesh.to_pyvista")
+        return pv.PolyData.from_regular_faces(self.vertices, self.faces)
+
+    def is_manifold_solid(self) -> bool:
+        """Whether manifold3d accepts the mesh as a closed, oriented 2-manifold (needs manifold3d)."""
+        m3d = require("manifold3d", "Mesh.is_manifold_solid")
+        if self.n_faces == 0:
+            return False
+        mesh = m3d.Mesh64(vert_properties=np.ascontiguousarray(self.vertices, dtype=np.float64),
+                          tri_verts=np.ascontiguousarray(self.faces, dtype=np.uint64))
+        solid = m3d.Manifold(mesh)
+        return solid.status() == m3d.Error.NoError and not solid.is_empty()
+
+
+def extract_mesh(fld: Field, iso: float = 0.0, cell_lo: np.ndarray | None = None,
+                 cell_hi: np.ndarray | None = None, key_offset: np.ndarray | None = None,
+                 with_keys: bool = False):
+    """Marching cubes over the optimized cells of a field.
+
+    Parameters
+    ----------
+    fld : Field
+    iso : float
+        Iso level in cells (0 for the surface).
+    cell_lo, cell_hi : (3,) int, optional
+        Only cells with lowest corner in ``[cell_lo, cell_hi)`` (block index) are meshed (a tile's core).
+    key_offset : (3,) int, optional
+        Added to block vertex indices to form edge keys (a tile's offset from the job lattice) so that keys
+        from different tiles agree.
+    with_keys : bool
+        Also return the edge key of every vertex (for welding tiles).
+
+    Returns
+    -------
+    Mesh, or (Mesh, keys) with ``keys`` (V,) int64
+    """
+    band = fld.band
+    lat = band.lattice
+    lo = np.zeros(3, np.int64) if cell_lo is None else np.asarray(cell_lo, np.int64)
+    hi = np.asarray(lat.n_cells, np.int64) if cell_hi is None else np.asarray(cell_hi, np.int64)
+    koff = np.zeros(3, np.int64) if key_offset is None else np.asarray(key_offset, np.int64)
+    top = koff + np.asarray(lat.shape, np.int64)
+    if np.any(koff < 0) or top[0] >= 2 ** kmc.KEY_BITS_X or top[1] >= 2 ** kmc.KEY_BITS_Y \
+            or top[2] >= 2 ** kmc.KEY_BITS_Z:
+        raise ValueError("lattice too large for 64-bit edge keys (2^21 x 2^21 x 2^19 vertices)")
+    values = fld.values.reshape(-1)
+    flags = band.flags.reshape(-1)
+    iso32 = np.float32(iso)
+    counts = kmc.count_triangles(values, flags, band.brick_table, band.brick_coords, lo, hi, iso32)
+    offsets = np.zeros((len(counts) + 1, 2), np.int64)
+    np.cumsum(counts, axis=0, out=offsets[1:])
+    tris = np.empty((int(offsets[-1, 0]), 3), np.int64)
+    centres = np.empty((int(offsets[-1, 1]), 3), np.float64)
+    kmc.emit_triangles(values, flags, band.brick_table, band.brick_coords, lo, hi, iso32, offsets, koff, tris,
+                       centres)
+    keys, inverse = np.unique(tris, return_inverse=True)
+    faces = inverse.reshape(-1, 3)
+    pts = np.empty((len(keys), 3), np.float64)
+    is_centre = keys < 0
+    pts[is_centre] = centres[-1 - keys[is_centre]]
+    pts[~is_centre] = kmc.edge_points(values, band.brick_table, keys[~is_centre], koff, float(iso), T_CLAMP)
+    mesh = Mesh(lat.to_world(pts), faces)
+    return (mesh, keys) if with_keys else mesh
