@@ -16,5 +16,7 @@ from .config import SolverConfig  # noqa: E402
 from .errors import ConfigError, GridPullError, InputError  # noqa: E402
 from .lattice import Lattice  # noqa: E402
 from .mesh import Mesh  # noqa: E402
+from .reconstruct import reconstruct  # noqa: E402
 
-__all__ = ["__version__", "SolverConfig", "Lattice", "Mesh", "GridPullError", "InputError", "ConfigError"]
+__all__ = ["__version__", "reconstruct", "SolverConfig", "Lattice", "Mesh", "GridPullError", "InputError",
+           "ConfigError"]

@@ -9,7 +9,7 @@ GridPull optimizes only the vertices near the surface. With ``occ`` the cells th
 
 Storage is sparse: the lattice is cut into bricks of 8^3 vertices and only bricks holding a parameter are
 allocated, so memory and time grow with the band, not with R^3. Dilations are separable running-window ORs
-(O(1) per cell whatever the radius), not loops over offsets.
+on the brick-sparse masks (O(1) per cell whatever the radius), not loops over offsets.
 """
 
 from __future__ import annotations
@@ -22,16 +22,7 @@ from .kernels import BRICK, BRICK_VOLUME, CELL_OCC, CELL_OPT, CELL_PULL, PARAM
 from .kernels import band as kb
 from .lattice import Lattice
 
-__all__ = ["Band", "build_band", "dilate"]
-
-
-def dilate(mask: np.ndarray, lo: int, hi: int | None = None) -> np.ndarray:
-    """Cube dilation of a dense uint8 mask: ``out[i] = any(mask[i-lo .. i+hi])`` on every axis."""
-    hi = lo if hi is None else hi
-    out = np.ascontiguousarray(mask, dtype=np.uint8)
-    for axis in range(3):
-        out = kb.window_any(out, axis, lo, hi)
-    return out
+__all__ = ["Band", "build_band"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -111,35 +102,43 @@ def build_band(index_points: np.ndarray, lattice: Lattice, m1: int = 3, m2: int 
     Band
     """
     ncell = np.asarray(lattice.n_cells, dtype=np.int64)
+    vshape = np.asarray(lattice.shape, dtype=np.int64)
     cells = np.floor(np.asarray(index_points, dtype=np.float64)).astype(np.int64)
-    inside = np.all((cells >= 0) & (cells < ncell), axis=1)
-    cells = cells[inside]
-    occ = kb.mark_cells(cells, ncell)
-    cell_m2 = dilate(occ, m2)
-    cell_m1 = dilate(occ, m1) if m1 != m2 else cell_m2
-    # vertices of band cells: vertex v touches cells v-1 and v on each axis
-    vshape = tuple(int(s) for s in lattice.shape)
-    padded = np.zeros(vshape, np.uint8)
-    padded[:-1, :-1, :-1] = cell_m2
-    vparam = dilate(padded, 1, 0)
-    # optimized cells: all 8 corners are parameters (erosion of the vertex mask over [c, c+1])
-    not_param = (vparam == 0).astype(np.uint8)
-    cell_opt = (dilate(not_param, 0, 1)[:-1, :-1, :-1] == 0).astype(np.uint8)
-    bshape = np.array([-(-s // BRICK) for s in vshape], dtype=np.int64)
-    has = kb.brick_any(vparam, bshape)
-    coords = np.argwhere(has).astype(np.int32)
-    table = np.full(tuple(bshape), -1, np.int32)
+    cells = cells[np.all((cells >= 0) & (cells < ncell), axis=1)]
+    bshape = tuple(int(v) for v in -(-vshape // BRICK))
+    # candidate bricks: those within reach of an occupied brick (the vertex band reaches m2 + 1 cells)
+    occupied = np.zeros(bshape, np.uint8)
+    occupied[cells[:, 0] >> 3, cells[:, 1] >> 3, cells[:, 2] >> 3] = 1
+    reach = -(-(m2 + 1) // BRICK)
+    cand = occupied
+    for axis in range(3):
+        cand = kb.window_any(cand, axis, reach, reach)
+    coords = np.argwhere(cand).astype(np.int64)
+    table = np.full(bshape, -1, np.int32)
     table[coords[:, 0], coords[:, 1], coords[:, 2]] = np.arange(len(coords), dtype=np.int32)
-    flags = kb.pack_flags(coords, vparam, cell_opt, cell_m1, occ)
-    neighbors = kb.brick_neighbors(coords, table)
+    occ = kb.scatter_cells(cells, table, len(coords))
+
+    def dilate(mask, lo, hi, limit):
+        for axis in range(3):
+            mask = kb.sparse_window_any(mask, table, coords, axis, lo, hi, int(limit[axis]))
+        return mask
+
+    cell_m2 = dilate(occ, m2, m2, ncell)
+    cell_m1 = dilate(occ, m1, m1, ncell) if m1 != m2 else cell_m2
+    # vertices of band cells: vertex v touches cells v-1 and v on each axis
+    vparam = dilate(cell_m2, 1, 0, vshape)
+    cell_opt = kb.all_corners(vparam, table, coords, ncell)
+    keep = np.flatnonzero(vparam.any(axis=1))
+    flags = kb.pack_flags(vparam, cell_opt, cell_m1, occ, keep)
+    kept = coords[keep].astype(np.int32)
+    table = np.full(bshape, -1, np.int32)
+    table[kept[:, 0], kept[:, 1], kept[:, 2]] = np.arange(len(kept), dtype=np.int32)
+    neighbors = kb.brick_neighbors(kept, table)
     stats = {
         "occupied_cells": int(np.count_nonzero(occ)),
         "pull_cells": int(np.count_nonzero(cell_m1)),
         "tv_cells": int(np.count_nonzero(cell_m2)),
         "params": int(np.count_nonzero(vparam)),
-        "bricks": int(len(coords)),
+        "bricks": int(len(kept)),
     }
-    return Band(lattice, int(m1), int(m2), coords, table, neighbors, flags, stats)
-
-
-__all__ += ["PARAM", "CELL_OPT", "CELL_PULL", "CELL_OCC"]
+    return Band(lattice, int(m1), int(m2), kept, table, neighbors, flags, stats)

@@ -16,7 +16,7 @@ from .field import Field
 from .kernels import graph as kg
 from .kernels import mc as kmc
 
-__all__ = ["Mesh", "extract_mesh", "MeshTopology"]
+__all__ = ["Mesh", "extract_mesh", "MeshTopology", "remove_small_components"]
 
 T_CLAMP = 1e-3  # keep crossings off the lattice vertices so no triangle collapses to zero area
 
@@ -209,3 +209,29 @@ def extract_mesh(fld: Field, iso: float = 0.0, cell_lo: np.ndarray | None = None
     pts[~is_centre] = kmc.edge_points(values, band.brick_table, keys[~is_centre], koff, float(iso), T_CLAMP)
     mesh = Mesh(lat.to_world(pts), faces)
     return (mesh, keys) if with_keys else mesh
+
+
+def remove_small_components(mesh: Mesh, min_extent: float) -> tuple[Mesh, int]:
+    """Drop connected pieces whose bounding box is smaller than ``min_extent`` along every axis.
+
+    Returns
+    -------
+    mesh : Mesh
+        The kept faces (metadata copied).
+    removed : int
+        Number of pieces dropped.
+    """
+    labels = mesh.components()
+    if len(labels) == 0:
+        return mesh, 0
+    n = int(labels.max()) + 1
+    tri = mesh.vertices[mesh.faces]
+    lo = np.full((n, 3), np.inf)
+    hi = np.full((n, 3), -np.inf)
+    np.minimum.at(lo, labels, tri.min(axis=1))
+    np.maximum.at(hi, labels, tri.max(axis=1))
+    present = np.isfinite(lo[:, 0])
+    small = present & np.all(hi - lo < min_extent, axis=1)
+    if not small.any():
+        return mesh, 0
+    return mesh.submesh(~small[labels]), int(small.sum())

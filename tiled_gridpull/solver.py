@@ -24,6 +24,7 @@ from .errors import InputError
 from .field import Field
 from .kernels import CELL_PULL
 from .kernels import losses as kl
+from .kernels import sampling as ksamp
 from .kernels import step as ks
 from .lattice import Lattice
 from .nearest import NearestPoints
@@ -106,9 +107,12 @@ def solve(points: np.ndarray, lattice: Lattice, config: SolverConfig, *,
 def _optimize(P: np.ndarray, N: np.ndarray | None, band: Band, values: np.ndarray, cfg: SolverConfig,
               progress: ProgressFn | None, history_every: int) -> Field:
     t0 = time.perf_counter()
-    rng = np.random.default_rng(cfg.seed)
+    # Morton order: stratified centres then come out spatially sorted
+    order = np.argsort(ksamp.morton_codes(P), kind="stable")
+    P = np.ascontiguousarray(P[order])
+    if N is not None:
+        N = np.ascontiguousarray(N[order])
     nn = NearestPoints(P, cfg.knn)
-    n_pts = len(P)
     flat_flags = band.flags.reshape(-1)
     d_a = values.reshape(-1).copy()
     d_b = d_a.copy()
@@ -128,21 +132,21 @@ def _optimize(P: np.ndarray, N: np.ndarray | None, band: Band, values: np.ndarra
     grads = np.empty((nq, 16), np.float32)
     losses = np.empty((nq, 4), np.float32)
     empty_normals = np.zeros((0, 3), np.float32)
-    owners = max(1, _threads())
+    centres = np.empty(nq, np.int64)
+    q = np.empty((nq, 3), np.float32)
     beta1, beta2, eps = 0.9, 0.999, 1e-8
     history: list[dict] = []
     t_query = t_step = 0.0
     for it in range(cfg.iterations):
         ta = time.perf_counter()
-        centres = np.sort(rng.integers(0, n_pts, nq))
-        q = P[centres] + rng.standard_normal((nq, 3), dtype=np.float32) * np.float32(cfg.query_sigma)
+        ksamp.draw_queries(P, cfg.seed, it, np.float32(cfg.query_sigma), centres, q)
         nn_idx, _ = nn.query(q, centres)
         s = P[nn_idx]
         nrm = N[nn_idx] if N is not None else empty_normals
         n_valid = kl.query_losses(d_a, flat_flags, band.brick_table, shape, q, s, nrm, CELL_PULL,
                                   cfg.beta, gamma, cfg.normal_weight, surface_form, slots, grads, losses)
         if n_valid:
-            kl.scatter_add(qgrad, slots, grads, np.float32(1.0 / n_valid), owners)
+            kl.scatter_add(qgrad, slots, grads, np.float32(1.0 / n_valid))
         tb = time.perf_counter()
         lr = cfg.lr * cfg.lr_decay ** (it // cfg.lr_step)
         t = it + 1
@@ -172,7 +176,7 @@ def _optimize(P: np.ndarray, N: np.ndarray | None, band: Band, values: np.ndarra
         "time_queries_s": t_query,
         "time_steps_s": t_step,
         "nn_fallback_fraction": nn.fallbacks / max(nn.queries, 1),
-        "threads": owners,
+        "threads": _threads(),
         "history": history,
     }
     return Field(band, d_a.reshape(band.n_bricks, 512), signed=cfg.mode == "sdf", info=info)

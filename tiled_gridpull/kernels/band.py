@@ -1,4 +1,8 @@
-"""Dense-mask morphology and brick packing for band construction."""
+"""Band construction on brick-sparse masks: cost and memory grow with the band, never with the lattice volume.
+
+Masks are ``(n_bricks, 512)`` uint8 arrays in the brick layout of :mod:`tiled_gridpull.kernels` (cell masks use
+the slot of a cell's lowest vertex). A dense ``table`` over the brick grid maps brick coordinates to rows.
+"""
 
 from __future__ import annotations
 
@@ -10,17 +14,9 @@ from . import BRICK, BRICK_VOLUME
 
 @njit(cache=True, parallel=True)
 def window_any(mask, axis, lo, hi):
-    """Running-window OR along ``axis``: ``out[i] = any(mask[i - lo : i + hi + 1])`` (clipped at the ends).
+    """Running-window OR of a small dense grid along ``axis``: ``out[i] = any(mask[i-lo : i+hi+1])``.
 
-    Parameters
-    ----------
-    mask : (X, Y, Z) uint8
-    axis : int, 0..2
-    lo, hi : int >= 0, window reach below and above ``i``.
-
-    Returns
-    -------
-    (X, Y, Z) uint8 of 0/1.
+    Used on the brick grid (one byte per brick), so a dense array is cheap there.
     """
     X, Y, Z = mask.shape
     out = np.zeros_like(mask)
@@ -33,110 +29,138 @@ def window_any(mask, axis, lo, hi):
     for t in prange(a * b):
         u = t // b
         v = t % b
-        # prefix count along the line keeps the cost O(n) whatever the radius
-        count = 0
-        # window for i=0 is [0, hi]
-        for j in range(min(hi + 1, n)):
-            if axis == 0:
-                count += mask[j, u, v] != 0
-            elif axis == 1:
-                count += mask[u, j, v] != 0
-            else:
-                count += mask[u, v, j] != 0
         for i in range(n):
-            if count > 0:
+            found = 0
+            for j in range(max(0, i - lo), min(n, i + hi + 1)):
+                if axis == 0:
+                    found |= mask[j, u, v]
+                elif axis == 1:
+                    found |= mask[u, j, v]
+                else:
+                    found |= mask[u, v, j]
+            if found:
                 if axis == 0:
                     out[i, u, v] = 1
                 elif axis == 1:
                     out[u, i, v] = 1
                 else:
                     out[u, v, i] = 1
-            # slide: add i+hi+1, drop i-lo
-            add = i + hi + 1
-            if add < n:
-                if axis == 0:
-                    count += mask[add, u, v] != 0
-                elif axis == 1:
-                    count += mask[u, add, v] != 0
-                else:
-                    count += mask[u, v, add] != 0
-            drop = i - lo
-            if drop >= 0:
-                if axis == 0:
-                    count -= mask[drop, u, v] != 0
-                elif axis == 1:
-                    count -= mask[u, drop, v] != 0
-                else:
-                    count -= mask[u, v, drop] != 0
     return out
 
 
 @njit(cache=True)
-def mark_cells(cells, shape):
-    """Dense uint8 occupancy (X, Y, Z) from integer cells (N, 3) (already clipped into the block)."""
-    occ = np.zeros((shape[0], shape[1], shape[2]), np.uint8)
+def scatter_cells(cells, table, n_bricks):
+    """Brick-sparse occupancy (n_bricks, 512) from integer cells (N, 3) whose bricks are in ``table``."""
+    occ = np.zeros((n_bricks, BRICK_VOLUME), np.uint8)
     for n in range(cells.shape[0]):
-        occ[cells[n, 0], cells[n, 1], cells[n, 2]] = 1
+        x, y, z = cells[n, 0], cells[n, 1], cells[n, 2]
+        b = table[x >> 3, y >> 3, z >> 3]
+        occ[b, ((x & 7) << 6) | ((y & 7) << 3) | (z & 7)] = 1
     return occ
 
 
 @njit(cache=True, parallel=True)
-def brick_any(vmask, bshape):
-    """(bx, by, bz) uint8: whether each brick of ``vmask`` (vertex grid) holds a set vertex."""
-    X, Y, Z = vmask.shape
-    out = np.zeros((bshape[0], bshape[1], bshape[2]), np.uint8)
-    for bi in prange(bshape[0]):
-        for bj in range(bshape[1]):
-            for bk in range(bshape[2]):
-                found = 0
-                for x in range(bi * BRICK, min(X, bi * BRICK + BRICK)):
-                    for y in range(bj * BRICK, min(Y, bj * BRICK + BRICK)):
-                        for z in range(bk * BRICK, min(Z, bk * BRICK + BRICK)):
-                            if vmask[x, y, z]:
-                                found = 1
-                                break
-                        if found:
-                            break
-                    if found:
-                        break
-                out[bi, bj, bk] = found
+def sparse_window_any(src, table, coords, axis, lo, hi, limit):
+    """Running-window OR along ``axis`` of a brick-sparse mask.
+
+    ``out[p] = any(src[p - lo*e : p + hi*e])`` where missing bricks read as 0, and positions at or beyond
+    ``limit`` (global index along ``axis``) are forced to 0 in the output.
+    """
+    nb = coords.shape[0]
+    out = np.zeros_like(src)
+    BX, BY, BZ = table.shape
+    span = BRICK + lo + hi
+    for b in prange(nb):
+        line = np.zeros(span, np.uint8)
+        base = coords[b, axis] * BRICK
+        for u in range(BRICK):
+            for v in range(BRICK):
+                # gather the line from this brick and its neighbours along axis
+                for t in range(span):
+                    g = base - lo + t
+                    val = 0
+                    if g >= 0:
+                        bk = g >> 3
+                        local = g & 7
+                        if axis == 0:
+                            if bk < BX:
+                                nbk = table[bk, coords[b, 1], coords[b, 2]]
+                                if nbk >= 0:
+                                    val = src[nbk, (local << 6) | (u << 3) | v]
+                        elif axis == 1:
+                            if bk < BY:
+                                nbk = table[coords[b, 0], bk, coords[b, 2]]
+                                if nbk >= 0:
+                                    val = src[nbk, (u << 6) | (local << 3) | v]
+                        else:
+                            if bk < BZ:
+                                nbk = table[coords[b, 0], coords[b, 1], bk]
+                                if nbk >= 0:
+                                    val = src[nbk, (u << 6) | (v << 3) | local]
+                    line[t] = val
+                count = 0
+                for t in range(lo + hi + 1):
+                    count += line[t]
+                for i in range(BRICK):
+                    if count > 0 and base + i < limit:
+                        if axis == 0:
+                            out[b, (i << 6) | (u << 3) | v] = 1
+                        elif axis == 1:
+                            out[b, (u << 6) | (i << 3) | v] = 1
+                        else:
+                            out[b, (u << 6) | (v << 3) | i] = 1
+                    if i + 1 < BRICK:
+                        count += line[i + lo + hi + 1]
+                        count -= line[i]
     return out
 
 
 @njit(cache=True, parallel=True)
-def pack_flags(brick_coords, vparam, cell_opt, cell_pull, cell_occ):
-    """Per-slot flags (nb, 512) uint8 from dense masks (vertex grid for ``vparam``, cell grid for the rest)."""
-    nb = brick_coords.shape[0]
-    X, Y, Z = vparam.shape
-    CX, CY, CZ = cell_opt.shape
-    flags = np.zeros((nb, BRICK_VOLUME), np.uint8)
+def all_corners(vmask, table, coords, cell_limit):
+    """Cells whose 8 corner vertices are all set in ``vmask`` (cells at or beyond ``cell_limit`` excluded)."""
+    nb = coords.shape[0]
+    out = np.zeros_like(vmask)
+    BX, BY, BZ = table.shape
     for b in prange(nb):
-        ox = brick_coords[b, 0] * BRICK
-        oy = brick_coords[b, 1] * BRICK
-        oz = brick_coords[b, 2] * BRICK
         for x in range(BRICK):
-            gx = ox + x
-            if gx >= X:
+            gx = coords[b, 0] * BRICK + x
+            if gx >= cell_limit[0]:
                 continue
             for y in range(BRICK):
-                gy = oy + y
-                if gy >= Y:
+                gy = coords[b, 1] * BRICK + y
+                if gy >= cell_limit[1]:
                     continue
                 for z in range(BRICK):
-                    gz = oz + z
-                    if gz >= Z:
+                    gz = coords[b, 2] * BRICK + z
+                    if gz >= cell_limit[2]:
                         continue
-                    f = np.uint8(0)
-                    if vparam[gx, gy, gz]:
-                        f |= 1
-                    if gx < CX and gy < CY and gz < CZ:
-                        if cell_opt[gx, gy, gz]:
-                            f |= 2
-                        if cell_pull[gx, gy, gz]:
-                            f |= 4
-                        if cell_occ[gx, gy, gz]:
-                            f |= 8
-                    flags[b, x * 64 + y * 8 + z] = f
+                    ok = 1
+                    for c in range(8):
+                        vx = gx + (c >> 2)
+                        vy = gy + ((c >> 1) & 1)
+                        vz = gz + (c & 1)
+                        bx, by, bz = vx >> 3, vy >> 3, vz >> 3
+                        if bx >= BX or by >= BY or bz >= BZ:
+                            ok = 0
+                            break
+                        nbk = table[bx, by, bz]
+                        if nbk < 0 or vmask[nbk, ((vx & 7) << 6) | ((vy & 7) << 3) | (vz & 7)] == 0:
+                            ok = 0
+                            break
+                    out[b, (x << 6) | (y << 3) | z] = ok
+    return out
+
+
+@njit(cache=True, parallel=True)
+def pack_flags(vparam, cell_opt, cell_pull, cell_occ, keep):
+    """Per-slot flag bits for the kept bricks: PARAM=1, CELL_OPT=2, CELL_PULL=4, CELL_OCC=8."""
+    nk = keep.shape[0]
+    flags = np.zeros((nk, BRICK_VOLUME), np.uint8)
+    for r in prange(nk):
+        b = keep[r]
+        for s in range(BRICK_VOLUME):
+            flags[r, s] = (vparam[b, s] | (cell_opt[b, s] << 1) | (cell_pull[b, s] << 2)
+                           | (cell_occ[b, s] << 3))
     return flags
 
 

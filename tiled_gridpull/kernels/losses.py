@@ -8,9 +8,9 @@ For a query ``q`` with nearest input point ``s = NN(q)`` (index coordinates, fie
   non-negative by the optimizer step and the same pull formula is CAP-UDF's);
 * normals  ``1 - cos(grad f(s), N(s))`` when input normals are given, weight ``lam``.
 
-Each query writes its 16 corner slots (8 around q, 8 around s) and the loss gradient at each, so the scatter
-into the vertex array is done afterwards by an owner-computes kernel: no races, and the summation order is
-that of the queries whatever the thread count.
+Each query writes its 16 corner slots (8 around q, 8 around s) and the loss gradient at each (in parallel, each
+query to its own rows: no shared writes); the scatter into the vertex array follows in query order (see
+:func:`scatter_add`).
 """
 
 from __future__ import annotations
@@ -145,17 +145,18 @@ def query_losses(values, flags, table, shape, q, s, normals, pull_bit,
     return int(valid.sum())
 
 
-@njit(cache=True, parallel=True)
-def scatter_add(target, slots, grads, scale, n_owners):
-    """``target[slots] += scale * grads`` without races: owner ``t`` adds only slots with ``slot % n_owners == t``.
+@njit(cache=True)
+def scatter_add(target, slots, grads, scale):
+    """``target[slots] += scale * grads`` (slots < 0 skipped), in query order.
 
-    Every owner walks the queries in order, so the sum at each slot is accumulated in query order whatever
-    the number of threads (bitwise-reproducible results).
+    Deliberately serial: the queries arrive spatially sorted, so 800k adds take ~0.35 ms (about 2 % of an
+    iteration) -- less than zeroing and merging per-thread buffers would -- there is no race by construction,
+    and the sum at every vertex is accumulated in the same order whatever the thread count (bitwise
+    reproducible runs).
     """
     nq, nc = slots.shape
-    for t in prange(n_owners):
-        for n in range(nq):
-            for c in range(nc):
-                sl = slots[n, c]
-                if sl >= 0 and sl % n_owners == t:
-                    target[sl] += scale * grads[n, c]
+    for n in range(nq):
+        for c in range(nc):
+            sl = slots[n, c]
+            if sl >= 0:
+                target[sl] += scale * grads[n, c]

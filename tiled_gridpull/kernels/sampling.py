@@ -1,0 +1,98 @@
+"""Query sampling with a counter-based random generator: parallel, and identical for any thread count.
+
+Every random number is a hash (splitmix64) of ``(seed, iteration, query index, stream)``, so query ``i`` of
+iteration ``t`` is the same whichever thread draws it. Centres are *stratified* over the input points, which
+are stored in Morton order: query ``i`` takes a random point of the ``i``-th of ``n`` equal slices, so each
+point is drawn with the same probability as with i.i.d. sampling, the queries cover the surface evenly, and
+they come out spatially sorted (cache-friendly gathers and scatters downstream).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
+_M1 = np.uint64(0xBF58476D1CE4E5B9)
+_M2 = np.uint64(0x94D049BB133111EB)
+_INV24 = 1.0 / 16777216.0
+
+
+@njit(cache=True, inline="always")
+def mix64(z):
+    """splitmix64 finalizer (a bijective 64-bit hash)."""
+    z = (z ^ (z >> np.uint64(30))) * _M1
+    z = (z ^ (z >> np.uint64(27))) * _M2
+    return z ^ (z >> np.uint64(31))
+
+
+@njit(cache=True, inline="always")
+def uniforms(h):
+    """Two uniforms in (0, 1) from the two 24-bit halves of a 64-bit hash."""
+    a = (np.float64(h >> np.uint64(40)) + 0.5) * _INV24
+    b = (np.float64((h >> np.uint64(8)) & np.uint64(0xFFFFFF)) + 0.5) * _INV24
+    return a, b
+
+
+@njit(cache=True, parallel=True)
+def draw_queries(points, seed, iteration, sigma, centres, q):
+    """Draw ``len(q)`` queries around stratified random input points.
+
+    Parameters
+    ----------
+    points : (N, 3) float32
+        Input points (Morton-sorted for locality).
+    seed, iteration : int
+    sigma : float
+        Standard deviation of the Gaussian offset (same units as ``points``).
+    centres : (Nq,) int64, out
+    q : (Nq, 3) float32, out
+    """
+    n = points.shape[0]
+    nq = q.shape[0]
+    step = n / nq
+    key = mix64(np.uint64(seed) * _GOLDEN + np.uint64(iteration))
+    for i in prange(nq):
+        h = mix64(key ^ (np.uint64(i) * _GOLDEN))
+        u0, _ = uniforms(h)
+        c = int((i + u0) * step)
+        if c >= n:
+            c = n - 1
+        centres[i] = c
+        h1 = mix64(h + np.uint64(1))
+        h2 = mix64(h + np.uint64(2))
+        a, b = uniforms(h1)
+        r = math.sqrt(-2.0 * math.log(a))
+        n0 = r * math.cos(2.0 * math.pi * b)
+        n1 = r * math.sin(2.0 * math.pi * b)
+        a, b = uniforms(h2)
+        n2 = math.sqrt(-2.0 * math.log(a)) * math.cos(2.0 * math.pi * b)
+        q[i, 0] = points[c, 0] + sigma * n0
+        q[i, 1] = points[c, 1] + sigma * n1
+        q[i, 2] = points[c, 2] + sigma * n2
+
+
+@njit(cache=True)
+def _spread(v):
+    v = v & np.uint64(0x1FFFFF)
+    v = (v | (v << np.uint64(32))) & np.uint64(0x1F00000000FFFF)
+    v = (v | (v << np.uint64(16))) & np.uint64(0x1F0000FF0000FF)
+    v = (v | (v << np.uint64(8))) & np.uint64(0x100F00F00F00F00F)
+    v = (v | (v << np.uint64(4))) & np.uint64(0x10C30C30C30C30C3)
+    v = (v | (v << np.uint64(2))) & np.uint64(0x1249249249249249)
+    return v
+
+
+@njit(cache=True, parallel=True)
+def morton_codes(points):
+    """64-bit Morton code of each point's integer cell (coordinates must be >= 0 and < 2^21)."""
+    n = points.shape[0]
+    out = np.empty(n, np.uint64)
+    for i in prange(n):
+        x = np.uint64(max(int(points[i, 0]), 0))
+        y = np.uint64(max(int(points[i, 1]), 0))
+        z = np.uint64(max(int(points[i, 2]), 0))
+        out[i] = _spread(x) | (_spread(y) << np.uint64(1)) | (_spread(z) << np.uint64(2))
+    return out
