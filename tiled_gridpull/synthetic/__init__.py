@@ -1,0 +1,35 @@
+"""Synthetic data with exact ground truth: closed analytic shapes and a LiDAR-scanned street.
+
+Feeds the tests, the demo command and the benchmarks. Everything is deterministic given its seed.
+"""
+
+from .shapes import box, sample_shape, sphere, torus
+from .street import (
+    FACE_CLASSES,
+    KITTI_TR,
+    POINTS_PER_FRAME_DEFAULT,
+    SENSOR_HEIGHT_M,
+    Scan,
+    StreetScene,
+    build_street,
+    frames_for_points,
+    hdl64_directions,
+    make_street_sample,
+    observed_samples,
+    points_per_frame,
+    scan_street,
+    sensor_poses,
+    street_length_for_frames,
+    terrain_height,
+    write_kitti_sequence,
+    write_las,
+)
+
+__all__ = [
+    "sphere", "torus", "box", "sample_shape",
+    "StreetScene", "Scan", "build_street", "scan_street", "sensor_poses", "terrain_height",
+    "hdl64_directions",
+    "points_per_frame", "frames_for_points", "street_length_for_frames", "write_las", "write_kitti_sequence",
+    "make_street_sample", "observed_samples",
+    "FACE_CLASSES", "KITTI_TR", "POINTS_PER_FRAME_DEFAULT", "SENSOR_HEIGHT_M",
+]
