@@ -5,3 +5,9 @@ from .meshes import read_mesh, read_sidecar, sidecar_path, write_mesh, write_sid
 
 __all__ = ["atomic_open", "atomic_path", "write_json", "read_mesh", "write_mesh", "write_sidecar",
            "read_sidecar", "sidecar_path"]
+
+from .points import (SUPPORTED_POINT_FORMATS, PointCloud, clean_points, iter_point_chunks, point_count,
+                     read_kitti_sequence, read_points)
+
+__all__ += ["PointCloud", "read_points", "iter_point_chunks", "clean_points", "read_kitti_sequence",
+            "point_count", "SUPPORTED_POINT_FORMATS"]

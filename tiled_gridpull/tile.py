@@ -1,0 +1,378 @@
+"""Tiles of a global lattice: the plan, the streaming partition of the points, and the per-tile spill files.
+
+A scene is covered by a global :class:`~tiled_gridpull.lattice.Lattice` (float64 origin, cell size in metres).
+Tile ``(i, j, k)`` owns the *core* cells ``[i T, (i+1) T)`` (and likewise on y, z; ``T`` = ``tile_cells``,
+relative to the job's lattice offset) and is solved on the *block* that extends its core by ``O`` =
+``overlap_cells`` on every side. Points in an overlap go to every tile whose block holds them. ``T`` and ``O``
+are multiples of the brick size, so every block starts on the global brick grid and overlapping tiles store
+the very same vertices in the very same bricks.
+
+Spill files hold each tile's points as float32 coordinates relative to the block's low corner (tile-local
+metres, where float32 keeps micrometres), plus the sensor origin of every point when it is known.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Iterable, Iterator
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .errors import ConfigError
+from .io.atomic import atomic_open, write_json
+from .kernels import BRICK
+from .lattice import Lattice
+
+__all__ = ["TilingConfig", "TileSpec", "TilePlan", "plan_tiles", "partition", "read_tile_points",
+           "ORIENTATIONS"]
+
+ORIENTATIONS = ("auto", "sensor", "up", "sphere")
+
+
+@dataclass(frozen=True)
+class TilingConfig:
+    """How a scene is cut into tiles and stitched.
+
+    Attributes
+    ----------
+    voxel_size : float
+        Cell size in world units (metres for most LiDAR; feet for data in feet).
+    tile_size : float
+        Core size of a tile in world units (rounded to a multiple of 8 cells).
+    overlap : float
+        Extra margin solved around each core, in world units (rounded up to a multiple of 8 cells); the
+        partition-of-unity blend runs over twice this width around every shared face.
+    min_points : int
+        Tiles with fewer points are skipped and reported (too little data for a solve).
+    trim_distance : float
+        Faces farther than this many cells from every input point are removed (the same absolute distance in
+        every tile, so trimming never opens a crack along a tile border).
+    orientation : {"auto", "sensor", "up", "sphere"}
+        Which side is outside: facing the sensor (per-point sensor origins, e.g. KITTI), facing up (airborne
+        LAS), or the paper's sphere at each tile's centre (for closed objects only). ``auto`` picks sensor
+        when sensor origins are known, else up.
+    normal_neighbors : int
+        Neighbours used to estimate point normals for the initial field.
+    """
+
+    voxel_size: float = 0.1
+    tile_size: float = 25.6
+    overlap: float = 3.2
+    min_points: int = 100
+    trim_distance: float = 3.0
+    orientation: str = "auto"
+    normal_neighbors: int = 16
+
+    def __post_init__(self) -> None:
+        for name in ("voxel_size", "tile_size", "overlap", "trim_distance"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+                raise ConfigError(f"{name} must be a finite number, got {v!r}")
+            object.__setattr__(self, name, float(v))
+        if self.voxel_size <= 0:
+            raise ConfigError(f"voxel_size must be positive, got {self.voxel_size!r}")
+        if self.tile_size <= 0:
+            raise ConfigError(f"tile_size must be positive, got {self.tile_size!r}")
+        if self.overlap < 0:
+            raise ConfigError(f"overlap must be >= 0, got {self.overlap!r}")
+        if self.trim_distance < 0:
+            raise ConfigError(f"trim_distance must be >= 0, got {self.trim_distance!r}")
+        for name in ("min_points", "normal_neighbors"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ConfigError(f"{name} must be a positive integer, got {v!r}")
+        if self.orientation not in ORIENTATIONS:
+            raise ConfigError(f"orientation must be one of {', '.join(ORIENTATIONS)}; got {self.orientation!r}")
+        if self.tile_cells < BRICK:
+            raise ConfigError(f"tile_size {self.tile_size} is less than 8 cells of {self.voxel_size}")
+        if 2 * self.overlap_cells > self.tile_cells:
+            raise ConfigError(f"overlap {self.overlap} (={self.overlap_cells} cells) must be at most half the tile "
+                              f"size {self.tile_size} (={self.tile_cells} cells)")
+        if self.trim_distance > self.overlap_cells and self.trim_distance > 0:
+            raise ConfigError(f"trim_distance ({self.trim_distance} cells) must not exceed the overlap "
+                              f"({self.overlap_cells} cells): a tile must see every point that can keep a face")
+
+    @property
+    def tile_cells(self) -> int:
+        """Core size in cells (a multiple of 8)."""
+        return max(BRICK, int(round(self.tile_size / self.voxel_size / BRICK)) * BRICK)
+
+    @property
+    def overlap_cells(self) -> int:
+        """Overlap in cells (a multiple of 8, rounded up)."""
+        return int(math.ceil(self.overlap / self.voxel_size / BRICK - 1e-9)) * BRICK
+
+    def to_dict(self) -> dict:
+        """Plain dict of the settings (plus the derived cell counts)."""
+        d = asdict(self)
+        d["tile_cells"] = self.tile_cells
+        d["overlap_cells"] = self.overlap_cells
+        return d
+
+
+@dataclass(frozen=True)
+class TileSpec:
+    """A small, picklable description of one tile (travels to Dask workers instead of arrays).
+
+    Attributes
+    ----------
+    index : (i, j, k)
+        Tile index in the tile grid.
+    core_lo, core_hi : (3,) int
+        Core cells ``[core_lo, core_hi)`` in global cell indices of the job lattice.
+    block : Lattice
+        The solve block (core plus overlap), a block of the job lattice.
+    n_points : int
+        Points in the block (after the partition pass).
+    points_path : str
+        Spill file of the tile's points.
+    has_sensor : bool
+        Whether the spill file holds sensor origins.
+    """
+
+    index: tuple[int, int, int]
+    core_lo: tuple[int, int, int]
+    core_hi: tuple[int, int, int]
+    block: Lattice
+    n_points: int = 0
+    points_path: str = ""
+    has_sensor: bool = False
+
+    @property
+    def name(self) -> str:
+        """A stable name, e.g. ``tile_3_-1_0``."""
+        return "tile_" + "_".join(str(v) for v in self.index)
+
+    def core_in_block(self) -> tuple[np.ndarray, np.ndarray]:
+        """Core cell range ``[lo, hi)`` in the block's own index coordinates."""
+        off = np.asarray(self.block.offset)
+        return np.asarray(self.core_lo) - off, np.asarray(self.core_hi) - off
+
+    def to_dict(self) -> dict:
+        d = {"index": list(self.index), "core_lo": list(self.core_lo), "core_hi": list(self.core_hi),
+             "block": self.block.to_dict(), "n_points": self.n_points, "points_path": self.points_path,
+             "has_sensor": self.has_sensor}
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "TileSpec":
+        return cls(tuple(d["index"]), tuple(d["core_lo"]), tuple(d["core_hi"]), Lattice.from_dict(d["block"]),
+                   int(d["n_points"]), d["points_path"], bool(d["has_sensor"]))
+
+
+@dataclass(eq=False)
+class TilePlan:
+    """The job lattice and its tile grid.
+
+    Attributes
+    ----------
+    lattice : Lattice
+        Job lattice: origin snapped to the cell size, block covering all points; its offset is the global
+        index of the first tile's core corner.
+    config : TilingConfig
+    tile_range : (3,) int
+        Tiles along each axis.
+    bounds : (2, 3) float64
+        Bounding box of the input points.
+    n_points : int
+    """
+
+    lattice: Lattice
+    config: TilingConfig
+    tile_range: tuple[int, int, int]
+    bounds: np.ndarray
+    n_points: int
+    tiles: dict = field(default_factory=dict)
+
+    def spec(self, index: tuple[int, int, int], **kw) -> TileSpec:
+        """Spec of tile ``index`` (block = core +- overlap, as a block of the job lattice)."""
+        T, O = self.config.tile_cells, self.config.overlap_cells
+        off = np.asarray(self.lattice.offset)
+        core_lo = off + np.asarray(index) * T
+        core_hi = core_lo + T
+        block = Lattice(self.lattice.origin, self.lattice.cell_size, tuple(int(v) for v in (np.full(3, T + 2 * O + 1))),
+                        tuple(int(v) for v in core_lo - O))
+        return TileSpec(tuple(int(v) for v in index), tuple(int(v) for v in core_lo), tuple(int(v) for v in core_hi),
+                        block, **kw)
+
+    def tiles_of(self, index_coords: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Every (point, tile) pair whose block holds the point.
+
+        Parameters
+        ----------
+        index_coords : (N, 3) float64
+            Points in the job lattice's index coordinates.
+
+        Returns
+        -------
+        point : (M,) int64
+            Point index of each pair.
+        tile : (M, 3) int64
+            Tile index of each pair.
+        """
+        T, O = self.config.tile_cells, self.config.overlap_cells
+        rng = np.asarray(self.tile_range)
+        lo = np.floor((index_coords - O) / T).astype(np.int64)
+        hi = np.floor((index_coords + O) / T).astype(np.int64)
+        lo = np.clip(lo, 0, rng - 1)
+        hi = np.clip(hi, 0, rng - 1)
+        pts, tiles = [], []
+        n = len(index_coords)
+        for dx in (0, 1):
+            for dy in (0, 1):
+                for dz in (0, 1):
+                    t = np.stack([np.where(dx, hi[:, 0], lo[:, 0]), np.where(dy, hi[:, 1], lo[:, 1]),
+                                  np.where(dz, hi[:, 2], lo[:, 2])], axis=1)
+                    # a combination exists only once: skip repeats where lo == hi on a chosen axis
+                    keep = np.ones(n, bool)
+                    for axis, d in enumerate((dx, dy, dz)):
+                        if d:
+                            keep &= hi[:, axis] != lo[:, axis]
+                    # the point must lie inside the tile's block (core +- O) on every axis
+                    core_lo = t * T
+                    inside = np.all((index_coords >= core_lo - O) & (index_coords <= core_lo + T + O), axis=1)
+                    sel = np.flatnonzero(keep & inside)
+                    pts.append(sel)
+                    tiles.append(t[sel])
+        return np.concatenate(pts), np.concatenate(tiles)
+
+    def to_dict(self) -> dict:
+        return {"lattice": self.lattice.to_dict(), "config": self.config.to_dict(),
+                "tile_range": list(self.tile_range), "bounds": self.bounds.tolist(), "n_points": self.n_points}
+
+
+def plan_tiles(bounds: np.ndarray, n_points: int, config: TilingConfig) -> TilePlan:
+    """Lay the global lattice and the tile grid over a bounding box.
+
+    The lattice origin is the low corner snapped down to a multiple of the cell size (so crops of the same data
+    share vertices), and the first tile's core starts at the first cell of the box.
+    """
+    lo = np.asarray(bounds[0], dtype=np.float64)
+    hi = np.asarray(bounds[1], dtype=np.float64)
+    if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
+        raise ConfigError("cannot plan tiles over non-finite bounds")
+    cell = config.voxel_size
+    origin = np.floor(lo / cell) * cell
+    first = np.floor((lo - origin) / cell).astype(np.int64)
+    last = np.floor((hi - origin) / cell).astype(np.int64) + 1
+    T = config.tile_cells
+    rng = np.maximum(1, -(-(last - first) // T))
+    shape = rng * T + 1
+    lattice = Lattice(tuple(origin), cell, tuple(int(v) for v in shape), tuple(int(v) for v in first))
+    return TilePlan(lattice, config, tuple(int(v) for v in rng), np.stack([lo, hi]), int(n_points))
+
+
+_RECORD = np.dtype([("xyz", "<f4", (3,))])
+_RECORD_SENSOR = np.dtype([("xyz", "<f4", (3,)), ("sensor", "<f4", (3,))])
+
+
+def partition(chunks: Iterable, plan: TilePlan, out_dir: str | Path, has_sensor: bool,
+              flush_points: int = 2_000_000) -> list[TileSpec]:
+    """Stream point chunks into per-tile spill files (the partition pass).
+
+    Parameters
+    ----------
+    chunks : iterable of PointCloud
+        World coordinates (float64) and, when ``has_sensor``, sensor origins.
+    plan : TilePlan
+    out_dir : path
+        Directory for ``<tile>.points`` files (created; existing spill files there are replaced).
+    has_sensor : bool
+    flush_points : int
+        Buffered (point, tile) pairs before writing to disk: bounds the memory of the pass.
+
+    Returns
+    -------
+    list of TileSpec
+        Tiles that received at least one point, with counts and spill paths.
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    dtype = _RECORD_SENSOR if has_sensor else _RECORD
+    counts: dict[tuple, int] = {}
+    buffers: dict[tuple, list] = {}
+    buffered = 0
+    tmp_paths: dict[tuple, Path] = {}
+
+    def flush() -> None:
+        nonlocal buffered
+        for key, parts in buffers.items():
+            path = tmp_paths.setdefault(key, out / f".{plan.spec(key).name}.points.partial")
+            with open(path, "ab") as fh:
+                for part in parts:
+                    fh.write(part.tobytes())
+        buffers.clear()
+        buffered = 0
+
+    started = False
+    for chunk in chunks:
+        if not started:
+            for stale in out.glob(".*.points.partial"):
+                stale.unlink()
+            started = True
+        xyz = np.asarray(chunk.xyz, dtype=np.float64)
+        if len(xyz) == 0:
+            continue
+        # index coordinates relative to the first tile's core corner
+        pidx, tiles = plan.tiles_of(plan.lattice.to_index(xyz))
+        if len(pidx) == 0:
+            continue
+        key_arr = (tiles[:, 0] * plan.tile_range[1] + tiles[:, 1]) * plan.tile_range[2] + tiles[:, 2]
+        order = np.argsort(key_arr, kind="stable")
+        key_sorted = key_arr[order]
+        starts = np.flatnonzero(np.r_[True, key_sorted[1:] != key_sorted[:-1]])
+        ends = np.r_[starts[1:], len(order)]
+        for s, e in zip(starts, ends):
+            t = tuple(int(v) for v in tiles[order[s]])
+            sel = pidx[order[s:e]]
+            spec = plan.spec(t)
+            corner = spec.block.low_corner
+            rec = np.empty(len(sel), dtype)
+            rec["xyz"] = xyz[sel] - corner
+            if has_sensor:
+                rec["sensor"] = np.asarray(chunk.sensor, dtype=np.float64)[sel] - corner
+            buffers.setdefault(t, []).append(rec)
+            counts[t] = counts.get(t, 0) + len(sel)
+            buffered += len(sel)
+        if buffered >= flush_points:
+            flush()
+    flush()
+    specs = []
+    for t in sorted(counts):
+        spec = plan.spec(t)
+        final = out / f"{spec.name}.points"
+        tmp_paths[t].replace(final)
+        specs.append(plan.spec(t, n_points=counts[t], points_path=str(final), has_sensor=has_sensor))
+    return specs
+
+
+def read_tile_points(spec: TileSpec) -> tuple[np.ndarray, np.ndarray | None]:
+    """A tile's points and sensor origins as tile-local float32 metres (relative to ``spec.block.low_corner``).
+
+    Returns
+    -------
+    xyz : (N, 3) float32
+    sensor : (N, 3) float32 or None
+    """
+    dtype = _RECORD_SENSOR if spec.has_sensor else _RECORD
+    rec = np.fromfile(spec.points_path, dtype=dtype)
+    xyz = np.ascontiguousarray(rec["xyz"])
+    sensor = np.ascontiguousarray(rec["sensor"]) if spec.has_sensor else None
+    return xyz, sensor
+
+
+def write_manifest(path: str | Path, plan: TilePlan, specs: list[TileSpec], extra: dict | None = None) -> None:
+    """Write the tile manifest (plan, per-tile counts and bounds) atomically."""
+    data = {"plan": plan.to_dict(), "tiles": [s.to_dict() for s in specs]}
+    if extra:
+        data.update(extra)
+    write_json(path, data)
+
+
+def read_manifest(path: str | Path) -> tuple[dict, list[TileSpec]]:
+    """Read a tile manifest: the raw dict and the tile specs."""
+    data = json.loads(Path(path).read_text())
+    return data, [TileSpec.from_dict(d) for d in data["tiles"]]
