@@ -60,6 +60,14 @@ class SolverConfig:
         Signed field (default) or unsigned field for open surfaces (CAP-UDF pull, no gradient loss).
     normal_weight : float
         Weight of the normal-supervision loss when the input has normals (0 = off).
+    levels : int
+        Resolution levels. 1 is the paper's single-level solve. With ``L > 1`` the field is first solved on a
+        lattice with ``2^(L-1)`` times larger cells (``coarse_iterations`` with the schedule above), then refined
+        level by level (cells halved, values transferred by trilinear interpolation), each refinement over a
+        ``refine_m2`` band with ``refine_lr`` decaying every ``refine_lr_step``; the finest level runs
+        ``iterations``, the others ``coarse_iterations``.
+    coarse_iterations, refine_m2, refine_lr, refine_lr_step
+        See ``levels``.
     knn : int
         Candidate list size of the nearest-neighbour cache.
     seed : int
@@ -85,6 +93,11 @@ class SolverConfig:
     init_radius: float = 2.0
     mode: str = "sdf"
     normal_weight: float = 0.0
+    levels: int = 1
+    coarse_iterations: int = 800
+    refine_m2: int = 14
+    refine_lr: float = 0.3
+    refine_lr_step: int = 200
     knn: int = 16
     seed: int = 0
 
@@ -104,12 +117,13 @@ class SolverConfig:
             elif f.type in ("str", str):
                 if value not in _CHOICES[f.name]:
                     raise ConfigError(f"{f.name} must be one of {', '.join(_CHOICES[f.name])}; got {value!r}")
-        positive = ["resolution", "iterations", "queries", "lr", "lr_step", "knn"]
+        positive = ["resolution", "iterations", "queries", "lr", "lr_step", "knn", "levels", "coarse_iterations",
+                    "refine_lr", "refine_lr_step"]
         for name in positive:
             if getattr(self, name) <= 0:
                 raise ConfigError(f"{name} must be positive, got {getattr(self, name)!r}")
         nonneg = ["margin", "m1", "m2", "alpha", "beta", "gamma", "query_sigma", "init_radius", "normal_weight",
-                  "seed"]
+                  "seed", "refine_m2"]
         for name in nonneg:
             if getattr(self, name) < 0:
                 raise ConfigError(f"{name} must be >= 0, got {getattr(self, name)!r}")
@@ -117,6 +131,13 @@ class SolverConfig:
             raise ConfigError(f"lr_decay must be in (0, 1], got {self.lr_decay!r}")
         if self.m1 > self.m2:
             raise ConfigError(f"m1 ({self.m1}) must not exceed m2 ({self.m2})")
+        if self.levels > 1 and self.m1 > self.refine_m2:
+            raise ConfigError(f"m1 ({self.m1}) must not exceed refine_m2 ({self.refine_m2})")
+        if self.levels > 4:
+            raise ConfigError(f"levels must be at most 4 (coarsest cells 8x the finest), got {self.levels}")
+        if self.resolution >> (self.levels - 1) < 2 * self.margin + 4:
+            raise ConfigError(f"resolution {self.resolution} is too small for {self.levels} levels "
+                              f"(coarsest level would have {self.resolution >> (self.levels - 1)} cells)")
         if self.resolution < 2 * self.margin + 4:
             raise ConfigError(f"resolution {self.resolution} is too small for margin {self.margin}")
 
@@ -130,6 +151,15 @@ class SolverConfig:
     def to_dict(self) -> dict:
         """Plain dict of all settings."""
         return dataclasses.asdict(self)
+
+    def level_settings(self, level: int) -> dict:
+        """Iterations, learning-rate schedule and TV band of one level (0 = coarsest)."""
+        last = level == self.levels - 1
+        if level == 0:
+            return {"iterations": self.iterations if last else self.coarse_iterations, "lr": self.lr,
+                    "lr_step": self.lr_step, "m2": self.m2}
+        return {"iterations": self.iterations if last else self.coarse_iterations, "lr": self.refine_lr,
+                "lr_step": self.refine_lr_step, "m2": self.refine_m2}
 
 
 def parse_overrides(items: list[str]) -> dict[str, Any]:

@@ -117,6 +117,23 @@ class Lattice:
         return Lattice(self.origin, self.cell_size, tuple(int(v) for v in shape),
                        tuple(int(v) for v in np.asarray(self.offset) + lo))
 
+    def coarsen(self, factor: int) -> "Lattice":
+        """The lattice with ``factor`` times larger cells sharing this block's vertex ``(0, 0, 0)``.
+
+        Fine vertex ``i`` sits at coarse index ``i / factor``; the coarse block covers the fine one (one more
+        coarse cell where the fine cell count is not a multiple of ``factor``). ``offset`` must be divisible by
+        ``factor`` (tile blocks are multiples of 8).
+        """
+        factor = int(factor)
+        if factor == 1:
+            return self
+        off = np.asarray(self.offset, dtype=np.int64)
+        if factor < 1 or np.any(off % factor):
+            raise ConfigError(f"cannot coarsen a block at offset {self.offset} by {factor}")
+        cells = -(-(np.asarray(self.shape, dtype=np.int64) - 1) // factor)
+        return Lattice(self.origin, self.cell_size * factor, tuple(int(c) + 1 for c in cells),
+                       tuple(int(v) for v in off // factor))
+
     # ------------------------------------------------------------------ properties
     @property
     def n_cells(self) -> tuple[int, int, int]:

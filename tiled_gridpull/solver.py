@@ -23,15 +23,17 @@ from .config import SolverConfig
 from .errors import InputError
 from .field import Field
 from .kernels import CELL_PULL
+from .kernels import interp as ki
 from .kernels import losses as kl
 from .kernels import sampling as ksamp
 from .kernels import step as ks
 from .lattice import Lattice
 from .nearest import NearestPoints
 
-__all__ = ["solve", "sphere_init", "ProgressFn"]
+__all__ = ["solve", "sphere_init", "upsample", "ProgressFn", "InitFn"]
 
 ProgressFn = Callable[[int, int, dict], None]
+InitFn = Callable[[Band], np.ndarray]
 
 MIN_POINTS = 10
 
@@ -56,8 +58,26 @@ def _threads() -> int:
     return int(numba.get_num_threads())
 
 
+def upsample(coarse: Field, band: Band, factor: int = 2, fill: float = 1e3) -> np.ndarray:
+    """Initial values on a finer band from a coarser field (trilinear, rescaled to the finer cells).
+
+    Fine vertex ``i`` sits at coarse index ``i / factor``; a distance of ``d`` coarse cells is ``factor * d``
+    fine cells. Slots whose coarse cell has no values get ``fill`` (they are never parameters: the coarser band
+    is wider in world units).
+
+    Returns
+    -------
+    (n_bricks, 512) float32
+    """
+    pos = (band.slot_positions().astype(np.float64) / factor).astype(np.float32)
+    f, _ = ki.sample_field(coarse.values.reshape(-1), coarse.band.brick_table,
+                           np.asarray(coarse.band.lattice.shape, np.int64), pos, np.float32(fill / factor))
+    # the kernel clamps to the lattice: positions beyond it (slots past the fine block's edge) are never used
+    return (f * np.float32(factor)).reshape(band.n_bricks, 512)
+
+
 def solve(points: np.ndarray, lattice: Lattice, config: SolverConfig, *,
-          normals: np.ndarray | None = None, init_values: np.ndarray | None = None,
+          normals: np.ndarray | None = None, init: InitFn | None = None,
           progress: ProgressFn | None = None, history_every: int = 50) -> Field:
     """Optimize a GridPull field for one cloud on one lattice.
 
@@ -66,46 +86,70 @@ def solve(points: np.ndarray, lattice: Lattice, config: SolverConfig, *,
     points : (N, 3) float64
         Input points, world coordinates (outside points are ignored).
     lattice : Lattice
+        The finest lattice; coarser levels (``config.levels > 1``) coarsen it by powers of 2.
     config : SolverConfig
     normals : (N, 3) float, optional
         Unit normals of the points (used when ``config.normal_weight > 0``).
-    init_values : (n_bricks, 512) float32, optional
-        Initial field for a band built with the same lattice and settings (replaces the sphere).
+    init : callable, optional
+        ``init(band) -> (n_bricks, 512) float32`` initial field (cells) on the coarsest band; default: the
+        paper's sphere of ``config.init_radius`` cells at the lattice centre.
     progress : callable, optional
-        ``progress(iteration, total, stats)`` called every ``history_every`` iterations.
+        ``progress(iteration, total, stats)`` called every ``history_every`` iterations (iterations counted over
+        all levels).
 
     Returns
     -------
     Field
-        The optimized field with ``info`` holding timings, band sizes and a loss history.
+        The optimized field on the finest band, ``info`` holding timings, band sizes and a loss history.
     """
     t0 = time.perf_counter()
     idx = lattice.to_index(points)
     inside = np.all((idx >= 0) & (idx <= np.asarray(lattice.shape) - 1), axis=1)
-    P = np.ascontiguousarray(idx[inside], dtype=np.float32)
-    if len(P) < MIN_POINTS:
-        raise InputError(f"too few points to solve: {len(P)} inside the lattice (need at least {MIN_POINTS})")
+    idx = idx[inside]
+    if len(idx) < MIN_POINTS:
+        raise InputError(f"too few points to solve: {len(idx)} inside the lattice (need at least {MIN_POINTS})")
     N = None
     if normals is not None and config.normal_weight > 0:
         N = np.ascontiguousarray(np.asarray(normals, dtype=np.float32)[inside])
-    band = build_band(P, lattice, config.m1, config.m2)
-    t_band = time.perf_counter()
-    if init_values is None:
-        values = sphere_init(band, config.init_radius)
-    else:
-        values = np.ascontiguousarray(init_values, dtype=np.float32).reshape(band.n_bricks, 512)
-    field = _optimize(P, N, band, values, config, progress, history_every)
-    field.info.update({
-        "points_used": int(len(P)),
-        "band": band.stats,
-        "time_band_s": t_band - t0,
+    levels = config.levels
+    total = sum(config.level_settings(level)["iterations"] for level in range(levels))
+    fld: Field | None = None
+    done = 0
+    per_level = []
+    history: list[dict] = []
+    for level in range(levels):
+        factor = 2 ** (levels - 1 - level)
+        lat = lattice.coarsen(factor)
+        P = np.ascontiguousarray(idx / factor, dtype=np.float32)
+        st = config.level_settings(level)
+        tb = time.perf_counter()
+        band = build_band(P, lat, config.m1, st["m2"])
+        t_band = time.perf_counter() - tb
+        if fld is not None:
+            values = upsample(fld, band)
+        elif init is not None:
+            values = np.ascontiguousarray(init(band), dtype=np.float32).reshape(band.n_bricks, 512)
+        else:
+            values = sphere_init(band, config.init_radius)
+        fld = _optimize(P, N, band, values, config, st, progress, history_every, done, total, level, history)
+        done += st["iterations"]
+        per_level.append({"level": level, "cell_size": lat.cell_size, "shape": list(lat.shape), "band": band.stats,
+                          "time_band_s": t_band, **{k: v for k, v in fld.info.items() if k != "history"}})
+    assert fld is not None
+    fld.info = {
+        "points_used": int(len(idx)),
+        "band": fld.band.stats,
+        "levels": per_level,
+        "history": history,
         "time_total_s": time.perf_counter() - t0,
-    })
-    return field
+    }
+    return fld
 
 
 def _optimize(P: np.ndarray, N: np.ndarray | None, band: Band, values: np.ndarray, cfg: SolverConfig,
-              progress: ProgressFn | None, history_every: int) -> Field:
+              st: dict, progress: ProgressFn | None, history_every: int, it0: int, total: int, level: int,
+              history: list) -> Field:
+    """Run one level's schedule (``st``: iterations, lr, lr_step) on one band."""
     t0 = time.perf_counter()
     # Morton order: stratified centres then come out spatially sorted
     order = np.argsort(ksamp.morton_codes(P), kind="stable")
@@ -131,15 +175,16 @@ def _optimize(P: np.ndarray, N: np.ndarray | None, band: Band, values: np.ndarra
     slots = np.empty((nq, 16), np.int64)
     grads = np.empty((nq, 16), np.float32)
     losses = np.empty((nq, 4), np.float32)
-    empty_normals = np.zeros((0, 3), np.float32)
     centres = np.empty(nq, np.int64)
     q = np.empty((nq, 3), np.float32)
+    empty_normals = np.zeros((0, 3), np.float32)
     beta1, beta2, eps = 0.9, 0.999, 1e-8
-    history: list[dict] = []
+    iterations, lr0, lr_step = st["iterations"], st["lr"], st["lr_step"]
     t_query = t_step = 0.0
-    for it in range(cfg.iterations):
+    for it in range(iterations):
         ta = time.perf_counter()
-        ksamp.draw_queries(P, cfg.seed, it, np.float32(cfg.query_sigma), centres, q)
+        # the iteration number seeds the queries: levels draw different queries
+        ksamp.draw_queries(P, cfg.seed, it0 + it, np.float32(cfg.query_sigma), centres, q)
         nn_idx, _ = nn.query(q, centres)
         s = P[nn_idx]
         nrm = N[nn_idx] if N is not None else empty_normals
@@ -148,7 +193,7 @@ def _optimize(P: np.ndarray, N: np.ndarray | None, band: Band, values: np.ndarra
         if n_valid:
             kl.scatter_add(qgrad, slots, grads, np.float32(1.0 / n_valid))
         tb = time.perf_counter()
-        lr = cfg.lr * cfg.lr_decay ** (it // cfg.lr_step)
+        lr = lr0 * cfg.lr_decay ** (it // lr_step)
         t = it + 1
         lr_t = lr * np.sqrt(1.0 - beta2 ** t) / (1.0 - beta1 ** t)
         tv_sum = 0.0
@@ -161,22 +206,21 @@ def _optimize(P: np.ndarray, N: np.ndarray | None, band: Band, values: np.ndarra
         tc = time.perf_counter()
         t_query += tb - ta
         t_step += tc - tb
-        if history_every and (it % history_every == 0 or it == cfg.iterations - 1):
+        if history_every and (it % history_every == 0 or it == iterations - 1):
             mean = losses.sum(axis=0) / max(n_valid, 1)
             tv = (tv_sum if form == ks.TV_SQRT else tv_sq) / n_params
-            rec = {"iteration": it, "lr": lr, "pull": float(mean[0]), "surface": float(mean[1]),
-                   "gradient": float(mean[2]), "normal": float(mean[3]), "tv": float(tv),
-                   "valid_queries": int(n_valid)}
+            rec = {"iteration": it0 + it, "level": level, "lr": lr, "pull": float(mean[0]),
+                   "surface": float(mean[1]), "gradient": float(mean[2]), "normal": float(mean[3]),
+                   "tv": float(tv), "valid_queries": int(n_valid)}
             history.append(rec)
             if progress is not None:
-                progress(it, cfg.iterations, rec)
+                progress(it0 + it, total, rec)
     info = {
-        "iterations": cfg.iterations,
+        "iterations": iterations,
         "time_solve_s": time.perf_counter() - t0,
         "time_queries_s": t_query,
         "time_steps_s": t_step,
         "nn_fallback_fraction": nn.fallbacks / max(nn.queries, 1),
         "threads": _threads(),
-        "history": history,
     }
     return Field(band, d_a.reshape(band.n_bricks, 512), signed=cfg.mode == "sdf", info=info)

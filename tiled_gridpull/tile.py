@@ -18,6 +18,7 @@ import math
 from collections.abc import Iterable, Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -25,6 +26,10 @@ from .errors import ConfigError
 from .io.atomic import atomic_open, write_json
 from .kernels import BRICK
 from .lattice import Lattice
+
+if TYPE_CHECKING:
+    from .blend import TileField
+    from .config import SolverConfig
 
 __all__ = ["TilingConfig", "TileSpec", "TilePlan", "plan_tiles", "partition", "read_tile_points",
            "ORIENTATIONS"]
@@ -376,3 +381,94 @@ def read_manifest(path: str | Path) -> tuple[dict, list[TileSpec]]:
     """Read a tile manifest: the raw dict and the tile specs."""
     data = json.loads(Path(path).read_text())
     return data, [TileSpec.from_dict(d) for d in data["tiles"]]
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# per-tile processing (called by the sequential driver and by the Dask tasks alike)
+
+
+def _orientation_rule(tiling: TilingConfig, has_sensor: bool) -> str:
+    if tiling.orientation == "auto":
+        return "sensor" if has_sensor else "up"
+    if tiling.orientation == "sensor" and not has_sensor:
+        raise ConfigError("orientation 'sensor' needs sensor origins (KITTI sequences); use 'up' or 'auto'")
+    return tiling.orientation
+
+
+def solve_tile(spec: TileSpec, tiling: TilingConfig, solver: "SolverConfig", field_path: str | Path) -> dict:
+    """Solve one tile and write its field; returns a small summary (never raises for data reasons).
+
+    The field is solved in a tile-local frame (metres from the block's low corner) so float32 is exact, and
+    written with global brick coordinates for the blend pass. Orientation follows ``tiling.orientation``; after
+    the solve the field is flipped if it disagrees with the oriented normals (the loss is sign-blind, so the
+    initial orientation could in principle be lost; every tile applies the same rule, so tiles agree).
+    """
+    import time
+
+    from .errors import GridPullError
+    from .orient import estimate_normals, orient_normals, orientation_score, plane_distance_init
+    from .solver import solve
+
+    t0 = time.perf_counter()
+    summary: dict = {"tile": spec.name, "index": list(spec.index), "points": spec.n_points}
+    try:
+        xyz32, sensor32 = read_tile_points(spec)
+        xyz = xyz32.astype(np.float64)
+        keep = np.unique(xyz32.view(np.dtype((np.void, 12))).ravel(), return_index=True)[1]
+        if len(keep) < len(xyz):
+            keep.sort()
+            summary["duplicates_dropped"] = int(len(xyz) - len(keep))
+            xyz = xyz[keep]
+            sensor32 = sensor32[keep] if sensor32 is not None else None
+        summary["points_used"] = int(len(xyz))
+        if len(xyz) < tiling.min_points:
+            summary.update(status="skipped", reason=f"{len(xyz)} points (< min_points {tiling.min_points})")
+            summary["time_s"] = time.perf_counter() - t0
+            return summary
+        local = Lattice((0.0, 0.0, 0.0), spec.block.cell_size, spec.block.shape)
+        rule = _orientation_rule(tiling, sensor32 is not None)
+        init = None
+        normals = None
+        if rule != "sphere":
+            normals = estimate_normals(xyz, tiling.normal_neighbors)
+            normals = orient_normals(normals, xyz, sensor32.astype(np.float64) if rule == "sensor" else None)
+            init = lambda band: plane_distance_init(band, xyz / band.lattice.cell_size, normals)  # noqa: E731
+        fld = solve(xyz, local, solver, init=init, history_every=100)
+        flipped = False
+        if normals is not None:
+            _, grads = fld.sample(xyz)
+            if orientation_score(grads, normals) < 0:
+                fld.values *= -1
+                flipped = True
+        off_bricks = np.asarray(spec.block.offset, np.int64) // BRICK
+        save_tile_field(field_path, fld.band.brick_coords.astype(np.int64) + off_bricks, fld.values,
+                        fld.band.flags)
+        hist = fld.info.get("history", [])
+        summary.update(status="solved", flipped=flipped, orientation=rule,
+                       band_params=int(fld.band.n_params), bricks=int(fld.band.n_bricks),
+                       final_pull=hist[-1]["pull"] if hist else None,
+                       loss_curve=[(h["iteration"], h["pull"], h["tv"]) for h in hist],
+                       field_path=str(field_path))
+    except GridPullError as exc:
+        summary.update(status="failed", reason=str(exc))
+    summary["time_s"] = time.perf_counter() - t0
+    return summary
+
+
+def save_tile_field(path: str | Path, brick_coords: np.ndarray, values: np.ndarray, flags: np.ndarray) -> None:
+    """Write a tile field (global brick coordinates, values in cells, flags) atomically as ``.npz``."""
+    from .io.atomic import atomic_path
+
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as fh:
+            np.savez(fh, brick_coords=brick_coords, values=values, flags=flags)
+
+
+def load_tile_field(path: str | Path, spec: TileSpec, overlap: int) -> "TileField":
+    """Read a tile field as a :class:`~tiled_gridpull.blend.TileField`."""
+    from .blend import TileField
+
+    with np.load(path) as z:
+        lo = np.asarray(spec.block.offset, np.int64)
+        return TileField(tuple(spec.index), lo, lo + np.asarray(spec.block.shape, np.int64) - 1,
+                         z["brick_coords"].astype(np.int64), z["values"], z["flags"], int(overlap))

@@ -1,0 +1,201 @@
+"""The tiled workflow without Dask: scan, partition, solve, blend + mesh, weld.
+
+``pipeline.job`` runs the same steps as Dask tasks; this module holds the steps and a sequential driver
+(:func:`reconstruct_scene`) so the core runs, and is tested, without a cluster.
+
+A job directory holds everything a run produces, so a finished or interrupted job can be inspected:
+``manifest.json`` (plan, tiles), ``points/`` (spill files), ``fields/`` (solved tile fields), ``pieces/`` (tile
+meshes) and ``summaries/`` (one JSON per finished tile step).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Callable, Iterable
+from pathlib import Path
+
+import numpy as np
+
+from ._version import __version__
+from .config import SolverConfig
+from .errors import InputError
+from .io.atomic import write_json
+from .mesh import Mesh
+from .stitch import load_piece, mesh_tile, weld_pieces
+from .tile import TilePlan, TileSpec, TilingConfig, partition, plan_tiles, solve_tile, write_manifest
+
+__all__ = ["scan_inputs", "prepare_job", "neighbors_of", "finish_job", "reconstruct_scene", "JobPaths"]
+
+
+class JobPaths:
+    """Where a job keeps its intermediate files."""
+
+    def __init__(self, root: str | Path):
+        self.root = Path(root)
+
+    @property
+    def manifest(self) -> Path:
+        return self.root / "manifest.json"
+
+    def points(self) -> Path:
+        return self.root / "points"
+
+    def field(self, spec: TileSpec) -> Path:
+        return self.root / "fields" / f"{spec.name}.npz"
+
+    def piece(self, spec: TileSpec) -> Path:
+        return self.root / "pieces" / f"{spec.name}.npz"
+
+    def summary(self, step: str, spec: TileSpec) -> Path:
+        return self.root / "summaries" / f"{step}_{spec.name}.json"
+
+
+def scan_inputs(inputs: list[str], chunk_size: int = 2_000_000, frames=None) -> dict:
+    """One streaming pass: bounds, point count and whether sensor origins are known."""
+    from .io.points import iter_point_chunks
+
+    lo = np.full(3, np.inf)
+    hi = np.full(3, -np.inf)
+    n = 0
+    has_sensor = True
+    crs = None
+    for chunk in _chunks(inputs, chunk_size, frames):
+        if len(chunk) == 0:
+            continue
+        lo = np.minimum(lo, chunk.xyz.min(axis=0))
+        hi = np.maximum(hi, chunk.xyz.max(axis=0))
+        n += len(chunk)
+        has_sensor &= chunk.sensor is not None
+        crs = crs or chunk.crs
+    if n == 0:
+        raise InputError(f"{', '.join(map(str, inputs))}: no points")
+    return {"bounds": np.stack([lo, hi]), "points": n, "has_sensor": bool(has_sensor), "crs": crs}
+
+
+def _chunks(inputs, chunk_size, frames):
+    from .io.points import iter_point_chunks, read_kitti_sequence
+
+    for path in inputs:
+        p = Path(path)
+        if p.is_dir():
+            cloud = read_kitti_sequence(p, frames)
+            for s in range(0, len(cloud), chunk_size):
+                from .io.points import PointCloud
+
+                yield PointCloud(cloud.xyz[s:s + chunk_size], sensor=cloud.sensor[s:s + chunk_size],
+                                 source=cloud.source, crs=cloud.crs)
+        else:
+            yield from iter_point_chunks([p], chunk_size)
+
+
+def prepare_job(inputs: list[str], tiling: TilingConfig, paths: JobPaths, *, frames=None,
+                chunk_size: int = 2_000_000) -> tuple[TilePlan, list[TileSpec], dict]:
+    """Scan and partition the inputs into tiles; writes the manifest. Returns the plan, tiles and scan facts."""
+    scan = scan_inputs(inputs, chunk_size, frames)
+    plan = plan_tiles(scan["bounds"], scan["points"], tiling)
+    specs = partition(_chunks(inputs, chunk_size, frames), plan, paths.points(), scan["has_sensor"])
+    write_manifest(paths.manifest, plan, specs, {"inputs": [str(Path(p).resolve()) for p in inputs],
+                                                 "crs": scan["crs"], "version": __version__})
+    return plan, specs, scan
+
+
+def neighbors_of(spec: TileSpec, solved: dict[tuple, TileSpec]) -> list[TileSpec]:
+    """Solved tiles whose blocks overlap ``spec``'s (the 26 around it)."""
+    out = []
+    i, j, k = spec.index
+    for di in (-1, 0, 1):
+        for dj in (-1, 0, 1):
+            for dk in (-1, 0, 1):
+                if di == dj == dk == 0:
+                    continue
+                t = solved.get((i + di, j + dj, k + dk))
+                if t is not None:
+                    out.append(t)
+    return out
+
+
+def key_reference(plan: TilePlan) -> np.ndarray:
+    """Global vertex index edge keys count from (below every tile block)."""
+    return np.asarray(plan.lattice.offset, np.int64) - plan.config.overlap_cells
+
+
+def finish_job(pieces: Iterable[Path], output: str | Path | None, metadata: dict, *,
+               float32: bool = False) -> Mesh:
+    """Weld the tile pieces into one mesh and write it (and its JSON sidecar) atomically."""
+    from .io import write_mesh, write_sidecar
+
+    mesh = weld_pieces([load_piece(p) for p in pieces])
+    mesh.metadata.update(metadata)
+    mesh.metadata["mesh"] = mesh.topology.to_dict()
+    if output is not None:
+        write_mesh(mesh, output, float32=float32)
+        write_sidecar(output, mesh.metadata)
+    return mesh
+
+
+def reconstruct_scene(inputs: list[str], output: str | Path | None, tiling: TilingConfig, solver: SolverConfig,
+                      work_dir: str | Path, *, frames=None, float32: bool = False,
+                      log: Callable[[str], None] | None = None) -> Mesh:
+    """Tiled reconstruction, one tile after the other in this process (no Dask).
+
+    Returns the welded mesh; ``mesh.metadata`` describes the job (lattice, settings, per-tile summaries,
+    timings).
+    """
+    t0 = time.perf_counter()
+    paths = JobPaths(work_dir)
+    plan, specs, scan = prepare_job(inputs, tiling, paths, frames=frames)
+    t_part = time.perf_counter()
+    solved: dict[tuple, TileSpec] = {}
+    summaries = []
+    for spec in specs:
+        s = solve_tile(spec, tiling, solver, paths.field(spec))
+        summaries.append(s)
+        if s["status"] == "solved":
+            solved[spec.index] = spec
+        if log:
+            log(f"{spec.name}: {s['status']} ({s.get('reason', '')}{s['time_s']:.1f} s)")
+    t_solve = time.perf_counter()
+    ref = key_reference(plan)
+    mesh_summaries = []
+    for spec in solved.values():
+        nb = [(n, paths.field(n)) for n in neighbors_of(spec, solved)]
+        mesh_summaries.append(mesh_tile(spec, nb, tiling, ref, paths.field(spec), paths.piece(spec)))
+    t_mesh = time.perf_counter()
+    meta = job_metadata(plan, tiling, solver, scan, summaries, mesh_summaries,
+                        {"partition": t_part - t0, "solve": t_solve - t_part, "mesh": t_mesh - t_solve})
+    mesh = finish_job([paths.piece(s) for s in solved.values()], output, meta, float32=float32)
+    mesh.metadata["timings_s"]["merge"] = time.perf_counter() - t_mesh
+    mesh.metadata["timings_s"]["total"] = time.perf_counter() - t0
+    if output is not None:
+        from .io import write_sidecar
+
+        write_sidecar(output, mesh.metadata)
+    return mesh
+
+
+def job_metadata(plan: TilePlan, tiling: TilingConfig, solver: SolverConfig, scan: dict, solve_summaries: list,
+                 mesh_summaries: list, timings: dict) -> dict:
+    """The self-describing record written beside a scene mesh."""
+    failed = [s for s in solve_summaries if s["status"] != "solved"]
+    return {
+        "generator": f"tiled_gridpull {__version__}",
+        "version": __version__,
+        "lattice": plan.lattice.to_dict(),
+        "tiling": tiling.to_dict(),
+        "config": solver.to_dict(),
+        "input": {"points": scan["points"], "bounds": np.asarray(scan["bounds"]).tolist(),
+                  "has_sensor": scan["has_sensor"]},
+        "crs": scan.get("crs"),
+        "tiles": {"planned": int(np.prod(plan.tile_range)), "with_points": len(solve_summaries),
+                  "solved": len(solve_summaries) - len(failed),
+                  "not_solved": [{"tile": s["tile"], "status": s["status"], "reason": s.get("reason")} for s in failed]},
+        "tile_summaries": [{k: v for k, v in s.items() if k != "loss_curve"} for s in solve_summaries],
+        "mesh_summaries": mesh_summaries,
+        "timings_s": dict(timings),
+    }
+
+
+def read_job_summary(output: str | Path) -> dict:
+    """The sidecar JSON of a scene mesh."""
+    return json.loads(Path(output).with_suffix(".json").read_text())
