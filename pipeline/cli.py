@@ -19,8 +19,15 @@ from tiled_gridpull.errors import GridPullError
 log = logging.getLogger("tiled_gridpull")
 
 
-class _Formatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
-    pass
+class _Formatter(argparse.RawDescriptionHelpFormatter):
+    """Shows the default of options that have one (settings left to the config file say so in their help)."""
+
+    def _get_help_string(self, action):
+        text = action.help or ""
+        if "%(default)" not in text and action.default not in (None, False, argparse.SUPPRESS) \
+                and action.option_strings and action.nargs != 0:
+            text += " (default: %(default)s)"
+        return text
 
 
 def _add_common(p: argparse.ArgumentParser) -> None:
@@ -58,7 +65,29 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--mode", choices=("sdf", "udf"), help="signed (closed surfaces) or unsigned (open) field")
     r.add_argument("--float32", action="store_true",
                    help="store vertices as float32 relative to an offset recorded in the header (half the size)")
+    t = r.add_argument_group("tiled mode (scenes; enabled by --voxel-size or a config that sets voxel_size)")
+    t.add_argument("--voxel-size", type=float, help="cell size in the data's units (e.g. 0.1 for 10 cm)")
+    t.add_argument("--tile-size", type=float, help="tile core size in the data's units (default 25.6)")
+    t.add_argument("--overlap", type=float, help="overlap solved around each tile (default 3.2)")
+    t.add_argument("--workers", type=int, help="worker processes of the local Dask cluster (default: one per core)")
+    t.add_argument("--scheduler", metavar="ADDR", help="run on an existing Dask scheduler, e.g. tcp://host:8786")
+    t.add_argument("--work-dir", help="job directory for intermediate files (default: OUTPUT with .job suffix)")
+    t.add_argument("--frames", metavar="START:STOP", help="KITTI sequences: frame range, e.g. 3000:4000")
+    t.add_argument("--fail-fast", action="store_true", help="stop at the first tile that fails")
     _add_common(r)
+
+    sm = sub.add_parser("sample", formatter_class=_Formatter, help="write a synthetic sample with ground truth",
+                        description="Synthetic data made by the project: a street scanned by a simulated 64-beam "
+                                    "LiDAR (LAZ and/or KITTI sequence, with its ground-truth mesh) or an analytic "
+                                    "shape (PLY points + ground-truth mesh).")
+    sm.add_argument("kind", choices=("street", "sphere", "torus", "box"))
+    sm.add_argument("out_dir")
+    sm.add_argument("--points", type=int, default=300_000, help="approximate number of points")
+    sm.add_argument("--kitti", action="store_true", help="street: also write a KITTI-format sequence")
+    sm.add_argument("--origin", type=float, nargs=3, default=(0.0, 0.0, 0.0), metavar=("X", "Y", "Z"),
+                    help="street: offset added to every coordinate (e.g. UTM-like 500000 4000000 100)")
+    sm.add_argument("--seed", type=int, default=0)
+    _add_common(sm)
 
     e = sub.add_parser("evaluate", formatter_class=_Formatter,
                        help="accuracy of a mesh against a ground-truth mesh",
@@ -72,6 +101,10 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--normalize", action="store_true",
                    help="scale both meshes by the GT's bounding box (longest side 1) before measuring")
     e.add_argument("--no-exact", action="store_true", help="skip the exact point-to-surface distances")
+    e.add_argument("--observed", metavar="CLOUD",
+                   help="score only the ground truth observed by this point cloud (partial scans)")
+    e.add_argument("--observed-radius", type=float, default=0.2,
+                   help="with --observed: GT samples farther than this from every input point are left out")
     e.add_argument("--json", action="store_true", help="print JSON instead of a table")
     _add_common(e)
     return parser
@@ -84,23 +117,44 @@ def _setup_logging(args) -> None:
     logging.captureWarnings(True)
 
 
-def _solver_settings(args) -> dict:
-    from tiled_gridpull.config import load_config_file, parse_overrides
+_CLI_KEYS = {"resolution": "resolution", "iterations": "iterations", "seed": "seed", "mode": "mode",
+             "voxel_size": "voxel_size", "tile_size": "tile_size", "overlap": "overlap"}
+
+
+def resolve_settings(args) -> tuple:
+    """Config file, then ``--set``, then explicit options -> validated (SolverConfig, TilingConfig or None).
+
+    Every key is checked before any data is read: unknown keys and bad values are refused with one line.
+    """
+    from tiled_gridpull.config import SolverConfig, load_config_file, parse_overrides
+    from tiled_gridpull.errors import ConfigError
+    from tiled_gridpull.tile import TilingConfig
 
     settings: dict = {}
     if args.config:
         settings.update(load_config_file(args.config))
     settings.update(parse_overrides(args.overrides))
-    for key in ("resolution", "iterations", "seed", "mode"):
-        value = getattr(args, key, None)
+    for attr, key in _CLI_KEYS.items():
+        value = getattr(args, attr, None)
         if value is not None:
             settings[key] = value
-    return settings
+    solver_keys = set(SolverConfig.__dataclass_fields__)
+    tiling_keys = set(TilingConfig.__dataclass_fields__)
+    unknown = set(settings) - solver_keys - tiling_keys
+    if unknown:
+        raise ConfigError(f"unknown setting(s): {', '.join(sorted(unknown))}")
+    solver = SolverConfig(**{k: v for k, v in settings.items() if k in solver_keys})
+    tiling_settings = {k: v for k, v in settings.items() if k in tiling_keys}
+    tiling = None
+    if "voxel_size" in tiling_settings:
+        tiling = TilingConfig(**tiling_settings)
+    elif tiling_settings:
+        raise ConfigError(f"tiling setting(s) {', '.join(sorted(tiling_settings))} need voxel_size (tiled mode)")
+    return solver, tiling
 
 
 def cmd_reconstruct(args) -> int:
     """Run ``reconstruct``."""
-    from tiled_gridpull.config import SolverConfig
     from tiled_gridpull.errors import ConfigError, InputError
     from tiled_gridpull.io import read_points, write_mesh, write_sidecar
     from tiled_gridpull.reconstruct import reconstruct
@@ -108,11 +162,12 @@ def cmd_reconstruct(args) -> int:
     out = Path(args.output)
     if out.suffix.lower() not in (".ply", ".obj"):
         raise ConfigError(f"output {out}: use a .ply or .obj file name")
-    settings = _solver_settings(args)
-    unknown = set(settings) - set(SolverConfig.__dataclass_fields__)
-    if unknown:
-        raise ConfigError(f"unknown setting(s): {', '.join(sorted(unknown))}")
-    cfg = SolverConfig(**settings)  # validated before any file is read
+    cfg, tiling = resolve_settings(args)  # validated before any file is read
+    if tiling is not None:
+        return _reconstruct_tiled(args, out, cfg, tiling)
+    for opt in ("workers", "scheduler", "work_dir", "frames"):
+        if getattr(args, opt, None) is not None:
+            raise ConfigError(f"--{opt.replace('_', '-')} applies to tiled mode: give --voxel-size too")
     if len(args.inputs) != 1:
         raise InputError("one-shape mode reads one input; give --voxel-size to reconstruct several files as tiles")
     cloud = read_points(args.inputs[0])
@@ -132,6 +187,83 @@ def cmd_reconstruct(args) -> int:
     log.info("wrote %s: %d vertices, %d faces, %d component(s), %s in %.1f s", out, topo.n_vertices, topo.n_faces,
              topo.components, "watertight" if topo.watertight else f"{topo.boundary_edges} boundary edges",
              mesh.metadata["timings_s"]["total"])
+    return 0
+
+
+def _parse_frames(text):
+    from tiled_gridpull.errors import ConfigError
+
+    if text is None:
+        return None
+    try:
+        a, b = text.split(":")
+        start, stop = int(a), int(b)
+    except ValueError:
+        raise ConfigError(f"--frames expects START:STOP, got {text!r}") from None
+    if start < 0 or stop <= start:
+        raise ConfigError(f"--frames {text}: need 0 <= START < STOP")
+    return (start, stop)
+
+
+def _reconstruct_tiled(args, out: Path, solver, tiling) -> int:
+    from pipeline.job import JobOptions, run_job
+    from tiled_gridpull.errors import ConfigError, InputError
+
+    if args.workers is not None and args.workers < 1:
+        raise ConfigError(f"--workers must be >= 1, got {args.workers}")
+    if out.suffix.lower() != ".ply":
+        raise ConfigError(f"output {out}: tiled mode writes PLY")
+    frames = _parse_frames(args.frames)
+    for p in args.inputs:
+        if not Path(p).exists():
+            raise InputError(f"{p}: file not found")
+    work = Path(args.work_dir) if args.work_dir else out.with_suffix(".job")
+    opts = JobOptions(workers=args.workers, scheduler=args.scheduler, fail_fast=args.fail_fast,
+                      float32=args.float32, progress=not args.quiet)
+    mesh = run_job(args.inputs, out, tiling, solver, work, opts, frames=frames)
+    topo = mesh.topology
+    tiles = mesh.metadata["tiles"]
+    log.info("wrote %s: %d vertices, %d faces, %d boundary edges; %d/%d tiles solved in %.1f s (job files in %s)",
+             out, topo.n_vertices, topo.n_faces, topo.boundary_edges, tiles["solved"], tiles["with_points"],
+             mesh.metadata["timings_s"]["total"], work)
+    for t in tiles["not_solved"]:
+        log.warning("tile %s %s: %s", t["tile"], t["status"], t["reason"])
+    failed = [t for t in tiles["not_solved"] if t["status"] == "failed"]
+    if failed:
+        return 6
+    return 0
+
+
+def cmd_sample(args) -> int:
+    """Run ``sample``."""
+    from tiled_gridpull.errors import ConfigError
+
+    if args.points < 100:
+        raise ConfigError(f"--points must be at least 100, got {args.points}")
+    out = Path(args.out_dir)
+    if args.kind == "street":
+        from tiled_gridpull.synthetic.street import make_street_sample
+
+        formats = ("laz", "kitti") if args.kitti else ("laz",)
+        info = make_street_sample(out, n_points=args.points, seed=args.seed, origin=tuple(args.origin),
+                                  formats=formats)
+        log.info("wrote %s (%d points, %d frames) and ground truth %s", info["points"], info["n_points"],
+                 info["n_frames"], info["gt_mesh"])
+        return 0
+    from tiled_gridpull import synthetic
+    from tiled_gridpull.io import write_mesh
+    from tiled_gridpull.io.atomic import atomic_path
+
+    mesh = getattr(synthetic, args.kind)()
+    pts, nrm = synthetic.sample_shape(mesh, args.points, seed=args.seed)
+    out.mkdir(parents=True, exist_ok=True)
+    import numpy as np
+
+    with atomic_path(out / f"{args.kind}.xyz") as tmp:
+        np.savetxt(tmp, np.hstack([pts, nrm]), fmt="%.9g")
+    write_mesh(mesh, out / f"{args.kind}_gt.ply")
+    log.info("wrote %s (%d points with normals) and ground truth %s", out / f"{args.kind}.xyz", args.points,
+             out / f"{args.kind}_gt.ply")
     return 0
 
 
@@ -166,12 +298,22 @@ def cmd_evaluate(args) -> int:
 
     pred = read_mesh(args.mesh)
     gt = read_mesh(args.gt)
+    centre, scale = np.zeros(3), 1.0
     if args.normalize:
         lo, hi = gt.vertices.min(0), gt.vertices.max(0)
         centre, scale = (lo + hi) / 2, float((hi - lo).max())
         pred = Mesh((pred.vertices - centre) / scale, pred.faces)
         gt = Mesh((gt.vertices - centre) / scale, gt.faces)
-    res = evaluate(pred, gt, n_samples=args.samples, thresholds=tuple(args.thresholds), exact=not args.no_exact)
+    observed = None
+    if args.observed:
+        from tiled_gridpull.io import read_points
+
+        observed = read_points(args.observed).xyz
+    if args.normalize:
+        if observed is not None:
+            observed = (observed - centre) / scale
+    res = evaluate(pred, gt, n_samples=args.samples, thresholds=tuple(args.thresholds), exact=not args.no_exact,
+                   observed=observed, observed_radius=args.observed_radius / (scale if args.normalize else 1.0))
     if args.json:
         print(json.dumps(res, indent=2, sort_keys=True, default=lambda o: o.item() if isinstance(o, np.generic) else str(o)))
     else:
@@ -181,7 +323,7 @@ def cmd_evaluate(args) -> int:
     return 0
 
 
-COMMANDS = {"reconstruct": cmd_reconstruct, "evaluate": cmd_evaluate}
+COMMANDS = {"reconstruct": cmd_reconstruct, "evaluate": cmd_evaluate, "sample": cmd_sample}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -23,7 +23,8 @@ from pathlib import Path
 from tiled_gridpull.config import SolverConfig
 from tiled_gridpull.errors import TileFailedError
 from tiled_gridpull.mesh import Mesh
-from tiled_gridpull.scene import JobPaths, finish_job, job_metadata, key_reference, neighbors_of, prepare_job
+from tiled_gridpull.scene import (JobPaths, finish_job, job_metadata, key_reference, neighbors_of, plan_centre,
+                                  prepare_job)
 from tiled_gridpull.tile import TileSpec, TilingConfig
 
 log = logging.getLogger("tiled_gridpull")
@@ -70,6 +71,9 @@ def make_client(options: JobOptions, n_tiles: int):
 
     if options.scheduler:
         return Client(options.scheduler, timeout="30s"), None
+    if not log.isEnabledFor(logging.DEBUG):
+        # the scheduler of a LocalCluster lives in this process: keep its chatter out of the user's terminal
+        logging.getLogger("distributed").setLevel(logging.ERROR)
     cores = os.cpu_count() or 1
     workers = options.workers or max(1, min(cores, n_tiles))
     threads = _threads_for(workers)
@@ -98,12 +102,12 @@ def _configure_worker_threads() -> None:
         numba.set_num_threads(min(want, numba.config.NUMBA_NUM_THREADS))
 
 
-def solve_task(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig, field_path: str) -> dict:
+def solve_task(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig, field_path: str, centre) -> dict:
     """Dask task: solve one tile (see :func:`tiled_gridpull.tile.solve_tile`)."""
     from tiled_gridpull.tile import solve_tile
 
     _configure_worker_threads()
-    return solve_tile(spec, tiling, solver, field_path)
+    return solve_tile(spec, tiling, solver, field_path, centre=centre)
 
 
 def mesh_task(spec: TileSpec, own: dict, neighbor_specs: list, neighbor_summaries: list, tiling: TilingConfig,
@@ -136,8 +140,9 @@ def run_job(inputs: list[str], output: str | Path, tiling: TilingConfig, solver:
     try:
         by_index = {s.index: s for s in specs}
         field_paths = {s.name: str(paths.field(s)) for s in specs}
-        solve_futs = {s.index: client.submit(solve_task, s, tiling, solver, field_paths[s.name], key=f"solve-{s.name}",
-                                             retries=options.retries, pure=False)
+        centre = plan_centre(plan)
+        solve_futs = {s.index: client.submit(solve_task, s, tiling, solver, field_paths[s.name], centre,
+                                             key=f"solve-{s.name}", retries=options.retries, pure=False)
                       for s in specs}
         ref = key_reference(plan)
         mesh_futs = {}

@@ -18,9 +18,10 @@ __all__ = ["SolverConfig", "load_config_file", "parse_overrides"]
 
 _CHOICES = {
     "tv_form": ("squared", "sqrt"),
+    "refine_tv_form": ("squared", "sqrt"),
     "surface_form": ("abs", "squared"),
     "mode": ("sdf", "udf"),
-    "init": ("sphere", "normals"),
+    "init": ("sphere", "flood"),
 }
 
 
@@ -51,9 +52,11 @@ class SolverConfig:
         ``|f(s)|`` (paper) or ``f(s)^2`` (authors' code).
     query_sigma : float
         Standard deviation of the query noise in cells (paper text: 2 cells; authors' code: ~0.05).
-    init : {"sphere", "normals"}
-        Sphere of ``init_radius`` cells at the lattice centre (paper), or a signed distance to the tangent
-        planes of oriented normals (scenes: orientation from sensor positions).
+    init : {"sphere", "flood"}
+        Sphere of ``init_radius`` cells at the lattice centre (paper: right for shapes that are star-shaped
+        around their bounding-box centre), or inside/outside from a flood fill of the coarsest grid from its
+        border (closed shapes of any topology; falls back to the sphere when no inside region exists). Tiled
+        scenes start from oriented normals instead (see ``TilingConfig.orientation``).
     init_radius : float
         Sphere radius in cells (paper: one or two cells).
     mode : {"sdf", "udf"}
@@ -68,6 +71,10 @@ class SolverConfig:
         ``iterations``, the others ``coarse_iterations``.
     coarse_iterations, refine_m2, refine_lr, refine_lr_step
         See ``levels``.
+    refine_gamma, refine_sigma, refine_tv_form
+        Gradient-consistency weight, query noise (cells) and TV form of the refinement levels. Once the coarse level
+        has settled inside and outside, wider queries and a strong gradient-consistency term smooth the
+        surface at the cell scale (see docs/solver.md for the measurements).
     knn : int
         Candidate list size of the nearest-neighbour cache.
     seed : int
@@ -78,7 +85,7 @@ class SolverConfig:
     margin: int = 4
     m1: int = 3
     m2: int = 14
-    iterations: int = 1600
+    iterations: int = 800
     queries: int = 50_000
     lr: float = 1.0
     lr_decay: float = 0.3
@@ -86,18 +93,21 @@ class SolverConfig:
     alpha: float = 1.0
     beta: float = 1.0
     gamma: float = 0.005
-    tv_form: str = "squared"
+    tv_form: str = "sqrt"
     surface_form: str = "abs"
-    query_sigma: float = 0.1
+    query_sigma: float = 0.2
     init: str = "sphere"
     init_radius: float = 2.0
     mode: str = "sdf"
     normal_weight: float = 0.0
-    levels: int = 1
+    levels: int = 3
     coarse_iterations: int = 800
-    refine_m2: int = 14
+    refine_m2: int = 8
     refine_lr: float = 0.3
     refine_lr_step: int = 200
+    refine_gamma: float = 3.0
+    refine_sigma: float = 0.5
+    refine_tv_form: str = "squared"
     knn: int = 16
     seed: int = 0
 
@@ -118,12 +128,12 @@ class SolverConfig:
                 if value not in _CHOICES[f.name]:
                     raise ConfigError(f"{f.name} must be one of {', '.join(_CHOICES[f.name])}; got {value!r}")
         positive = ["resolution", "iterations", "queries", "lr", "lr_step", "knn", "levels", "coarse_iterations",
-                    "refine_lr", "refine_lr_step"]
+                    "refine_lr", "refine_lr_step", "refine_sigma"]
         for name in positive:
             if getattr(self, name) <= 0:
                 raise ConfigError(f"{name} must be positive, got {getattr(self, name)!r}")
         nonneg = ["margin", "m1", "m2", "alpha", "beta", "gamma", "query_sigma", "init_radius", "normal_weight",
-                  "seed", "refine_m2"]
+                  "seed", "refine_m2", "refine_gamma"]
         for name in nonneg:
             if getattr(self, name) < 0:
                 raise ConfigError(f"{name} must be >= 0, got {getattr(self, name)!r}")
@@ -153,13 +163,15 @@ class SolverConfig:
         return dataclasses.asdict(self)
 
     def level_settings(self, level: int) -> dict:
-        """Iterations, learning-rate schedule and TV band of one level (0 = coarsest)."""
+        """Iterations, learning-rate schedule, TV band, gradient weight and query noise of one level (0 = coarsest)."""
         last = level == self.levels - 1
         if level == 0:
             return {"iterations": self.iterations if last else self.coarse_iterations, "lr": self.lr,
-                    "lr_step": self.lr_step, "m2": self.m2}
+                    "lr_step": self.lr_step, "m2": self.m2, "gamma": self.gamma, "sigma": self.query_sigma,
+                    "tv_form": self.tv_form}
         return {"iterations": self.iterations if last else self.coarse_iterations, "lr": self.refine_lr,
-                "lr_step": self.refine_lr_step, "m2": self.refine_m2}
+                "lr_step": self.refine_lr_step, "m2": self.refine_m2, "gamma": self.refine_gamma,
+                "sigma": self.refine_sigma, "tv_form": self.refine_tv_form}
 
 
 def parse_overrides(items: list[str]) -> dict[str, Any]:

@@ -75,6 +75,15 @@ def point_to_mesh(points: np.ndarray, mesh: Mesh) -> tuple[np.ndarray, np.ndarra
     return dist, np.asarray(face, dtype=np.int64)
 
 
+def _near(pts: np.ndarray, nrm: np.ndarray, ref: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
+    """Samples within ``radius`` of a reference cloud (distances from a local origin: georeferenced-safe)."""
+    ref = np.asarray(ref, dtype=np.float64)
+    c = ref.mean(axis=0)
+    d, _ = KDTree(ref - c).query(pts - c, k=1, distance_upper_bound=radius * 1.0001)
+    keep = np.isfinite(d) & (d <= radius)
+    return pts[keep], nrm[keep]
+
+
 def _fscore(acc_d: np.ndarray, comp_d: np.ndarray, tau: float) -> tuple[float, float, float]:
     precision = float(np.mean(acc_d <= tau))
     recall = float(np.mean(comp_d <= tau))
@@ -83,7 +92,8 @@ def _fscore(acc_d: np.ndarray, comp_d: np.ndarray, tau: float) -> tuple[float, f
 
 
 def evaluate(pred: Mesh, gt: Mesh, n_samples: int = 100_000, thresholds=DEFAULT_THRESHOLDS,
-             exact: bool = True, seed: int = 0) -> dict:
+             exact: bool = True, seed: int = 0, observed: np.ndarray | None = None,
+             observed_radius: float = 0.0) -> dict:
     """All metrics of ``pred`` against ``gt`` (same units; distances in those units).
 
     Parameters
@@ -96,6 +106,12 @@ def evaluate(pred: Mesh, gt: Mesh, n_samples: int = 100_000, thresholds=DEFAULT_
     exact : bool
         Also compute the exact point-to-surface variants.
     seed : int
+    observed : (M, 3) float, optional
+        The input points: ground-truth samples farther than ``observed_radius`` from every input point are left
+        out, so a partial scan is scored over what it observed (unscanned building backs and floors are not
+        "missing"). The reconstruction's samples are all kept: surfaces invented far from the data still count
+        against accuracy.
+    observed_radius : float
 
     Returns
     -------
@@ -108,6 +124,10 @@ def evaluate(pred: Mesh, gt: Mesh, n_samples: int = 100_000, thresholds=DEFAULT_
         raise ValueError("the reconstructed mesh has no faces")
     p_pts, p_nrm = sample_surface(pred, n_samples, seed)
     g_pts, g_nrm = sample_surface(gt, n_samples, seed + 1)
+    if observed is not None:
+        g_pts, g_nrm = _near(g_pts, g_nrm, observed, observed_radius)
+        if len(g_pts) == 0:
+            raise ValueError("no ground-truth sample lies within observed_radius of the input points")
     acc_d, acc_i = KDTree(g_pts).query(p_pts, k=1)
     comp_d, comp_i = KDTree(p_pts).query(g_pts, k=1)
     acc_d = acc_d.astype(np.float64)
@@ -116,6 +136,7 @@ def evaluate(pred: Mesh, gt: Mesh, n_samples: int = 100_000, thresholds=DEFAULT_
                 + np.abs(np.einsum("ij,ij->i", g_nrm, p_nrm[comp_i])).mean())
     out: dict = {
         "n_samples": int(n_samples),
+        "gt_samples_used": int(len(g_pts)),
         "accuracy": float(acc_d.mean()),
         "completeness": float(comp_d.mean()),
         "chamfer_l1": float(0.5 * (acc_d.mean() + comp_d.mean())),

@@ -1,8 +1,8 @@
 """Nearest input point of each query: pykdtree, sped up by a k-nearest-neighbour cache.
 
 Queries are always drawn around input points. :class:`NearestPoints` keeps, for every input point, its ``k``
-nearest neighbours (one pykdtree query at set-up); a query close enough to its centre is answered exactly
-from that short list (see :mod:`tiled_gridpull.kernels.nn`), the rest by the KD-tree itself.
+nearest neighbours (one pykdtree query at set-up); a query whose best candidate provably beats every point
+outside that list is answered from it (see :mod:`tiled_gridpull.kernels.nn`), the rest by the KD-tree itself.
 """
 
 from __future__ import annotations
@@ -26,17 +26,39 @@ class NearestPoints:
         Size of the per-point candidate list.
     """
 
-    def __init__(self, points: np.ndarray, k: int = 8):
+    def __init__(self, points: np.ndarray, k: int = 8, sigma: float | None = None, k_max: int = 64):
         self.points = np.ascontiguousarray(points, dtype=np.float32)
         self.tree = KDTree(self.points)
+        if sigma is not None:
+            k = self.candidates_for(sigma, k, k_max)
         k = int(min(k, len(self.points)))
         d, idx = self.tree.query(self.points, k=k)
         if k == 1:
             d, idx = d[:, None], idx[:, None]
         self.knn = np.ascontiguousarray(idx, dtype=np.int32)
-        self.radius = np.ascontiguousarray(d[:, -1], dtype=np.float32)
+        self.knn_dist = np.ascontiguousarray(d, dtype=np.float32)
         self.fallbacks = 0
         self.queries = 0
+
+    def candidates_for(self, sigma: float, k_min: int, k_max: int, sample: int = 2000) -> int:
+        """Smallest list size (power of two in ``[k_min, k_max]``) whose radius covers most queries.
+
+        A query at distance ``r`` from its centre takes the fast path when its best candidate is within
+        ``r_k - r``; Gaussian offsets of standard deviation ``sigma`` stay within ``2.5 sigma`` nine times out
+        of ten and the best candidate is about as far as the query's offset from the surface, so aim for a median
+        ``r_k >= 5 sigma``.
+        """
+        n = len(self.points)
+        if n <= k_min:
+            return k_min
+        pick = np.linspace(0, n - 1, min(sample, n)).astype(np.int64)
+        kk = int(min(k_max, n))
+        d, _ = self.tree.query(self.points[pick], k=kk)
+        d = d.reshape(len(pick), kk)
+        k = k_min
+        while k < kk and np.median(d[:, k - 1]) < 5.0 * sigma:
+            k *= 2
+        return int(min(k, kk))
 
     def query(self, q: np.ndarray, centres: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Nearest input point of each query.
@@ -59,7 +81,7 @@ class NearestPoints:
             return i.astype(np.int64), d.astype(np.float32)
         idx = np.empty(len(q), np.int64)
         d2 = np.empty(len(q), np.float32)
-        miss = knn_kernels.nearest_from_candidates(self.points, self.knn, self.radius,
+        miss = knn_kernels.nearest_from_candidates(self.points, self.knn, self.knn_dist,
                                                    np.ascontiguousarray(centres, dtype=np.int64), q, idx, d2)
         if miss:
             self.fallbacks += miss

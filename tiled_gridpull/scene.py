@@ -25,7 +25,8 @@ from .mesh import Mesh
 from .stitch import load_piece, mesh_tile, weld_pieces
 from .tile import TilePlan, TileSpec, TilingConfig, partition, plan_tiles, solve_tile, write_manifest
 
-__all__ = ["scan_inputs", "prepare_job", "neighbors_of", "finish_job", "reconstruct_scene", "JobPaths"]
+__all__ = ["scan_inputs", "prepare_job", "neighbors_of", "finish_job", "reconstruct_scene", "JobPaths",
+           "plan_centre", "key_reference", "job_metadata"]
 
 
 class JobPaths:
@@ -115,6 +116,11 @@ def neighbors_of(spec: TileSpec, solved: dict[tuple, TileSpec]) -> list[TileSpec
     return out
 
 
+def plan_centre(plan: TilePlan) -> tuple[float, float, float]:
+    """Centre of the input's bounding box (world), for the ``outward`` orientation rule."""
+    return tuple(float(v) for v in plan.bounds.mean(axis=0))
+
+
 def key_reference(plan: TilePlan) -> np.ndarray:
     """Global vertex index edge keys count from (below every tile block)."""
     return np.asarray(plan.lattice.offset, np.int64) - plan.config.overlap_cells
@@ -149,7 +155,7 @@ def reconstruct_scene(inputs: list[str], output: str | Path | None, tiling: Tili
     solved: dict[tuple, TileSpec] = {}
     summaries = []
     for spec in specs:
-        s = solve_tile(spec, tiling, solver, paths.field(spec))
+        s = solve_tile(spec, tiling, solver, paths.field(spec), centre=plan_centre(plan))
         summaries.append(s)
         if s["status"] == "solved":
             solved[spec.index] = spec

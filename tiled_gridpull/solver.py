@@ -52,6 +52,25 @@ def sphere_init(band: Band, radius: float, centre: np.ndarray | None = None) -> 
     return d.astype(np.float32).reshape(band.n_bricks, 512)
 
 
+COARSE_POINTS_PER_CELL = 4
+
+
+def _thin(P: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """At most ~``COARSE_POINTS_PER_CELL`` points per occupied cell, chosen at random (coarse levels).
+
+    A coarse cell holds many points; its field needs a few. Thinning keeps the queries' nearest neighbours
+    a fraction of a cell apart, as at the finest level, which keeps the exact nearest-neighbour fast path
+    effective (with 10+ points per cell most queries fell back to the KD-tree) and the coarse levels cheap.
+    """
+    cells = np.floor(P).astype(np.int64)
+    n_occ = len(np.unique(cells[:, 0] * (1 << 42) + cells[:, 1] * (1 << 21) + cells[:, 2]))
+    target = COARSE_POINTS_PER_CELL * n_occ
+    if len(P) <= target:
+        return P, np.arange(len(P))
+    keep = np.sort(np.random.default_rng(seed).choice(len(P), target, replace=False))
+    return np.ascontiguousarray(P[keep]), keep
+
+
 def _threads() -> int:
     import numba
 
@@ -121,6 +140,10 @@ def solve(points: np.ndarray, lattice: Lattice, config: SolverConfig, *,
         factor = 2 ** (levels - 1 - level)
         lat = lattice.coarsen(factor)
         P = np.ascontiguousarray(idx / factor, dtype=np.float32)
+        Nl = N
+        if factor > 1:
+            P, keep = _thin(P, config.seed + level)
+            Nl = N[keep] if N is not None else None
         st = config.level_settings(level)
         tb = time.perf_counter()
         band = build_band(P, lat, config.m1, st["m2"])
@@ -130,8 +153,14 @@ def solve(points: np.ndarray, lattice: Lattice, config: SolverConfig, *,
         elif init is not None:
             values = np.ascontiguousarray(init(band), dtype=np.float32).reshape(band.n_bricks, 512)
         else:
-            values = sphere_init(band, config.init_radius)
-        fld = _optimize(P, N, band, values, config, st, progress, history_every, done, total, level, history)
+            values = None
+            if config.init == "flood":
+                from .orient import flood_init
+
+                values = flood_init(band, P)
+            if values is None:
+                values = sphere_init(band, config.init_radius)
+        fld = _optimize(P, Nl, band, values, config, st, progress, history_every, done, total, level, history)
         done += st["iterations"]
         per_level.append({"level": level, "cell_size": lat.cell_size, "shape": list(lat.shape), "band": band.stats,
                           "time_band_s": t_band, **{k: v for k, v in fld.info.items() if k != "history"}})
@@ -156,19 +185,20 @@ def _optimize(P: np.ndarray, N: np.ndarray | None, band: Band, values: np.ndarra
     P = np.ascontiguousarray(P[order])
     if N is not None:
         N = np.ascontiguousarray(N[order])
-    nn = NearestPoints(P, cfg.knn)
+    gamma = 0.0 if cfg.mode == "udf" else st.get("gamma", cfg.gamma)
+    sigma = np.float32(st.get("sigma", cfg.query_sigma))
+    nn = NearestPoints(P, cfg.knn, sigma=float(sigma))
     flat_flags = band.flags.reshape(-1)
     d_a = values.reshape(-1).copy()
     d_b = d_a.copy()
     m = np.zeros_like(d_a)
     v = np.zeros_like(d_a)
     qgrad = np.zeros_like(d_a)
-    inv = np.zeros_like(d_a) if cfg.tv_form == "sqrt" else np.zeros(1, np.float32)
+    inv = np.zeros_like(d_a) if st.get("tv_form", cfg.tv_form) == "sqrt" else np.zeros(1, np.float32)
     n_params = max(band.n_params, 1)
-    form = ks.TV_SQRT if cfg.tv_form == "sqrt" else ks.TV_SQUARED
+    form = ks.TV_SQRT if st.get("tv_form", cfg.tv_form) == "sqrt" else ks.TV_SQUARED
     tv_scale = (cfg.alpha if form == ks.TV_SQRT else 2.0 * cfg.alpha) / n_params
     surface_form = kl.SURFACE_SQUARED if cfg.surface_form == "squared" else kl.SURFACE_ABS
-    gamma = 0.0 if cfg.mode == "udf" else cfg.gamma
     clamp = cfg.mode == "udf"
     shape = np.asarray(band.lattice.shape, np.int64)
     nq = cfg.queries
@@ -184,7 +214,7 @@ def _optimize(P: np.ndarray, N: np.ndarray | None, band: Band, values: np.ndarra
     for it in range(iterations):
         ta = time.perf_counter()
         # the iteration number seeds the queries: levels draw different queries
-        ksamp.draw_queries(P, cfg.seed, it0 + it, np.float32(cfg.query_sigma), centres, q)
+        ksamp.draw_queries(P, cfg.seed, it0 + it, sigma, centres, q)
         nn_idx, _ = nn.query(q, centres)
         s = P[nn_idx]
         nrm = N[nn_idx] if N is not None else empty_normals
@@ -221,6 +251,7 @@ def _optimize(P: np.ndarray, N: np.ndarray | None, band: Band, values: np.ndarra
         "time_queries_s": t_query,
         "time_steps_s": t_step,
         "nn_fallback_fraction": nn.fallbacks / max(nn.queries, 1),
+        "nn_candidates": int(nn.knn.shape[1]),
         "threads": _threads(),
     }
     return Field(band, d_a.reshape(band.n_bricks, 512), signed=cfg.mode == "sdf", info=info)

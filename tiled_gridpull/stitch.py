@@ -133,9 +133,9 @@ def mesh_tile(spec, neighbors: list, tiling, key_ref: np.ndarray, field_path: st
     O = tiling.overlap_cells
     own = load_tile_field(field_path, spec, O)
     others = [load_tile_field(p, s, O) for s, p in neighbors]
-    core_lo = np.asarray(spec.core_lo, np.int64)
-    core_hi = np.asarray(spec.core_hi, np.int64)
-    changed = blend_into(own, others, core_lo, core_hi)
+    mesh_lo = np.asarray(spec.mesh_lo, np.int64)
+    mesh_hi = np.asarray(spec.mesh_hi, np.int64)
+    changed = blend_into(own, others, mesh_lo, mesh_hi)
     block = spec.block
     off = np.asarray(block.offset, np.int64)
     local_bricks = (own.brick_coords - off // BRICK).astype(np.int32)
@@ -144,7 +144,7 @@ def mesh_tile(spec, neighbors: list, tiling, key_ref: np.ndarray, field_path: st
     table[local_bricks[:, 0], local_bricks[:, 1], local_bricks[:, 2]] = np.arange(len(local_bricks), dtype=np.int32)
     band = Band(block, 0, 0, local_bricks, table, brick_neighbors(local_bricks, table), own.flags)
     fld = Field(band, own.values)
-    mesh, keys = extract_mesh(fld, 0.0, core_lo - off, core_hi - off, off - np.asarray(key_ref, np.int64),
+    mesh, keys = extract_mesh(fld, 0.0, mesh_lo - off, mesh_hi - off, off - np.asarray(key_ref, np.int64),
                               with_keys=True)
     n_raw = mesh.n_faces
     if tiling.trim_distance > 0 and mesh.n_faces:

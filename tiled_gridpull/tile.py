@@ -34,7 +34,7 @@ if TYPE_CHECKING:
 __all__ = ["TilingConfig", "TileSpec", "TilePlan", "plan_tiles", "partition", "read_tile_points",
            "ORIENTATIONS"]
 
-ORIENTATIONS = ("auto", "sensor", "up", "sphere")
+ORIENTATIONS = ("auto", "sensor", "up", "outward", "sphere")
 
 
 @dataclass(frozen=True)
@@ -55,10 +55,11 @@ class TilingConfig:
     trim_distance : float
         Faces farther than this many cells from every input point are removed (the same absolute distance in
         every tile, so trimming never opens a crack along a tile border).
-    orientation : {"auto", "sensor", "up", "sphere"}
+    orientation : {"auto", "sensor", "up", "outward", "sphere"}
         Which side is outside: facing the sensor (per-point sensor origins, e.g. KITTI), facing up (airborne
-        LAS), or the paper's sphere at each tile's centre (for closed objects only). ``auto`` picks sensor
-        when sensor origins are known, else up.
+        LAS), facing away from the centre of the whole input (one closed, roughly star-shaped object cut into
+        tiles), or the paper's sphere at each tile's own centre (kept to show why it fails: neighbouring tiles
+        can disagree). ``auto`` picks sensor when sensor origins are known, else up.
     normal_neighbors : int
         Neighbours used to estimate point normals for the initial field.
     """
@@ -136,6 +137,9 @@ class TileSpec:
         Spill file of the tile's points.
     has_sensor : bool
         Whether the spill file holds sensor origins.
+    mesh_lo, mesh_hi : (3,) int
+        Cells this tile meshes, ``[mesh_lo, mesh_hi)``: its core, extended to the block's border on the sides
+        where no tile follows (so a surface just beyond the outermost points is not cut off).
     """
 
     index: tuple[int, int, int]
@@ -145,6 +149,8 @@ class TileSpec:
     n_points: int = 0
     points_path: str = ""
     has_sensor: bool = False
+    mesh_lo: tuple[int, int, int] = (0, 0, 0)
+    mesh_hi: tuple[int, int, int] = (0, 0, 0)
 
     @property
     def name(self) -> str:
@@ -159,13 +165,14 @@ class TileSpec:
     def to_dict(self) -> dict:
         d = {"index": list(self.index), "core_lo": list(self.core_lo), "core_hi": list(self.core_hi),
              "block": self.block.to_dict(), "n_points": self.n_points, "points_path": self.points_path,
-             "has_sensor": self.has_sensor}
+             "has_sensor": self.has_sensor, "mesh_lo": list(self.mesh_lo), "mesh_hi": list(self.mesh_hi)}
         return d
 
     @classmethod
     def from_dict(cls, d: dict) -> "TileSpec":
         return cls(tuple(d["index"]), tuple(d["core_lo"]), tuple(d["core_hi"]), Lattice.from_dict(d["block"]),
-                   int(d["n_points"]), d["points_path"], bool(d["has_sensor"]))
+                   int(d["n_points"]), d["points_path"], bool(d["has_sensor"]), tuple(d["mesh_lo"]),
+                   tuple(d["mesh_hi"]))
 
 
 @dataclass(eq=False)
@@ -200,8 +207,11 @@ class TilePlan:
         core_hi = core_lo + T
         block = Lattice(self.lattice.origin, self.lattice.cell_size, tuple(int(v) for v in (np.full(3, T + 2 * O + 1))),
                         tuple(int(v) for v in core_lo - O))
+        idx = np.asarray(index)
+        mesh_lo = np.where(idx == 0, core_lo - O, core_lo)
+        mesh_hi = np.where(idx == np.asarray(self.tile_range) - 1, core_hi + O, core_hi)
         return TileSpec(tuple(int(v) for v in index), tuple(int(v) for v in core_lo), tuple(int(v) for v in core_hi),
-                        block, **kw)
+                        block, mesh_lo=tuple(int(v) for v in mesh_lo), mesh_hi=tuple(int(v) for v in mesh_hi), **kw)
 
     def tiles_of(self, index_coords: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Every (point, tile) pair whose block holds the point.
@@ -395,13 +405,15 @@ def _orientation_rule(tiling: TilingConfig, has_sensor: bool) -> str:
     return tiling.orientation
 
 
-def solve_tile(spec: TileSpec, tiling: TilingConfig, solver: "SolverConfig", field_path: str | Path) -> dict:
+def solve_tile(spec: TileSpec, tiling: TilingConfig, solver: "SolverConfig", field_path: str | Path,
+               centre: tuple[float, float, float] | None = None) -> dict:
     """Solve one tile and write its field; returns a small summary (never raises for data reasons).
 
     The field is solved in a tile-local frame (metres from the block's low corner) so float32 is exact, and
     written with global brick coordinates for the blend pass. Orientation follows ``tiling.orientation``; after
     the solve the field is flipped if it disagrees with the oriented normals (the loss is sign-blind, so the
     initial orientation could in principle be lost; every tile applies the same rule, so tiles agree).
+    ``centre`` (world) is the input's bounding-box centre, used by the ``outward`` rule.
     """
     import time
 
@@ -431,7 +443,13 @@ def solve_tile(spec: TileSpec, tiling: TilingConfig, solver: "SolverConfig", fie
         normals = None
         if rule != "sphere":
             normals = estimate_normals(xyz, tiling.normal_neighbors)
-            normals = orient_normals(normals, xyz, sensor32.astype(np.float64) if rule == "sensor" else None)
+            away = None
+            if rule == "outward":
+                if centre is None:
+                    raise ConfigError("orientation 'outward' needs the centre of the input")
+                away = np.asarray(centre, np.float64) - spec.block.low_corner
+            normals = orient_normals(normals, xyz, sensor32.astype(np.float64) if rule == "sensor" else None,
+                                     away_from=away)
             init = lambda band: plane_distance_init(band, xyz / band.lattice.cell_size, normals)  # noqa: E731
         fld = solve(xyz, local, solver, init=init, history_every=100)
         flipped = False

@@ -1,9 +1,10 @@
 """Exact nearest input point for queries drawn around known input points.
 
-A query ``q`` drawn around input point ``c`` has its nearest neighbour among the k nearest neighbours of ``c``
-whenever ``|q - c| <= r_k(c) / 2`` (``r_k`` the distance from ``c`` to its k-th neighbour): any point closer
-to ``q`` than ``c`` is within ``r_k(c)`` of ``c``. Queries that fail the test are flagged and answered by the
-KD-tree instead, so the result is always exact.
+A query ``q`` drawn around input point ``c`` is first answered from the k nearest neighbours of ``c`` (their
+best is ``b``). Every point outside that list is at least ``r_k(c)`` from ``c`` (``r_k`` the distance to the
+k-th neighbour), hence at least ``r_k(c) - |q - c|`` from ``q``; so ``b`` is the exact nearest neighbour
+whenever ``|q - b| <= r_k(c) - |q - c|``. Queries that fail the test are flagged and answered by the KD-tree
+instead, so the result is always exact.
 """
 
 from __future__ import annotations
@@ -13,16 +14,17 @@ from numba import njit, prange
 
 
 @njit(cache=True, parallel=True, fastmath=True)
-def nearest_from_candidates(points, knn, radius, centres, q, out_idx, out_d2):
+def nearest_from_candidates(points, knn, knn_dist, centres, q, out_idx, out_d2):
     """Nearest input point of each query among its centre's k nearest neighbours.
 
     Parameters
     ----------
     points : (N, 3) float32
     knn : (N, k) int32
-        k nearest neighbours of every point (the point itself included).
-    radius : (N,) float32
-        Distance from each point to its k-th neighbour.
+        k nearest neighbours of every point (the point itself included), nearest first.
+    knn_dist : (N, k) float32
+        Their distances (ascending): the scan stops at the first candidate that cannot beat the best so far,
+        and the last one is ``r_k``.
     centres : (Nq,) int64
         Input point each query was drawn around.
     q : (Nq, 3) float32
@@ -46,8 +48,9 @@ def nearest_from_candidates(points, knn, radius, centres, q, out_idx, out_d2):
         dy = qy - points[c, 1]
         dz = qz - points[c, 2]
         dc2 = dx * dx + dy * dy + dz * dz
-        half = 0.5 * radius[c]
-        if dc2 > half * half:
+        dc = np.sqrt(dc2)
+        slack = knn_dist[c, k - 1] - dc
+        if slack <= 0.0:
             out_idx[n] = -1
             out_d2[n] = np.inf
             miss += 1
@@ -55,6 +58,10 @@ def nearest_from_candidates(points, knn, radius, centres, q, out_idx, out_d2):
         best = c
         bd = dc2
         for t in range(k):
+            # |x - q| >= |x - c| - |q - c|: once that bound passes the best, no later candidate can win
+            lb = knn_dist[c, t] - dc
+            if lb > 0.0 and lb * lb > bd:
+                break
             j = knn[c, t]
             ex = qx - points[j, 0]
             ey = qy - points[j, 1]
@@ -63,6 +70,11 @@ def nearest_from_candidates(points, knn, radius, centres, q, out_idx, out_d2):
             if d2 < bd or (d2 == bd and j < best):
                 bd = d2
                 best = j
+        if bd > slack * slack:
+            out_idx[n] = -1
+            out_d2[n] = np.inf
+            miss += 1
+            continue
         out_idx[n] = best
         out_d2[n] = bd
     return miss

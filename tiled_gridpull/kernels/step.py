@@ -178,8 +178,8 @@ def tv_adam_step(d_in, d_out, m, v, qgrad, flags, neighbors, inv, form, tv_scale
         L = np.empty(512, np.float32)
         E = np.empty(512, np.float32)
         P = np.empty(512, np.float32)
-        _brick_edges(b, d_in, flags, neighbors, inv, mode, L, E, P)
         base = b * 512
+        _brick_edges(b, d_in, flags, neighbors, inv, mode, L, E, P)
         d = d_in[base:base + 512]
         mm_ = m[base:base + 512]
         vv_ = v[base:base + 512]

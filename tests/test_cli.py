@@ -1,0 +1,104 @@
+"""The command line: one-line errors with the right exit code and no output file; working subcommands."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from pipeline.cli import main
+from tiled_gridpull.synthetic import sample_shape, sphere
+
+
+def run(args, capsys):
+    code = main(args)
+    captured = capsys.readouterr()
+    return code, captured.out, captured.err
+
+
+@pytest.fixture
+def sphere_xyz(tmp_path):
+    pts, _ = sample_shape(sphere(), 5000, seed=0)
+    p = tmp_path / "sphere.xyz"
+    np.savetxt(p, pts)
+    return p
+
+
+def _one_error_line(err):
+    lines = [ln for ln in err.strip().splitlines() if ln.strip()]
+    assert len(lines) == 1, err
+    assert lines[0].startswith("error: ")
+    assert "Traceback" not in err
+
+
+@pytest.mark.parametrize("content,suffix,needle", [
+    (None, ".ply", "not found"),
+    ("1 2 3\n", ".foo", "unknown"),
+    ("", ".xyz", "no points"),
+    ("1 2 3\n4 5 6\n", ".xyz", "points"),
+    ("nan nan nan\n" * 20, ".xyz", "finite"),
+    ("1 1 1\n" * 50, ".xyz", ""),
+    ("".join(f"{i} {2 * i} {3 * i}\n" for i in range(50)), ".xyz", "collinear"),
+])
+def test_bad_inputs_one_line_no_output(tmp_path, capsys, content, suffix, needle):
+    src = tmp_path / f"in{suffix}"
+    if content is not None:
+        src.write_text(content)
+    out = tmp_path / "out.ply"
+    code, _, err = run(["reconstruct", str(src), "-o", str(out), "-q"], capsys)
+    assert code == 3
+    _one_error_line(err)
+    assert needle in err.lower()
+    assert not out.exists() and not out.with_suffix(".json").exists()
+
+
+@pytest.mark.parametrize("opts,needle", [
+    (["--resolution", "0"], "resolution"),
+    (["--iterations", "-5"], "iterations"),
+    (["--set", "alpha=-1"], "alpha"),
+    (["--set", "bogus=1"], "unknown"),
+    (["--set", "tv_form=cubic"], "tv_form"),
+    (["--voxel-size", "0.1", "--tile-size", "1", "--overlap", "5"], "overlap"),
+    (["--voxel-size", "-1"], "voxel_size"),
+])
+def test_bad_options_rejected_before_work(tmp_path, capsys, sphere_xyz, opts, needle):
+    out = tmp_path / "out.ply"
+    code, _, err = run(["reconstruct", str(sphere_xyz), "-o", str(out), "-q", *opts], capsys)
+    assert code == 2
+    _one_error_line(err)
+    assert needle in err
+    assert not out.exists()
+
+
+def test_bad_config_file(tmp_path, capsys, sphere_xyz):
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("resolution: [1, 2\n")
+    code, _, err = run(["reconstruct", str(sphere_xyz), "-o", str(tmp_path / "o.ply"), "--config", str(cfg)],
+                       capsys)
+    assert code == 2 and "YAML" in err
+    _one_error_line(err)
+
+
+def test_reconstruct_evaluate_roundtrip(tmp_path, capsys, sphere_xyz):
+    out = tmp_path / "mesh.ply"
+    code, _, err = run(["reconstruct", str(sphere_xyz), "-o", str(out), "-q", "--resolution", "40",
+                        "--iterations", "200", "--set", "coarse_iterations=200"], capsys)
+    assert code == 0, err
+    side = json.loads(out.with_suffix(".json").read_text())
+    assert side["config"]["resolution"] == 40 and "lattice" in side and "timings_s" in side
+    gt = tmp_path / "gt.ply"
+    from tiled_gridpull.io import write_mesh
+
+    write_mesh(sphere(), gt)
+    code, text, _ = run(["evaluate", str(out), str(gt), "--json", "--samples", "20000"], capsys)
+    assert code == 0
+    res = json.loads(text)
+    assert res["watertight"] is True
+    assert res["chamfer_l1_exact"] < 0.01
+
+
+def test_help_lists_defaults():
+    out = subprocess.run([sys.executable, "-m", "tiled_gridpull", "evaluate", "--help"], capture_output=True,
+                         text=True, check=True).stdout
+    assert "default: 100000" in out
