@@ -16,6 +16,8 @@ from .errors import ConfigError
 
 __all__ = ["SolverConfig", "load_config_file", "parse_overrides"]
 
+MIN_COARSE_CELLS = 32
+
 _CHOICES = {
     "tv_form": ("squared", "sqrt"),
     "refine_tv_form": ("squared", "sqrt"),
@@ -64,8 +66,9 @@ class SolverConfig:
     normal_weight : float
         Weight of the normal-supervision loss when the input has normals (0 = off).
     levels : int
-        Resolution levels. 1 is the paper's single-level solve. With ``L > 1`` the field is first solved on a
-        lattice with ``2^(L-1)`` times larger cells (``coarse_iterations`` with the schedule above), then refined
+        Resolution levels (at most; fewer when the coarsest lattice would have fewer than 32 cells across).
+        1 is the paper's single-level solve. With ``L > 1`` the field is first solved on a lattice with
+        ``2^(L-1)`` times larger cells (``coarse_iterations`` with the schedule above), then refined
         level by level (cells halved, values transferred by trilinear interpolation), each refinement over a
         ``refine_m2`` band with ``refine_lr`` decaying every ``refine_lr_step``; the finest level runs
         ``iterations``, the others ``coarse_iterations``.
@@ -145,9 +148,7 @@ class SolverConfig:
             raise ConfigError(f"m1 ({self.m1}) must not exceed refine_m2 ({self.refine_m2})")
         if self.levels > 4:
             raise ConfigError(f"levels must be at most 4 (coarsest cells 8x the finest), got {self.levels}")
-        if self.resolution >> (self.levels - 1) < 2 * self.margin + 4:
-            raise ConfigError(f"resolution {self.resolution} is too small for {self.levels} levels "
-                              f"(coarsest level would have {self.resolution >> (self.levels - 1)} cells)")
+
         if self.resolution < 2 * self.margin + 4:
             raise ConfigError(f"resolution {self.resolution} is too small for margin {self.margin}")
 
@@ -162,9 +163,17 @@ class SolverConfig:
         """Plain dict of all settings."""
         return dataclasses.asdict(self)
 
+    @property
+    def effective_levels(self) -> int:
+        """Levels actually used: at most ``levels``, fewer when the coarsest would have < 32 cells across."""
+        n = 1
+        while n < self.levels and (self.resolution >> n) >= MIN_COARSE_CELLS:
+            n += 1
+        return n
+
     def level_settings(self, level: int) -> dict:
         """Iterations, learning-rate schedule, TV band, gradient weight and query noise of one level (0 = coarsest)."""
-        last = level == self.levels - 1
+        last = level == self.effective_levels - 1
         if level == 0:
             return {"iterations": self.iterations if last else self.coarse_iterations, "lr": self.lr,
                     "lr_step": self.lr_step, "m2": self.m2, "gamma": self.gamma, "sigma": self.query_sigma,

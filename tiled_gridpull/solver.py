@@ -130,7 +130,7 @@ def solve(points: np.ndarray, lattice: Lattice, config: SolverConfig, *,
     N = None
     if normals is not None and config.normal_weight > 0:
         N = np.ascontiguousarray(np.asarray(normals, dtype=np.float32)[inside])
-    levels = config.levels
+    levels = config.effective_levels
     total = sum(config.level_settings(level)["iterations"] for level in range(levels))
     fld: Field | None = None
     done = 0
