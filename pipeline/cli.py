@@ -147,7 +147,10 @@ def resolve_settings(args) -> tuple:
     tiling_settings = {k: v for k, v in settings.items() if k in tiling_keys}
     tiling = None
     if "voxel_size" in tiling_settings:
+        from tiled_gridpull.tile import check_compatible
+
         tiling = TilingConfig(**tiling_settings)
+        check_compatible(tiling, solver)
     elif tiling_settings:
         raise ConfigError(f"tiling setting(s) {', '.join(sorted(tiling_settings))} need voxel_size (tiled mode)")
     return solver, tiling

@@ -25,7 +25,7 @@ from tiled_gridpull.errors import TileFailedError
 from tiled_gridpull.mesh import Mesh
 from tiled_gridpull.scene import (JobPaths, finish_job, job_metadata, key_reference, neighbors_of, plan_centre,
                                   prepare_job)
-from tiled_gridpull.tile import TileSpec, TilingConfig
+from tiled_gridpull.tile import TileSpec, TilingConfig, check_compatible
 
 log = logging.getLogger("tiled_gridpull")
 
@@ -131,6 +131,7 @@ def run_job(inputs: list[str], output: str | Path, tiling: TilingConfig, solver:
     from distributed import as_completed
 
     t0 = time.perf_counter()
+    check_compatible(tiling, solver)
     paths = JobPaths(work_dir)
     plan, specs, scan = prepare_job(inputs, tiling, paths, frames=frames)
     t_part = time.perf_counter()

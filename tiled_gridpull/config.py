@@ -163,17 +163,18 @@ class SolverConfig:
         """Plain dict of all settings."""
         return dataclasses.asdict(self)
 
-    @property
-    def effective_levels(self) -> int:
-        """Levels actually used: at most ``levels``, fewer when the coarsest would have < 32 cells across."""
+    def levels_for(self, cells: int) -> int:
+        """Levels used on a lattice ``cells`` across: at most ``levels``, fewer when the coarsest would have
+        fewer than 32 cells across."""
         n = 1
-        while n < self.levels and (self.resolution >> n) >= MIN_COARSE_CELLS:
+        while n < self.levels and (int(cells) >> n) >= MIN_COARSE_CELLS:
             n += 1
         return n
 
-    def level_settings(self, level: int) -> dict:
-        """Iterations, learning-rate schedule, TV band, gradient weight and query noise of one level (0 = coarsest)."""
-        last = level == self.effective_levels - 1
+    def level_settings(self, level: int, n_levels: int) -> dict:
+        """Iterations, learning-rate schedule, TV band, gradient weight, query noise and TV form of ``level``
+        (0 = coarsest) out of ``n_levels``."""
+        last = level == n_levels - 1
         if level == 0:
             return {"iterations": self.iterations if last else self.coarse_iterations, "lr": self.lr,
                     "lr_step": self.lr_step, "m2": self.m2, "gamma": self.gamma, "sigma": self.query_sigma,

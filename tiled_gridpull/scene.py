@@ -23,7 +23,8 @@ from .errors import InputError
 from .io.atomic import write_json
 from .mesh import Mesh
 from .stitch import load_piece, mesh_tile, weld_pieces
-from .tile import TilePlan, TileSpec, TilingConfig, partition, plan_tiles, solve_tile, write_manifest
+from .tile import (TilePlan, TileSpec, TilingConfig, check_compatible, partition, plan_tiles, solve_tile,
+                   write_manifest)
 
 __all__ = ["scan_inputs", "prepare_job", "neighbors_of", "finish_job", "reconstruct_scene", "JobPaths",
            "plan_centre", "key_reference", "job_metadata"]
@@ -149,6 +150,7 @@ def reconstruct_scene(inputs: list[str], output: str | Path | None, tiling: Tili
     timings).
     """
     t0 = time.perf_counter()
+    check_compatible(tiling, solver)
     paths = JobPaths(work_dir)
     plan, specs, scan = prepare_job(inputs, tiling, paths, frames=frames)
     t_part = time.perf_counter()

@@ -130,8 +130,8 @@ def solve(points: np.ndarray, lattice: Lattice, config: SolverConfig, *,
     N = None
     if normals is not None and config.normal_weight > 0:
         N = np.ascontiguousarray(np.asarray(normals, dtype=np.float32)[inside])
-    levels = config.effective_levels
-    total = sum(config.level_settings(level)["iterations"] for level in range(levels))
+    levels = config.levels_for(max(lattice.n_cells))
+    total = sum(config.level_settings(level, levels)["iterations"] for level in range(levels))
     fld: Field | None = None
     done = 0
     per_level = []
@@ -144,7 +144,7 @@ def solve(points: np.ndarray, lattice: Lattice, config: SolverConfig, *,
         if factor > 1:
             P, keep = _thin(P, config.seed + level)
             Nl = N[keep] if N is not None else None
-        st = config.level_settings(level)
+        st = config.level_settings(level, levels)
         tb = time.perf_counter()
         band = build_band(P, lat, config.m1, st["m2"])
         t_band = time.perf_counter() - tb

@@ -32,7 +32,7 @@ if TYPE_CHECKING:
     from .config import SolverConfig
 
 __all__ = ["TilingConfig", "TileSpec", "TilePlan", "plan_tiles", "partition", "read_tile_points",
-           "ORIENTATIONS"]
+           "ORIENTATIONS", "check_compatible", "solve_tile"]
 
 ORIENTATIONS = ("auto", "sensor", "up", "outward", "sphere")
 
@@ -117,6 +117,20 @@ class TilingConfig:
         d["tile_cells"] = self.tile_cells
         d["overlap_cells"] = self.overlap_cells
         return d
+
+
+def check_compatible(tiling: TilingConfig, solver: "SolverConfig") -> None:
+    """Refuse settings whose neighbouring tiles could disagree on a shared face.
+
+    Two tiles build their bands from the points of their own blocks; on a shared face the bands (and so the
+    cells marching cubes may use) agree only if every point within ``M2 + 1`` cells of the face is in both
+    blocks, i.e. ``overlap >= M2 + 1`` cells for the finest level's band.
+    """
+    m2 = solver.refine_m2 if solver.levels > 1 else solver.m2
+    if tiling.overlap_cells < m2 + 1:
+        raise ConfigError(f"overlap of {tiling.overlap_cells} cells is too small for a TV band of {m2} cells at "
+                          f"the finest level: use overlap >= {(m2 + 1) * tiling.voxel_size:g} "
+                          f"({m2 + 1} cells) or a narrower band")
 
 
 @dataclass(frozen=True)
