@@ -107,7 +107,18 @@ def solve_task(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig, field
     from tiled_gridpull.tile import solve_tile
 
     _configure_worker_threads()
-    return solve_tile(spec, tiling, solver, field_path, centre=centre)
+    out = solve_tile(spec, tiling, solver, field_path, centre=centre)
+    out["worker"] = _worker_address()
+    return out
+
+
+def _worker_address() -> str:
+    try:
+        from distributed import get_worker
+
+        return get_worker().address
+    except (ImportError, ValueError):
+        return "local"
 
 
 def mesh_task(spec: TileSpec, own: dict, neighbor_specs: list, neighbor_summaries: list, tiling: TilingConfig,

@@ -114,7 +114,7 @@ def sphere_job(tmp_path_factory):
     pts, _ = sample_shape(gt, 40000, seed=3)
     np.save(d / "pts.npy", pts + OFFSET)
     cell = 1.0 / 48
-    solver = SolverConfig(m1=3, m2=6, iterations=300, queries=20000)
+    solver = SolverConfig(m1=3, m2=6, refine_m2=6, iterations=300, queries=20000)
     tiled = TilingConfig(voxel_size=cell, tile_size=24 * cell, overlap=8 * cell, trim_distance=0,
                          orientation="outward", min_points=50)
     one = TilingConfig(voxel_size=cell, tile_size=64 * cell, overlap=8 * cell, trim_distance=0,

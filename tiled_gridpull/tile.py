@@ -450,6 +450,7 @@ def solve_tile(spec: TileSpec, tiling: TilingConfig, solver: "SolverConfig", fie
         if len(xyz) < tiling.min_points:
             summary.update(status="skipped", reason=f"{len(xyz)} points (< min_points {tiling.min_points})")
             summary["time_s"] = time.perf_counter() - t0
+            summary["peak_rss_mb"] = peak_rss_mb()
             return summary
         local = Lattice((0.0, 0.0, 0.0), spec.block.cell_size, spec.block.shape)
         rule = _orientation_rule(tiling, sensor32 is not None)
@@ -484,7 +485,17 @@ def solve_tile(spec: TileSpec, tiling: TilingConfig, solver: "SolverConfig", fie
     except GridPullError as exc:
         summary.update(status="failed", reason=str(exc))
     summary["time_s"] = time.perf_counter() - t0
+    summary["peak_rss_mb"] = peak_rss_mb()
     return summary
+
+
+def peak_rss_mb() -> float:
+    """Peak resident memory of this process so far (MB)."""
+    import resource
+    import sys
+
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return peak / (1024.0 * 1024.0) if sys.platform == "darwin" else peak / 1024.0
 
 
 def save_tile_field(path: str | Path, brick_coords: np.ndarray, values: np.ndarray, flags: np.ndarray) -> None:
