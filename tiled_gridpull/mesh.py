@@ -101,7 +101,8 @@ class Mesh:
 
     def signed_volume(self) -> float:
         """Signed enclosed volume (positive for a closed mesh with outward normals)."""
-        tri = self.triangles()
+        # centred first: with georeferenced coordinates the triple products would cancel catastrophically
+        tri = self.triangles() - self.vertices.mean(axis=0)
         return float(np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])).sum() / 6.0)
 
     # ------------------------------------------------------------------ topology

@@ -104,6 +104,13 @@ def reconstruct(points: Any, *, config: SolverConfig | None = None, normals: np.
     fld = solve(xyz, lattice, cfg, normals=nrm, progress=progress)
     t_solve = time.perf_counter()
     mesh = extract_mesh(fld)
+    # The losses are unchanged by f -> -f, so the sign comes only from the initialisation: a sphere at the lattice
+    # centre lies in the hole of a torus or a mug's handle and ends up *outside*. A closed surface whose enclosed
+    # volume comes out negative is therefore inside out; flip it (nested shells keep their relative orientation).
+    flipped = False
+    if cfg.mode == "sdf" and mesh.n_faces and mesh.signed_volume() < 0:
+        mesh = Mesh(mesh.vertices, mesh.faces[:, ::-1].copy(), mesh.metadata)
+        flipped = True
     removed = 0
     if min_component_cells > 0 and mesh.n_faces:
         mesh, removed = remove_small_components(mesh, min_component_cells * lattice.cell_size)
@@ -118,6 +125,7 @@ def reconstruct(points: Any, *, config: SolverConfig | None = None, normals: np.
         "solve": info,
         "loss_history": fld.info.get("history", []),
         "small_components_removed": int(removed),
+        "orientation_flipped": flipped,
         "timings_s": {"prepare": t_prep - t0, "solve": t_solve - t_prep, "mesh": t_mesh - t_solve,
                       "total": t_mesh - t0},
     })

@@ -1,0 +1,105 @@
+"""The metric functions against tiny cases whose answers are computed by hand."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tiled_gridpull.metrics import _fscore, evaluate, point_to_mesh, sample_surface
+from tiled_gridpull.mesh import Mesh
+
+
+def square(z: float = 0.0, tilt_deg: float = 0.0) -> Mesh:
+    """The unit square [0,1]^2 at height z, two triangles, optionally rotated about its centre line y = 0.5."""
+    v = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], dtype=np.float64)
+    t = np.radians(tilt_deg)
+    y, zz = v[:, 1] - 0.5, v[:, 2]
+    v[:, 1] = 0.5 + y * np.cos(t) - zz * np.sin(t)
+    v[:, 2] = y * np.sin(t) + zz * np.cos(t) + z
+    return Mesh(v, np.array([[0, 1, 2], [0, 2, 3]]))
+
+
+def test_point_to_mesh_hand_computed():
+    tri = Mesh(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], float), np.array([[0, 1, 2]]))
+    pts = np.array([
+        [0.2, 0.2, 0.5],    # above the interior: straight down, 0.5
+        [-1.0, -1.0, 0.0],  # off vertex 0: sqrt(2)
+        [0.5, -2.0, 0.0],   # off the edge y = 0: 2
+        [1.0, 1.0, 0.0],    # off the hypotenuse x + y = 1: (2 - 1) / sqrt(2)
+    ])
+    d, face = point_to_mesh(pts, tri)
+    np.testing.assert_allclose(d, [0.5, np.sqrt(2), 2.0, 1 / np.sqrt(2)], atol=1e-9)
+    assert (face == 0).all()
+
+
+def test_point_to_mesh_georeferenced():
+    """Distances stay exact with UTM-sized coordinates (the locator works on centred data)."""
+    off = np.array([500000.0, 4000000.0, 100.0])
+    tri = Mesh(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], float) + off, np.array([[0, 1, 2]]))
+    d, _ = point_to_mesh(np.array([[0.25, 0.25, 0.003]]) + off, tri)
+    assert abs(d[0] - 0.003) < 1e-7
+
+
+def test_fscore_hand_computed():
+    f, precision, recall = _fscore(np.array([0.0, 0.1, 0.3]), np.array([0.05, 0.2]), 0.15)
+    assert precision == pytest.approx(2 / 3) and recall == pytest.approx(1 / 2)
+    assert f == pytest.approx(4 / 7)
+    assert _fscore(np.array([1.0]), np.array([1.0]), 0.5)[0] == 0.0
+
+
+def test_parallel_squares():
+    """Two unit squares 0.01 apart: every exact distance is 0.01, normals agree."""
+    d = 0.01
+    res = evaluate(square(d), square(0.0), n_samples=20000, thresholds=(0.005, 0.02))
+    assert res["chamfer_l1_exact"] == pytest.approx(d, rel=1e-6)
+    assert res["chamfer_l2_exact"] == pytest.approx(d * d, rel=1e-5)
+    assert res["hausdorff_exact"] == pytest.approx(d, rel=1e-6)
+    assert res["normal_consistency"] == pytest.approx(1.0) and res["normal_consistency_exact"] == pytest.approx(1.0)
+    assert res["fscore_exact@0.005"] == 0.0 and res["fscore_exact@0.02"] == 1.0
+    # sample-based: nearest *sample* is at least d away and, with 20k samples on a unit square, within ~1/100
+    assert d <= res["chamfer_l1"] < d + 0.01
+    assert res["chamfer_l2"] >= d * d
+    assert res["chamfer_l2_x100"] == pytest.approx(100 * res["chamfer_l2"])
+    assert res["fscore@0.005"] == 0.0
+    assert res["watertight"] is False and res["boundary_edges"] == 4 and res["components"] == 1
+
+
+def test_tilted_square_normal_consistency_is_cosine():
+    res = evaluate(square(0.0, tilt_deg=60.0), square(0.0), n_samples=5000)
+    assert res["normal_consistency"] == pytest.approx(0.5, abs=1e-9)
+    assert res["normal_consistency_exact"] == pytest.approx(0.5, abs=1e-9)
+    # flipping the prediction's orientation leaves |cos| unchanged
+    flipped = square(0.0, tilt_deg=60.0)
+    flipped = Mesh(flipped.vertices, flipped.faces[:, ::-1])
+    assert evaluate(flipped, square(0.0), n_samples=5000)["normal_consistency"] == pytest.approx(0.5, abs=1e-9)
+
+
+def test_identical_meshes_have_zero_exact_error_and_a_sampling_floor():
+    m = square(0.0)
+    res = evaluate(m, m, n_samples=10000)
+    assert res["chamfer_l1_exact"] < 1e-12 and res["hausdorff_exact"] < 1e-12
+    assert 0 < res["chamfer_l1"] < 0.01  # independent samples of one surface are not at zero distance
+
+
+def test_sample_surface_is_area_uniform():
+    # two triangles of areas 1 and 3 in the plane z = 0
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 2, 0], [10, 0, 0], [13, 0, 0], [10, 2, 0]], float)
+    m = Mesh(v, np.array([[0, 1, 2], [3, 4, 5]]))
+    pts, nrm = sample_surface(m, 40000, seed=1)
+    share = np.mean(pts[:, 0] >= 10)
+    assert share == pytest.approx(0.75, abs=0.01)
+    np.testing.assert_allclose(np.abs(nrm[:, 2]), 1.0)
+    first = pts[pts[:, 0] < 10]
+    assert np.all(first[:, 0] / 1 + first[:, 1] / 2 <= 1 + 1e-9) and np.all(first >= -1e-12)
+
+
+def test_topology_of_a_tetrahedron_and_two_pieces():
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], float)
+    f = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    tet = Mesh(v, f)
+    t = tet.topology
+    assert t.watertight and t.components == 1 and t.boundary_edges == 0 and t.nonmanifold_edges == 0
+    two = Mesh(np.vstack([v, v + 5]), np.vstack([f, f + 4]))
+    assert two.topology.components == 2 and two.topology.watertight
+    open_tet = Mesh(v, f[:3])
+    assert not open_tet.topology.watertight and open_tet.topology.boundary_edges == 3
