@@ -163,7 +163,7 @@ class Mesh:
 
 def extract_mesh(fld: Field, iso: float = 0.0, cell_lo: np.ndarray | None = None,
                  cell_hi: np.ndarray | None = None, key_offset: np.ndarray | None = None,
-                 with_keys: bool = False):
+                 with_keys: bool = False, unsigned: bool | None = None, tau: float = 1.0):
     """Marching cubes over the optimized cells of a field.
 
     Parameters
@@ -178,6 +178,11 @@ def extract_mesh(fld: Field, iso: float = 0.0, cell_lo: np.ndarray | None = None
         from different tiles agree.
     with_keys : bool
         Also return the edge key of every vertex (for welding tiles).
+    unsigned : bool, optional
+        Mesh an unsigned field with per-cell pseudo-signs from gradients (default: ``not fld.signed``); faces
+        are then oriented consistently per connected piece.
+    tau : float
+        Unsigned fields: only cells whose smallest value is below ``tau`` cells are meshed.
 
     Returns
     -------
@@ -195,21 +200,50 @@ def extract_mesh(fld: Field, iso: float = 0.0, cell_lo: np.ndarray | None = None
     values = fld.values.reshape(-1)
     flags = band.flags.reshape(-1)
     iso32 = np.float32(iso)
-    counts = kmc.count_triangles(values, flags, band.brick_table, band.brick_coords, lo, hi, iso32)
+    if unsigned is None:
+        unsigned = not fld.signed
+    shape = np.asarray(lat.shape, np.int64)
+    counts = kmc.count_triangles(values, flags, band.brick_table, band.brick_coords, lo, hi, iso32, unsigned,
+                                 np.float32(tau), shape)
     offsets = np.zeros((len(counts) + 1, 2), np.int64)
     np.cumsum(counts, axis=0, out=offsets[1:])
     tris = np.empty((int(offsets[-1, 0]), 3), np.int64)
     centres = np.empty((int(offsets[-1, 1]), 3), np.float64)
     kmc.emit_triangles(values, flags, band.brick_table, band.brick_coords, lo, hi, iso32, offsets, koff, tris,
-                       centres)
+                       centres, unsigned, np.float32(tau), shape)
     keys, inverse = np.unique(tris, return_inverse=True)
     faces = inverse.reshape(-1, 3)
     pts = np.empty((len(keys), 3), np.float64)
     is_centre = keys < 0
     pts[is_centre] = centres[-1 - keys[is_centre]]
-    pts[~is_centre] = kmc.edge_points(values, band.brick_table, keys[~is_centre], koff, float(iso), T_CLAMP)
+    pts[~is_centre] = kmc.edge_points(values, band.brick_table, keys[~is_centre], koff, float(iso), T_CLAMP,
+                                            unsigned)
+    if unsigned:
+        faces = orient_consistently(faces)
     mesh = Mesh(lat.to_world(pts), faces)
     return (mesh, keys) if with_keys else mesh
+
+
+def orient_consistently(faces: np.ndarray) -> np.ndarray:
+    """Faces (F, 3) int64 reordered so that every manifold edge is traversed in opposite directions by its two faces
+    (within each connected piece; the piece's lowest face keeps its orientation)."""
+    if len(faces) == 0:
+        return faces
+    directed = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    owner = np.tile(np.arange(len(faces), dtype=np.int64), 3)
+    lo, hi = directed.min(axis=1), directed.max(axis=1)
+    key = lo * np.int64(faces.max() + 1) + hi
+    order = np.argsort(key, kind="stable")
+    ks = key[order]
+    starts = np.flatnonzero(np.r_[True, ks[1:] != ks[:-1]])
+    counts = np.diff(np.r_[starts, len(ks)])
+    pair = starts[counts == 2]
+    a, b = order[pair], order[pair + 1]
+    same = directed[a, 0] == directed[b, 0]
+    flip = kg.orient_faces(faces, np.stack([owner[a], owner[b]], axis=1), same)
+    out = faces.copy()
+    out[flip] = out[flip][:, ::-1]
+    return out
 
 
 def remove_small_components(mesh: Mesh, min_extent: float) -> tuple[Mesh, int]:

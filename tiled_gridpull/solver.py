@@ -52,6 +52,23 @@ def sphere_init(band: Band, radius: float, centre: np.ndarray | None = None) -> 
     return d.astype(np.float32).reshape(band.n_bricks, 512)
 
 
+def nearest_point_init(band: Band, points: np.ndarray) -> np.ndarray:
+    """Unsigned start for UDF mode: each band vertex's distance (cells) to the nearest input point.
+
+    A sphere's distance means nothing for an open sheet, while the distance to the samples is already the
+    unsigned field up to the sampling density; the solve then sharpens it at the surface.
+
+    Returns
+    -------
+    (n_bricks, 512) float32
+    """
+    from pykdtree.kdtree import KDTree
+
+    pos = band.slot_positions().astype(np.float32)
+    d, _ = KDTree(np.ascontiguousarray(points, dtype=np.float32)).query(pos, k=1)
+    return d.astype(np.float32).reshape(band.n_bricks, 512)
+
+
 COARSE_POINTS_PER_CELL = 4
 
 
@@ -154,7 +171,9 @@ def solve(points: np.ndarray, lattice: Lattice, config: SolverConfig, *,
             values = np.ascontiguousarray(init(band), dtype=np.float32).reshape(band.n_bricks, 512)
         else:
             values = None
-            if config.init == "flood":
+            if config.mode == "udf":
+                values = nearest_point_init(band, P)
+            elif config.init == "flood":
                 from .orient import flood_init
 
                 values = flood_init(band, P)
