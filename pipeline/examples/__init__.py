@@ -1,0 +1,1 @@
+"""Example batch scripts for running tiled jobs on HPC schedulers (SLURM, PBS) through dask-jobqueue."""
