@@ -64,7 +64,7 @@ def main(args: dict) -> dict:
     gt = load_unit_mesh(args["mesh"])
     pts = input_cloud(gt, args["points"], args.get("seed", 0), args.get("noise", 0.0))
     t0 = time.perf_counter()
-    if args["method"] == "gridpull":
+    if args["method"] in ("gridpull", "gridpull-paper"):
         mesh, extra = run_gridpull(pts, args.get("config", {}))
     elif args["method"] == "poisson":
         mesh, extra = run_poisson(pts, args.get("config", {}))

@@ -53,9 +53,9 @@ def poisson_config(cloud: str) -> dict:
     return {"depth": 9, "normal_radius": 0.1 if cloud != "10k" else 0.2}
 
 
-def accuracy(meshes) -> None:
+def accuracy(meshes, clouds) -> None:
     for mesh in meshes:
-        for cloud in CLOUDS:
+        for cloud in clouds:
             run("accuracy", mesh, cloud, "gridpull")
             run("accuracy", mesh, cloud, "poisson", poisson_config(cloud))
 
@@ -96,6 +96,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("suite", choices=("accuracy", "speed", "paper", "compile", "all"))
     ap.add_argument("--meshes", nargs="+", default=list(MESHES), choices=list(MESHES))
+    ap.add_argument("--clouds", nargs="+", default=list(CLOUDS), choices=list(CLOUDS))
     ap.add_argument("--repeats", type=int, default=3)
     a = ap.parse_args()
     require_shared()
@@ -103,7 +104,7 @@ def main() -> None:
     if a.suite in ("compile", "all"):
         compile_time()
     if a.suite in ("accuracy", "all"):
-        accuracy(a.meshes)
+        accuracy(a.meshes, a.clouds)
     if a.suite in ("paper", "all"):
         paper(a.meshes[:2])
     if a.suite in ("speed", "all"):

@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import sys
 import time
 from pathlib import Path
@@ -74,6 +75,11 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--work-dir", help="job directory for intermediate files (default: OUTPUT with .job suffix)")
     t.add_argument("--frames", metavar="START:STOP", help="KITTI sequences: frame range, e.g. 3000:4000")
     t.add_argument("--fail-fast", action="store_true", help="stop at the first tile that fails")
+    t.add_argument("--max-memory", metavar="SIZE",
+                   help="memory one worker may use for one tile, e.g. 2GB or 1500MB: tiles estimated to need more "
+                        "are refused before anything is solved")
+    t.add_argument("--dry-run", action="store_true",
+                   help="print the tile plan, memory and a rough time estimate; solve nothing")
     _add_common(r)
 
     sm = sub.add_parser("sample", formatter_class=_Formatter, help="write a synthetic sample with ground truth",
@@ -107,6 +113,32 @@ def build_parser() -> argparse.ArgumentParser:
                    help="with --observed: GT samples farther than this from every input point are left out")
     e.add_argument("--json", action="store_true", help="print JSON instead of a table")
     _add_common(e)
+
+    v = sub.add_parser("render", formatter_class=_Formatter, help="picture of a mesh (PNG, off-screen)",
+                       description="Render a mesh to a PNG without a screen (pyvista off-screen: EGL or OSMesa), "
+                                   "optionally with its point cloud drawn over it and/or coloured by each vertex's "
+                                   "distance to a ground-truth mesh.")
+    v.add_argument("mesh", help="mesh to draw (.ply, .obj, .off)")
+    v.add_argument("-o", "--output", required=True, help="PNG file to write")
+    v.add_argument("--cloud", metavar="CLOUD", help="point cloud to draw over the mesh (any input format)")
+    v.add_argument("--gt", metavar="GT_MESH", help="colour the mesh by distance to this ground-truth mesh")
+    v.add_argument("--size", type=int, nargs=2, default=[1024, 768], metavar=("W", "H"), help="pixels")
+    v.add_argument("--view", choices=("iso", "top", "front", "side"), default="iso", help="camera direction")
+    v.add_argument("--point-size", type=float, default=2.0, help="with --cloud: point size in pixels")
+    v.add_argument("--max-points", type=int, default=200_000, help="with --cloud: points drawn at most")
+    v.add_argument("--clim", type=float, nargs=2, metavar=("LO", "HI"),
+                   help="with --gt: colour range in the mesh's units (default 0 to the 99th percentile)")
+    v.add_argument("--edges", action="store_true", help="draw triangle edges")
+    _add_common(v)
+
+    rp = sub.add_parser("report", formatter_class=_Formatter, help="per-tile table of a finished tiled job",
+                        description="Print the report.json a tiled job writes in its job directory: settings, "
+                                    "lattice, one row per tile (points, solve/mesh time, peak memory, first and "
+                                    "last loss, faces) and totals.")
+    rp.add_argument("job_dir", metavar="JOBDIR", help="job directory (default of reconstruct: OUTPUT.job) or its "
+                                                      "report.json")
+    rp.add_argument("--json", action="store_true", help="print the raw JSON")
+    _add_common(rp)
     return parser
 
 
@@ -119,6 +151,11 @@ def _setup_logging(args) -> None:
 
 _CLI_KEYS = {"resolution": "resolution", "iterations": "iterations", "seed": "seed", "mode": "mode",
              "voxel_size": "voxel_size", "tile_size": "tile_size", "overlap": "overlap"}
+
+
+def _shown_key(key) -> str:
+    """A settings key for a one-line message: identifiers as they are, anything else quoted."""
+    return key if isinstance(key, str) and key.isidentifier() else repr(key)
 
 
 def resolve_settings(args) -> tuple:
@@ -142,7 +179,7 @@ def resolve_settings(args) -> tuple:
     tiling_keys = set(TilingConfig.__dataclass_fields__)
     unknown = set(settings) - solver_keys - tiling_keys
     if unknown:
-        raise ConfigError(f"unknown setting(s): {', '.join(sorted(unknown))}")
+        raise ConfigError(f"unknown setting(s): {', '.join(sorted(_shown_key(k) for k in unknown))}")
     solver = SolverConfig(**{k: v for k, v in settings.items() if k in solver_keys})
     tiling_settings = {k: v for k, v in settings.items() if k in tiling_keys}
     tiling = None
@@ -168,9 +205,11 @@ def cmd_reconstruct(args) -> int:
     cfg, tiling = resolve_settings(args)  # validated before any file is read
     if tiling is not None:
         return _reconstruct_tiled(args, out, cfg, tiling)
-    for opt in ("workers", "scheduler", "work_dir", "frames"):
+    for opt in ("workers", "scheduler", "work_dir", "frames", "max_memory"):
         if getattr(args, opt, None) is not None:
             raise ConfigError(f"--{opt.replace('_', '-')} applies to tiled mode: give --voxel-size too")
+    if getattr(args, "dry_run", False):
+        raise ConfigError("--dry-run applies to tiled mode: give --voxel-size too")
     if len(args.inputs) != 1:
         raise InputError("one-shape mode reads one input; give --voxel-size to reconstruct several files as tiles")
     cloud = read_points(args.inputs[0])
@@ -221,8 +260,23 @@ def _reconstruct_tiled(args, out: Path, solver, tiling) -> int:
         if not Path(p).exists():
             raise InputError(f"{p}: file not found")
     work = Path(args.work_dir) if args.work_dir else out.with_suffix(".job")
+    max_memory = None
+    if args.max_memory is not None:
+        from tiled_gridpull.memory import parse_size
+
+        max_memory = parse_size(args.max_memory)
+    if args.dry_run:
+        from pipeline.dryrun import format_plan, plan_job
+
+        info = plan_job(args.inputs, tiling, solver, work, frames=frames, workers=args.workers)
+        print(format_plan(info, max_memory))
+        if max_memory is not None:
+            from pipeline.job import check_memory
+
+            check_memory(None, tiling, solver, max_memory, estimates=info["estimates"])
+        return 0
     opts = JobOptions(workers=args.workers, scheduler=args.scheduler, fail_fast=args.fail_fast,
-                      float32=args.float32, progress=not args.quiet)
+                      float32=args.float32, progress=not args.quiet, max_memory=max_memory)
     mesh = run_job(args.inputs, out, tiling, solver, work, opts, frames=frames)
     topo = mesh.topology
     tiles = mesh.metadata["tiles"]
@@ -326,7 +380,57 @@ def cmd_evaluate(args) -> int:
     return 0
 
 
-COMMANDS = {"reconstruct": cmd_reconstruct, "evaluate": cmd_evaluate, "sample": cmd_sample}
+def cmd_render(args) -> int:
+    """Run ``render``."""
+    from tiled_gridpull.errors import ConfigError
+    from tiled_gridpull.io import read_mesh
+
+    out = Path(args.output)
+    if out.suffix.lower() != ".png":
+        raise ConfigError(f"output {out}: use a .png file name")
+    w, h = args.size
+    if not (16 <= w <= 8192 and 16 <= h <= 8192):
+        raise ConfigError(f"--size {w} {h}: width and height must be between 16 and 8192 pixels")
+    if args.point_size <= 0 or args.max_points < 1:
+        raise ConfigError("--point-size must be positive and --max-points at least 1")
+    if args.clim is not None and not args.clim[0] < args.clim[1]:
+        raise ConfigError(f"--clim {args.clim[0]:g} {args.clim[1]:g}: need LO < HI")
+    mesh = read_mesh(args.mesh)
+    cloud = gt = None
+    if args.cloud:
+        from tiled_gridpull.io import read_points
+
+        cloud = read_points(args.cloud).xyz
+    if args.gt:
+        gt = read_mesh(args.gt)
+    from tiled_gridpull.render import render_mesh
+
+    info = render_mesh(mesh, out, size=(w, h), cloud=cloud, gt=gt, clim=tuple(args.clim) if args.clim else None,
+                       view=args.view, point_size=args.point_size, max_points=args.max_points,
+                       show_edges=args.edges)
+    msg = f"wrote {out} ({w} x {h})"
+    if "errors" in info:
+        e = info["errors"]
+        msg += (f"; vertex distance to {args.gt}: mean {e['mean']:.4g}, median {e['median']:.4g}, "
+                f"95% {e['p95']:.4g}, max {e['max']:.4g}")
+    log.info(msg)
+    return 0
+
+
+def cmd_report(args) -> int:
+    """Run ``report``."""
+    from tiled_gridpull.report import format_report_table, read_report
+
+    report = read_report(args.job_dir)
+    if args.json:
+        print(json.dumps(report, indent=2, sort_keys=True))
+    else:
+        print(format_report_table(report))
+    return 0
+
+
+COMMANDS = {"reconstruct": cmd_reconstruct, "evaluate": cmd_evaluate, "sample": cmd_sample, "render": cmd_render,
+            "report": cmd_report}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -343,6 +447,10 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:
+        # output piped into `head` and closed early: not an error; keep Python from complaining at exit
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
     except MemoryError:
         print("error: out of memory (reduce --resolution or the tile size, or set --max-memory)", file=sys.stderr)
         return 5

@@ -10,6 +10,11 @@ tiles solved and meshed as tasks on a cluster.
   on an existing cluster.
 * Failed tasks are retried (a worker that dies costs only its tiles in flight); a tile that fails for a data
   reason is reported by name and the rest of the mesh is still produced.
+* Every field and mesh piece is recorded with a key of what produced it (:mod:`tiled_gridpull.resume`): running
+  the same job again in the same job directory reuses the partition and every tile result whose inputs and
+  settings are unchanged, and recomputes only the rest.
+* ``max_memory`` refuses, before anything is solved, a job whose tiles are estimated
+  (:mod:`tiled_gridpull.memory`) to need more than that much memory on a worker.
 """
 
 from __future__ import annotations
@@ -50,6 +55,8 @@ class JobOptions:
         Write float32 vertices with a recorded offset.
     progress : bool
         Show a progress bar with an ETA.
+    max_memory : int, optional
+        Bytes one worker may use for one tile; the job is refused up front if a tile's estimate exceeds it.
     """
 
     workers: int | None = None
@@ -59,6 +66,7 @@ class JobOptions:
     float32: bool = False
     progress: bool = True
     extra: dict = field(default_factory=dict)
+    max_memory: int | None = None
 
 
 def _threads_for(workers: int) -> int:
@@ -102,14 +110,35 @@ def _configure_worker_threads() -> None:
         numba.set_num_threads(min(want, numba.config.NUMBA_NUM_THREADS))
 
 
-def solve_task(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig, field_path: str, centre) -> dict:
-    """Dask task: solve one tile (see :func:`tiled_gridpull.tile.solve_tile`)."""
+def solve_task(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig, field_path: str, centre,
+               summary_path: str | None = None) -> dict:
+    """Dask task: solve one tile (see :func:`tiled_gridpull.tile.solve_tile`), or reuse its recorded result."""
+    from tiled_gridpull.resume import solve_tile_resumable
     from tiled_gridpull.tile import solve_tile
 
     _configure_worker_threads()
-    out = solve_tile(spec, tiling, solver, field_path, centre=centre)
-    out["worker"] = _worker_address()
+    if summary_path is None:
+        out = solve_tile(spec, tiling, solver, field_path, centre=centre)
+    else:
+        out = solve_tile_resumable(spec, tiling, solver, field_path, summary_path, centre,
+                                   before_solve=lambda: _test_hold(spec.name))
+    if not out.get("reused"):
+        out["worker"] = _worker_address()
     return out
+
+
+def _test_hold(tile: str) -> None:
+    """Test hook: with ``TILED_GRIDPULL_TEST_HOLD=DIR:SECONDS``, the first attempt at solving each tile writes
+    ``DIR/<tile>.<pid>`` and sleeps, so a test can kill the worker process mid-task. Unset in normal use."""
+    spec = os.environ.get("TILED_GRIDPULL_TEST_HOLD")
+    if not spec:
+        return
+    where, _, seconds = spec.rpartition(":")
+    marks = Path(where)
+    if any(marks.glob(f"{tile}.*")):
+        return  # a retry: do not hold again
+    (marks / f"{tile}.{os.getpid()}").write_text(_worker_address())
+    time.sleep(float(seconds))
 
 
 def _worker_address() -> str:
@@ -122,18 +151,22 @@ def _worker_address() -> str:
 
 
 def mesh_task(spec: TileSpec, own: dict, neighbor_specs: list, neighbor_summaries: list, tiling: TilingConfig,
-              key_ref, field_paths: dict, piece_path: str) -> dict:
-    """Dask task: blend with the solved neighbours and mesh the tile's core."""
+              key_ref, field_paths: dict, piece_path: str, summary_path: str | None = None) -> dict:
+    """Dask task: blend with the solved neighbours and mesh the tile's core (or reuse its recorded piece)."""
+    from tiled_gridpull.resume import mesh_tile_resumable
     from tiled_gridpull.stitch import mesh_tile
 
     if own.get("status") != "solved":
         return {"tile": spec.name, "status": "not solved", "faces": 0}
     _configure_worker_threads()
-    nb = [(s, field_paths[s.name]) for s, summ in zip(neighbor_specs, neighbor_summaries)
-          if summ.get("status") == "solved"]
-    out = mesh_tile(spec, nb, tiling, key_ref, field_paths[spec.name], piece_path)
-    out["status"] = "meshed"
-    return out
+    solved = [(s, summ) for s, summ in zip(neighbor_specs, neighbor_summaries) if summ.get("status") == "solved"]
+    if summary_path is None:
+        out = mesh_tile(spec, [(s, field_paths[s.name]) for s, _ in solved], tiling, key_ref,
+                        field_paths[spec.name], piece_path)
+        out["status"] = "meshed"
+        return out
+    return mesh_tile_resumable(spec, own, [(s, summ, field_paths[s.name]) for s, summ in solved], tiling, key_ref,
+                               field_paths[spec.name], piece_path, summary_path)
 
 
 def run_job(inputs: list[str], output: str | Path, tiling: TilingConfig, solver: SolverConfig, work_dir: str | Path,
@@ -146,15 +179,19 @@ def run_job(inputs: list[str], output: str | Path, tiling: TilingConfig, solver:
     paths = JobPaths(work_dir)
     plan, specs, scan = prepare_job(inputs, tiling, paths, frames=frames)
     t_part = time.perf_counter()
-    log.info("partitioned %d points into %d tiles (%d planned) in %.1f s", scan["points"], len(specs),
-             int(plan.tile_range[0] * plan.tile_range[1] * plan.tile_range[2]), t_part - t0)
+    log.info("%s %d points into %d tiles (%d planned) in %.1f s",
+             "reused the partition of" if scan.get("partition_reused") else "partitioned", scan["points"],
+             len(specs), int(plan.tile_range[0] * plan.tile_range[1] * plan.tile_range[2]), t_part - t0)
+    if options.max_memory is not None:
+        check_memory(specs, tiling, solver, options.max_memory)
     client, cluster = make_client(options, len(specs))
     try:
         by_index = {s.index: s for s in specs}
         field_paths = {s.name: str(paths.field(s)) for s in specs}
         centre = plan_centre(plan)
         solve_futs = {s.index: client.submit(solve_task, s, tiling, solver, field_paths[s.name], centre,
-                                             key=f"solve-{s.name}", retries=options.retries, pure=False)
+                                             str(paths.summary("solve", s)), key=f"solve-{s.name}",
+                                             retries=options.retries, pure=False)
                       for s in specs}
         ref = key_reference(plan)
         mesh_futs = {}
@@ -162,13 +199,18 @@ def run_job(inputs: list[str], output: str | Path, tiling: TilingConfig, solver:
             nbs = neighbors_of(s, by_index)
             mesh_futs[s.index] = client.submit(
                 mesh_task, s, solve_futs[s.index], nbs, [solve_futs[n.index] for n in nbs], tiling, ref,
-                field_paths, str(paths.piece(s)), key=f"mesh-{s.name}", retries=options.retries, pure=False)
+                field_paths, str(paths.piece(s)), str(paths.summary("mesh", s)), key=f"mesh-{s.name}",
+                retries=options.retries, pure=False)
         solve_summaries, mesh_summaries = _collect(solve_futs, mesh_futs, options, as_completed)
     finally:
         client.close()
         if cluster is not None:
             cluster.close()
     t_mesh = time.perf_counter()
+    n_solve = sum(1 for s in solve_summaries if s.get("reused"))
+    n_mesh = sum(1 for m in mesh_summaries if m.get("reused"))
+    log.info("reused %d of %d tile solves and %d of %d mesh pieces from %s", n_solve, len(solve_summaries), n_mesh,
+             sum(1 for m in mesh_summaries if m.get("status") == "meshed"), paths.root)
     failed = [s for s in solve_summaries if s["status"] == "failed"]
     if failed and options.fail_fast:
         raise TileFailedError(f"{len(failed)} tile(s) failed: " + "; ".join(f"{s['tile']}: {s.get('reason')}"
@@ -176,6 +218,7 @@ def run_job(inputs: list[str], output: str | Path, tiling: TilingConfig, solver:
     meta = job_metadata(plan, tiling, solver, scan, solve_summaries, mesh_summaries,
                         {"partition": t_part - t0, "solve_and_mesh": t_mesh - t_part})
     meta["engine"] = {"scheduler": options.scheduler or "LocalCluster", "workers": options.workers}
+    meta["reused"] = {"partition": bool(scan.get("partition_reused")), "solves": n_solve, "meshes": n_mesh}
     pieces = [paths.piece(by_index[tuple(m["index"])]) for m in mesh_summaries if m.get("status") == "meshed"]
     mesh = finish_job(pieces, output, meta, float32=options.float32)
     mesh.metadata["timings_s"]["merge"] = time.perf_counter() - t_mesh
@@ -183,7 +226,34 @@ def run_job(inputs: list[str], output: str | Path, tiling: TilingConfig, solver:
     from tiled_gridpull.io import write_sidecar
 
     write_sidecar(output, mesh.metadata)
+    from tiled_gridpull.report import write_report
+
+    write_report(paths.root, mesh.metadata, output=output)  # report.json + tiles.png in the job directory
     return mesh
+
+
+def check_memory(specs: list[TileSpec] | None, tiling: TilingConfig, solver: SolverConfig, budget: int,
+                 occupancy: dict | None = None, estimates: list[dict] | None = None) -> list[dict]:
+    """Refuse (one line, before any solve) tiles whose estimated peak memory exceeds ``budget`` bytes.
+
+    ``estimates`` (from :func:`tiled_gridpull.memory.estimate_tiles`) are computed from ``specs`` if not given.
+    """
+    from tiled_gridpull.errors import MemoryBudgetError
+    from tiled_gridpull.memory import estimate_tiles, format_size
+
+    est = estimates if estimates is not None else estimate_tiles(specs, solver, tiling, occupancy)
+    over = sorted((e for e in est if e["peak"] > budget), key=lambda e: -e["peak"])
+    if over:
+        names = ", ".join(f"{e['tile']} ({format_size(e['peak'])})" for e in over[:5])
+        more = f" and {len(over) - 5} more" if len(over) > 5 else ""
+        raise MemoryBudgetError(
+            f"{len(over)} of {len(est)} tiles would exceed --max-memory {format_size(budget)}: {names}{more}; "
+            f"use a smaller --tile-size (now {tiling.tile_size:g}) or a larger budget")
+    if est:
+        top = max(est, key=lambda e: e["peak"])
+        log.info("largest tile memory estimate: %s (%s), within --max-memory %s", format_size(top["peak"]),
+                 top["tile"], format_size(budget))
+    return est
 
 
 def _collect(solve_futs: dict, mesh_futs: dict, options: JobOptions, as_completed) -> tuple[list, list]:

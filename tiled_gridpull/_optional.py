@@ -16,6 +16,7 @@ _HINTS = {
     "manifold3d": "pip install manifold3d",
     "open3d": "pip install 'tiled-gridpull[bench]'",
     "matplotlib": "pip install matplotlib",
+    "PIL.Image": "pip install pillow",
 }
 
 

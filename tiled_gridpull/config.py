@@ -123,10 +123,11 @@ class SolverConfig:
                         object.__setattr__(self, f.name, int(value))
                     else:
                         raise ConfigError(f"{f.name} must be an integer, got {value!r}")
+                if abs(getattr(self, f.name)) >= 1 << 62:
+                    raise ConfigError(f"{f.name} is out of range (an integer of "
+                                      f"{getattr(self, f.name).bit_length()} bits)")
             elif f.type in ("float", float):
-                if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-                    raise ConfigError(f"{f.name} must be a finite number, got {value!r}")
-                object.__setattr__(self, f.name, float(value))
+                object.__setattr__(self, f.name, finite_number(f.name, value))
             elif f.type in ("str", str):
                 if value not in _CHOICES[f.name]:
                     raise ConfigError(f"{f.name} must be one of {', '.join(_CHOICES[f.name])}; got {value!r}")
@@ -184,6 +185,20 @@ class SolverConfig:
                 "sigma": self.refine_sigma, "tv_form": self.refine_tv_form}
 
 
+def finite_number(name: str, value: Any) -> float:
+    """``value`` as a finite float, or a ConfigError naming ``name`` (bools, strings, huge ints refused)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ConfigError(f"{name} must be a finite number, got {value!r}")
+    try:
+        out = float(value)
+    except OverflowError:
+        out = math.inf
+    if not math.isfinite(out):
+        shown = f"an integer of {value.bit_length()} bits" if isinstance(value, int) else repr(value)
+        raise ConfigError(f"{name} must be a finite number, got {shown}")
+    return out
+
+
 def parse_overrides(items: list[str]) -> dict[str, Any]:
     """``["key=value", ...]`` (from ``--set``) -> dict with YAML-typed values."""
     import yaml
@@ -196,7 +211,10 @@ def parse_overrides(items: list[str]) -> dict[str, Any]:
         key = key.strip()
         if not key:
             raise ConfigError(f"--set expects key=value, got {item!r}")
-        out[key] = yaml.safe_load(raw)
+        try:
+            out[key] = yaml.safe_load(raw)
+        except yaml.YAMLError:
+            raise ConfigError(f"--set {item!r}: the value is not valid YAML") from None
     return out
 
 

@@ -93,12 +93,25 @@ def _chunks(inputs, chunk_size, frames):
 
 def prepare_job(inputs: list[str], tiling: TilingConfig, paths: JobPaths, *, frames=None,
                 chunk_size: int = 2_000_000) -> tuple[TilePlan, list[TileSpec], dict]:
-    """Scan and partition the inputs into tiles; writes the manifest. Returns the plan, tiles and scan facts."""
+    """Scan and partition the inputs into tiles; writes the manifest. Returns the plan, tiles and scan facts.
+
+    A finished partition of the same inputs (path, size, mtime) and tile grid in ``paths`` is reused without
+    reading the inputs (``scan["partition_reused"]``; see :mod:`tiled_gridpull.resume`).
+    """
+    from .resume import load_partition, partition_key, scan_record
+
+    key = partition_key(inputs, tiling, frames)
+    reused = load_partition(paths, key, tiling)
+    if reused is not None:
+        return reused
+    paths.manifest.unlink(missing_ok=True)  # the manifest commits a partition: none while one is under way
     scan = scan_inputs(inputs, chunk_size, frames)
     plan = plan_tiles(scan["bounds"], scan["points"], tiling)
     specs = partition(_chunks(inputs, chunk_size, frames), plan, paths.points(), scan["has_sensor"])
     write_manifest(paths.manifest, plan, specs, {"inputs": [str(Path(p).resolve()) for p in inputs],
-                                                 "crs": scan["crs"], "version": __version__})
+                                                 "crs": scan["crs"], "version": __version__,
+                                                 "partition_key": key, "scan": scan_record(scan)})
+    scan["partition_reused"] = False
     return plan, specs, scan
 
 
@@ -179,6 +192,9 @@ def reconstruct_scene(inputs: list[str], output: str | Path | None, tiling: Tili
         from .io import write_sidecar
 
         write_sidecar(output, mesh.metadata)
+    from .report import write_report
+
+    write_report(paths.root, mesh.metadata, output=output)  # report.json + tiles.png in the job directory
     return mesh
 
 

@@ -127,9 +127,10 @@ def mesh_tile(spec, neighbors: list, tiling, key_ref: np.ndarray, field_path: st
     from .kernels import BRICK
     from .kernels.band import brick_neighbors
     from .mesh import extract_mesh
-    from .tile import load_tile_field, read_tile_points
+    from .tile import load_tile_field, peak_rss_mb, read_tile_points, reset_peak_rss
 
     t0 = time.perf_counter()
+    reset_peak_rss()
     O = tiling.overlap_cells
     own = load_tile_field(field_path, spec, O)
     others = [load_tile_field(p, s, O) for s, p in neighbors]
@@ -153,4 +154,5 @@ def mesh_tile(spec, neighbors: list, tiling, key_ref: np.ndarray, field_path: st
         mesh, keys = trim_faces(mesh, keys, pts, tiling.trim_distance * block.cell_size)
     save_piece(MeshPiece(mesh.vertices, mesh.faces, keys), piece_path)
     return {"tile": spec.name, "faces": mesh.n_faces, "vertices": mesh.n_vertices, "trimmed": n_raw - mesh.n_faces,
-            "blended_vertices": changed, "piece_path": str(piece_path), "time_s": time.perf_counter() - t0}
+            "blended_vertices": changed, "piece_path": str(piece_path), "time_s": time.perf_counter() - t0,
+            "peak_rss_mb": peak_rss_mb()}

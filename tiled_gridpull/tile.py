@@ -31,10 +31,11 @@ if TYPE_CHECKING:
     from .blend import TileField
     from .config import SolverConfig
 
-__all__ = ["TilingConfig", "TileSpec", "TilePlan", "plan_tiles", "partition", "read_tile_points",
+__all__ = ["TilingConfig", "TileSpec", "TilePlan", "plan_tiles", "partition", "read_tile_points", "read_occupancy",
            "ORIENTATIONS", "check_compatible", "solve_tile"]
 
 ORIENTATIONS = ("auto", "sensor", "up", "outward", "sphere")
+MAX_TILE_CELLS = 1 << 18  # a block (core + 2 overlaps) must stay within the 2^19 vertices edge keys count on z
 
 
 @dataclass(frozen=True)
@@ -73,11 +74,10 @@ class TilingConfig:
     normal_neighbors: int = 16
 
     def __post_init__(self) -> None:
+        from .config import finite_number
+
         for name in ("voxel_size", "tile_size", "overlap", "trim_distance"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-                raise ConfigError(f"{name} must be a finite number, got {v!r}")
-            object.__setattr__(self, name, float(v))
+            object.__setattr__(self, name, finite_number(name, getattr(self, name)))
         if self.voxel_size <= 0:
             raise ConfigError(f"voxel_size must be positive, got {self.voxel_size!r}")
         if self.tile_size <= 0:
@@ -88,10 +88,16 @@ class TilingConfig:
             raise ConfigError(f"trim_distance must be >= 0, got {self.trim_distance!r}")
         for name in ("min_points", "normal_neighbors"):
             v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-                raise ConfigError(f"{name} must be a positive integer, got {v!r}")
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1 or v >= 1 << 62:
+                shown = f"an integer of {v.bit_length()} bits" if isinstance(v, int) and v >= 1 << 62 else repr(v)
+                raise ConfigError(f"{name} must be a positive integer, got {shown}")
         if self.orientation not in ORIENTATIONS:
             raise ConfigError(f"orientation must be one of {', '.join(ORIENTATIONS)}; got {self.orientation!r}")
+        for name in ("tile_size", "overlap"):
+            cells = getattr(self, name) / self.voxel_size
+            if not cells <= MAX_TILE_CELLS:  # also catches inf
+                raise ConfigError(f"{name} {getattr(self, name):g} is {cells:.3g} cells of voxel_size "
+                                  f"{self.voxel_size:g}: at most {MAX_TILE_CELLS:,} (the range of edge keys)")
         if self.tile_cells < BRICK:
             raise ConfigError(f"tile_size {self.tile_size} is less than 8 cells of {self.voxel_size}")
         if 2 * self.overlap_cells > self.tile_cells:
@@ -154,6 +160,10 @@ class TileSpec:
     mesh_lo, mesh_hi : (3,) int
         Cells this tile meshes, ``[mesh_lo, mesh_hi)``: its core, extended to the block's border on the sides
         where no tile follows (so a surface just beyond the outermost points is not cut off).
+    points_sha256 : str
+        SHA-256 of the spill file's content (what the tile's results are keyed on when a job is resumed).
+    occupied_bricks : int
+        Bricks (8^3 cells) of the block that hold at least one point (see :func:`read_occupancy`).
     """
 
     index: tuple[int, int, int]
@@ -165,6 +175,8 @@ class TileSpec:
     has_sensor: bool = False
     mesh_lo: tuple[int, int, int] = (0, 0, 0)
     mesh_hi: tuple[int, int, int] = (0, 0, 0)
+    points_sha256: str = ""
+    occupied_bricks: int = 0
 
     @property
     def name(self) -> str:
@@ -179,14 +191,20 @@ class TileSpec:
     def to_dict(self) -> dict:
         d = {"index": list(self.index), "core_lo": list(self.core_lo), "core_hi": list(self.core_hi),
              "block": self.block.to_dict(), "n_points": self.n_points, "points_path": self.points_path,
-             "has_sensor": self.has_sensor, "mesh_lo": list(self.mesh_lo), "mesh_hi": list(self.mesh_hi)}
+             "has_sensor": self.has_sensor, "mesh_lo": list(self.mesh_lo), "mesh_hi": list(self.mesh_hi),
+             "points_sha256": self.points_sha256, "occupied_bricks": self.occupied_bricks}
         return d
 
     @classmethod
     def from_dict(cls, d: dict) -> "TileSpec":
         return cls(tuple(d["index"]), tuple(d["core_lo"]), tuple(d["core_hi"]), Lattice.from_dict(d["block"]),
                    int(d["n_points"]), d["points_path"], bool(d["has_sensor"]), tuple(d["mesh_lo"]),
-                   tuple(d["mesh_hi"]))
+                   tuple(d["mesh_hi"]), str(d.get("points_sha256", "")), int(d.get("occupied_bricks", 0)))
+
+    @property
+    def occupancy_path(self) -> str:
+        """File of the block's occupied-brick mask, beside the spill file."""
+        return str(Path(self.points_path).with_suffix(".occ.npy")) if self.points_path else ""
 
 
 @dataclass(eq=False)
@@ -298,8 +316,8 @@ _RECORD = np.dtype([("xyz", "<f4", (3,))])
 _RECORD_SENSOR = np.dtype([("xyz", "<f4", (3,)), ("sensor", "<f4", (3,))])
 
 
-def partition(chunks: Iterable, plan: TilePlan, out_dir: str | Path, has_sensor: bool,
-              flush_points: int = 2_000_000) -> list[TileSpec]:
+def partition(chunks: Iterable, plan: TilePlan, out_dir: str | Path | None, has_sensor: bool,
+              flush_points: int = 2_000_000, occupancy: dict | None = None) -> list[TileSpec]:
     """Stream point chunks into per-tile spill files (the partition pass).
 
     Parameters
@@ -307,41 +325,59 @@ def partition(chunks: Iterable, plan: TilePlan, out_dir: str | Path, has_sensor:
     chunks : iterable of PointCloud
         World coordinates (float64) and, when ``has_sensor``, sensor origins.
     plan : TilePlan
-    out_dir : path
-        Directory for ``<tile>.points`` files (created; existing spill files there are replaced).
+    out_dir : path or None
+        Directory for ``<tile>.points`` files (created; existing spill files there are replaced) and their
+        ``<tile>.occ.npy`` occupied-brick masks. ``None`` counts only (a dry run): no file is written.
     has_sensor : bool
     flush_points : int
         Buffered (point, tile) pairs before writing to disk: bounds the memory of the pass.
+    occupancy : dict, optional
+        Filled with ``{tile index: (BX, BY, BZ) bool}``, the bricks of each block that hold a point (what the
+        memory estimate reads; also saved beside the spill files).
 
     Returns
     -------
     list of TileSpec
-        Tiles that received at least one point, with counts and spill paths.
+        Tiles that received at least one point, with counts, spill paths and the SHA-256 of each spill file.
     """
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    import hashlib
+
+    write = out_dir is not None
+    out = Path(out_dir) if write else None
+    if write:
+        out.mkdir(parents=True, exist_ok=True)
     dtype = _RECORD_SENSOR if has_sensor else _RECORD
     counts: dict[tuple, int] = {}
     buffers: dict[tuple, list] = {}
+    hashes: dict[tuple, "hashlib._Hash"] = {}
+    occ: dict[tuple, np.ndarray] = {}
+    bshape = tuple(int(v) for v in -(-np.asarray(plan.spec((0, 0, 0)).block.shape) // BRICK))
     buffered = 0
     tmp_paths: dict[tuple, Path] = {}
 
     def flush() -> None:
         nonlocal buffered
         for key, parts in buffers.items():
+            h = hashes.setdefault(key, hashlib.sha256())
+            if not write:
+                for part in parts:
+                    h.update(part.tobytes())
+                continue
             path = tmp_paths.setdefault(key, out / f".{plan.spec(key).name}.points.partial")
             with open(path, "ab") as fh:
                 for part in parts:
-                    fh.write(part.tobytes())
+                    data = part.tobytes()
+                    h.update(data)
+                    fh.write(data)
         buffers.clear()
         buffered = 0
 
     started = False
     for chunk in chunks:
-        if not started:
+        if not started and write:
             for stale in out.glob(".*.points.partial"):
                 stale.unlink()
-            started = True
+        started = True
         xyz = np.asarray(chunk.xyz, dtype=np.float64)
         if len(xyz) == 0:
             continue
@@ -363,6 +399,13 @@ def partition(chunks: Iterable, plan: TilePlan, out_dir: str | Path, has_sensor:
             rec["xyz"] = xyz[sel] - corner
             if has_sensor:
                 rec["sensor"] = np.asarray(chunk.sensor, dtype=np.float64)[sel] - corner
+            # the cells the solver will see (tile-local float32 / cell size), as bricks
+            cells = np.floor(rec["xyz"].astype(np.float64) / spec.block.cell_size).astype(np.int64)
+            cells = cells[np.all((cells >= 0) & (cells < np.asarray(spec.block.shape) - 1), axis=1)] >> 3
+            grid = occ.get(t)
+            if grid is None:
+                grid = occ[t] = np.zeros(bshape, bool)
+            grid[cells[:, 0], cells[:, 1], cells[:, 2]] = True
             buffers.setdefault(t, []).append(rec)
             counts[t] = counts.get(t, 0) + len(sel)
             buffered += len(sel)
@@ -372,10 +415,25 @@ def partition(chunks: Iterable, plan: TilePlan, out_dir: str | Path, has_sensor:
     specs = []
     for t in sorted(counts):
         spec = plan.spec(t)
-        final = out / f"{spec.name}.points"
-        tmp_paths[t].replace(final)
-        specs.append(plan.spec(t, n_points=counts[t], points_path=str(final), has_sensor=has_sensor))
+        grid = occ[t]
+        path = ""
+        if write:
+            final = out / f"{spec.name}.points"
+            tmp_paths[t].replace(final)
+            path = str(final)
+            np.save(final.with_suffix(".occ.npy"), np.packbits(grid.ravel()))
+        if occupancy is not None:
+            occupancy[t] = grid
+        specs.append(plan.spec(t, n_points=counts[t], points_path=path, has_sensor=has_sensor,
+                               points_sha256=hashes[t].hexdigest(), occupied_bricks=int(grid.sum())))
     return specs
+
+
+def read_occupancy(spec: TileSpec) -> np.ndarray:
+    """The block's occupied-brick mask written by :func:`partition`: (BX, BY, BZ) bool."""
+    bshape = tuple(int(v) for v in -(-np.asarray(spec.block.shape) // BRICK))
+    bits = np.load(spec.occupancy_path)
+    return np.unpackbits(bits, count=int(np.prod(bshape))).astype(bool).reshape(bshape)
 
 
 def read_tile_points(spec: TileSpec) -> tuple[np.ndarray, np.ndarray | None]:
@@ -436,6 +494,7 @@ def solve_tile(spec: TileSpec, tiling: TilingConfig, solver: "SolverConfig", fie
     from .solver import solve
 
     t0 = time.perf_counter()
+    reset_peak_rss()
     summary: dict = {"tile": spec.name, "index": list(spec.index), "points": spec.n_points}
     try:
         xyz32, sensor32 = read_tile_points(spec)
@@ -474,12 +533,15 @@ def solve_tile(spec: TileSpec, tiling: TilingConfig, solver: "SolverConfig", fie
                 fld.values *= -1
                 flipped = True
         off_bricks = np.asarray(spec.block.offset, np.int64) // BRICK
-        save_tile_field(field_path, fld.band.brick_coords.astype(np.int64) + off_bricks, fld.values,
-                        fld.band.flags)
+        field_sha = save_tile_field(field_path, fld.band.brick_coords.astype(np.int64) + off_bricks, fld.values,
+                                    fld.band.flags)
         hist = fld.info.get("history", [])
-        summary.update(status="solved", flipped=flipped, orientation=rule,
+        summary.update(status="solved", flipped=flipped, orientation=rule, field_sha256=field_sha,
                        band_params=int(fld.band.n_params), bricks=int(fld.band.n_bricks),
+                       level_bricks=[lv["band"]["bricks"] for lv in fld.info.get("levels", [])],
                        final_pull=hist[-1]["pull"] if hist else None,
+                       loss_first=_loss_point(hist[0], fld.info) if hist else None,
+                       loss_last=_loss_point(hist[-1], fld.info) if hist else None,
                        loss_curve=[(h["iteration"], h["pull"], h["tv"]) for h in hist],
                        field_path=str(field_path))
     except GridPullError as exc:
@@ -489,22 +551,64 @@ def solve_tile(spec: TileSpec, tiling: TilingConfig, solver: "SolverConfig", fie
     return summary
 
 
+def _loss_point(record: dict, info: dict) -> dict:
+    """The part of a solver history record kept in a tile summary: pull and TV losses in cells of the record's
+    level, that level's ``cell_size`` (world units) and the pull loss in world units (``pull_world``)."""
+    level = int(record["level"])
+    levels = info.get("levels", [])
+    cell = float(levels[level]["cell_size"]) if level < len(levels) else float("nan")
+    return {"iteration": int(record["iteration"]), "level": level, "pull": float(record["pull"]),
+            "tv": float(record["tv"]), "cell_size": cell, "pull_world": float(record["pull"]) * cell}
+
+
 def peak_rss_mb() -> float:
-    """Peak resident memory of this process so far (MB)."""
+    """Peak resident memory of this process (MB) since :func:`reset_peak_rss` (Linux), else since it started."""
     import resource
     import sys
 
+    try:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024.0
+    except (OSError, ValueError, IndexError):
+        pass
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     return peak / (1024.0 * 1024.0) if sys.platform == "darwin" else peak / 1024.0
 
 
-def save_tile_field(path: str | Path, brick_coords: np.ndarray, values: np.ndarray, flags: np.ndarray) -> None:
-    """Write a tile field (global brick coordinates, values in cells, flags) atomically as ``.npz``."""
+def reset_peak_rss() -> bool:
+    """Restart the peak-memory count of this process at its current size (Linux ``clear_refs``), so that the
+    peak a task reports is its own and not that of an earlier task of the same worker. False if unsupported."""
+    try:
+        with open("/proc/self/clear_refs", "w") as fh:
+            fh.write("5")
+        return True
+    except OSError:
+        return False
+
+
+def field_checksum(brick_coords: np.ndarray, values: np.ndarray, flags: np.ndarray) -> str:
+    """SHA-256 of a tile field's arrays (content, not file bytes: ``.npz`` files carry timestamps)."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for a in (brick_coords, values, flags):
+        a = np.ascontiguousarray(a)
+        h.update(f"{a.dtype.str}{a.shape}".encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def save_tile_field(path: str | Path, brick_coords: np.ndarray, values: np.ndarray, flags: np.ndarray) -> str:
+    """Write a tile field (global brick coordinates, values in cells, flags) atomically as ``.npz``; returns
+    its :func:`field_checksum`."""
     from .io.atomic import atomic_path
 
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as fh:
             np.savez(fh, brick_coords=brick_coords, values=values, flags=flags)
+    return field_checksum(brick_coords, values, flags)
 
 
 def load_tile_field(path: str | Path, spec: TileSpec, overlap: int) -> "TileField":

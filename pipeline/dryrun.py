@@ -1,0 +1,101 @@
+"""``reconstruct --dry-run``: the tile plan, memory and a rough time estimate of a tiled job, solving nothing.
+
+The inputs are scanned and counted into tiles in memory (no file is written); when the job directory already
+holds a finished partition of the same inputs and tile grid, that is read instead.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from tiled_gridpull.config import SolverConfig
+from tiled_gridpull.tile import TilingConfig
+
+__all__ = ["plan_job", "format_plan"]
+
+
+def plan_job(inputs: list[str], tiling: TilingConfig, solver: SolverConfig, work_dir: str | Path, *, frames=None,
+             workers: int | None = None, chunk_size: int = 2_000_000) -> dict:
+    """Everything the dry run reports (see :func:`format_plan`)."""
+    from tiled_gridpull.memory import estimate_tiles
+    from tiled_gridpull.resume import load_partition, partition_key
+    from tiled_gridpull.scene import JobPaths, _chunks, scan_inputs
+    from tiled_gridpull.tile import check_compatible, partition, plan_tiles
+
+    check_compatible(tiling, solver)
+    paths = JobPaths(work_dir)
+    reused = load_partition(paths, partition_key(inputs, tiling, frames), tiling)
+    occupancy = None
+    if reused is not None:
+        plan, specs, scan = reused
+    else:
+        scan = scan_inputs(inputs, chunk_size, frames)
+        plan = plan_tiles(scan["bounds"], scan["points"], tiling)
+        occupancy = {}
+        specs = partition(_chunks(inputs, chunk_size, frames), plan, None, scan["has_sensor"],
+                          occupancy=occupancy)
+    est = estimate_tiles(specs, solver, tiling, occupancy)
+    counts = np.array([s.n_points for s in specs], dtype=np.int64)
+    cores = os.cpu_count() or 1
+    n_workers = workers or max(1, min(cores, len(specs)))
+    cpu_s = float(sum(e["time_s"] for e in est))
+    peak = max(est, key=lambda e: e["peak"]) if est else None
+    return {
+        "inputs": [str(p) for p in inputs], "points": int(scan["points"]), "has_sensor": bool(scan["has_sensor"]),
+        "partition_reused": reused is not None,
+        "lattice": {"origin": list(plan.lattice.origin), "cell_size": plan.lattice.cell_size,
+                    "shape": list(plan.lattice.shape), "tile_cells": tiling.tile_cells,
+                    "overlap_cells": tiling.overlap_cells, "tile_range": list(plan.tile_range),
+                    "levels": solver.levels_for(tiling.tile_cells + 2 * tiling.overlap_cells)},
+        "tiles": {"planned": int(np.prod(plan.tile_range)), "with_points": len(specs),
+                  "below_min_points": int(np.sum(counts < tiling.min_points)),
+                  "points_min": int(counts.min()) if len(counts) else 0,
+                  "points_median": float(np.median(counts)) if len(counts) else 0.0,
+                  "points_max": int(counts.max()) if len(counts) else 0,
+                  "overlap_points": int(counts.sum() - scan["points"]) if len(counts) else 0},
+        "memory": {"peak_bytes": peak["peak"] if peak else 0.0, "peak_tile": peak["tile"] if peak else None,
+                   "median_bytes": float(np.median([e["peak"] for e in est])) if est else 0.0},
+        "time": {"cpu_seconds": cpu_s, "workers": n_workers, "cores": cores, "wall_seconds": cpu_s / cores},
+        "estimates": est,
+    }
+
+
+def _duration(seconds: float) -> str:
+    if seconds < 90:
+        return f"{seconds:.0f} s"
+    if seconds < 5400:
+        return f"{seconds / 60:.0f} min"
+    return f"{seconds / 3600:.1f} h"
+
+
+def format_plan(info: dict, max_memory: int | None = None) -> str:
+    """The dry run's printout."""
+    from tiled_gridpull.memory import format_size
+
+    lat, t, m, tm = info["lattice"], info["tiles"], info["memory"], info["time"]
+    cell = lat["cell_size"]
+    lines = [
+        f"dry run: nothing is solved{' (partition of the job directory reused)' if info['partition_reused'] else ''}",
+        f"input:    {info['points']:,} points{' with sensor origins' if info['has_sensor'] else ''} "
+        f"in {len(info['inputs'])} file(s)",
+        f"lattice:  cell {cell:g}, origin ({', '.join(f'{v:.10g}' for v in lat['origin'])}), "
+        f"{' x '.join(str(v - 1) for v in lat['shape'])} cells, {lat['levels']} solver level(s)",
+        f"tiles:    {t['with_points']} with points of {t['planned']} planned "
+        f"({' x '.join(str(v) for v in lat['tile_range'])}); core {lat['tile_cells']} cells ({lat['tile_cells'] * cell:g}), "
+        f"overlap {lat['overlap_cells']} cells ({lat['overlap_cells'] * cell:g}) per side",
+        f"points per tile: min {t['points_min']:,}, median {t['points_median']:,.0f}, max {t['points_max']:,} "
+        f"({t['overlap_points']:,} copies in overlaps; {t['below_min_points']} tile(s) below min_points)",
+        f"memory:   peak per worker about {format_size(m['peak_bytes'])} (largest tile, {m['peak_tile']}); "
+        f"median tile {format_size(m['median_bytes'])} (estimates are upper bounds)",
+        f"time:     roughly {_duration(tm['wall_seconds'])} on {tm['cores']} core(s) "
+        f"({_duration(tm['cpu_seconds'])} of solving on one core; a rough rate per query and band vertex, "
+        f"easily off by 2x)",
+    ]
+    if max_memory is not None:
+        over = [e for e in info["estimates"] if e["peak"] > max_memory]
+        lines.append(f"--max-memory {format_size(max_memory)}: "
+                     + (f"{len(over)} tile(s) over budget" if over else "every tile fits"))
+    return "\n".join(lines)

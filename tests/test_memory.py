@@ -1,0 +1,134 @@
+"""Up-front memory estimates (checked against measured per-task peaks on the synthetic street), --max-memory
+and --dry-run."""
+
+import re
+import time
+
+import numpy as np
+import pytest
+
+from pipeline.cli import main
+from tiled_gridpull.config import SolverConfig
+from tiled_gridpull.errors import ConfigError
+from tiled_gridpull.memory import MB, estimate_tiles, parse_size
+from tiled_gridpull.tile import TilingConfig
+
+from conftest import shared_file
+
+ORIGIN = (500000.0, 4000000.0, 100.0)
+# configs/scene.yaml's settings (10 cm cells, 25.6 m tiles, m2 = 25); few iterations: memory does not depend on them
+TILING = TilingConfig(voxel_size=0.1, tile_size=25.6, overlap=3.2, trim_distance=3.0)
+SOLVER = SolverConfig(m2=25, iterations=5, coarse_iterations=5)
+TILE_ARGS = ["--voxel-size", "0.1", "--tile-size", "25.6", "--overlap", "3.2", "--set", "m2=25"]
+
+
+@pytest.mark.parametrize("text,expected", [("2GB", 2 * 1024 ** 3), ("1500MB", 1500 * MB), ("512m", 512 * MB),
+                                           ("1.5G", int(1.5 * 1024 ** 3)), ("2GiB", 2 * 1024 ** 3),
+                                           ("3000000", 3000000), (" 64 MB ", 64 * MB)])
+def test_parse_size(text, expected):
+    assert parse_size(text) == expected
+
+
+@pytest.mark.parametrize("text", ["", "GB", "2XB", "-1GB", "0", "100", "1e3MB", "two GB", "2 G B", "nan"])
+def test_parse_size_refuses(text):
+    with pytest.raises(ConfigError, match="--max-memory"):
+        parse_size(text)
+
+
+@pytest.fixture(scope="module")
+def street(tmp_path_factory):
+    from tiled_gridpull.synthetic.street import StreetScene, build_street, scan_street
+
+    d = tmp_path_factory.mktemp("street_memory")
+    scene = StreetScene(seed=1, length_m=40.0, width_m=30.0, origin=ORIGIN)
+    scan = scan_street(scene, build_street(scene), 3, azimuth_steps=700, max_range=20.0)
+    np.save(d / "street.npy", scan.xyz)
+    return d
+
+
+@pytest.fixture(scope="module")
+def street_job(street):
+    """The street solved on a LocalCluster (2 workers) under a budget it fits, with estimates made beforehand."""
+    from pipeline.job import JobOptions, run_job
+    from tiled_gridpull.scene import JobPaths, prepare_job
+
+    work = street / "job"
+    _, specs, _ = prepare_job([str(street / "street.npy")], TILING, JobPaths(work))
+    est = estimate_tiles(specs, SOLVER, TILING)
+    mesh = run_job([str(street / "street.npy")], street / "street.ply", TILING, SOLVER, work,
+                   JobOptions(workers=2, progress=False, max_memory=parse_size("4GB")))
+    return est, mesh.metadata
+
+
+def test_memory_estimate_is_an_upper_bound_within_2x_on_the_street(street_job):
+    est, meta = street_job
+    solves = {s["tile"]: s for s in meta["tile_summaries"]}
+    meshes = {m["tile"]: m for m in meta["mesh_summaries"]}
+    assert meta["reused"]["partition"] is True  # estimates were made from the very partition that was solved
+    checked = 0
+    for e in est:
+        s, m = solves[e["tile"]], meshes[e["tile"]]
+        if s["status"] != "solved":
+            continue
+        # the band bound holds level by level (it is what build_band allocates before trimming)
+        assert all(b >= k for b, k in zip(e["bricks"], s["level_bricks"])), (e["bricks"], s["level_bricks"])
+        real_solve, real_mesh = s["peak_rss_mb"] * MB, m["peak_rss_mb"] * MB
+        assert real_solve <= e["solve"] <= 2 * real_solve, (e["tile"], e["solve"] / MB, s["peak_rss_mb"])
+        assert real_mesh <= e["mesh"] <= 2 * real_mesh, (e["tile"], e["mesh"] / MB, m["peak_rss_mb"])
+        real = max(real_solve, real_mesh)
+        assert real <= e["peak"] <= 2 * real
+        checked += 1
+    assert checked >= 4
+    # the largest tile is the one that holds most points, and it costs more than the worker's baseline
+    big = max(est, key=lambda e: e["points"])
+    assert solves[big["tile"]]["peak_rss_mb"] > 300
+
+
+def test_max_memory_refuses_before_solving(street, capsys):
+    out = street / "refused.ply"
+    work = street / "refused.job"
+    code = main(["reconstruct", str(street / "street.npy"), "-o", str(out), "-q", "--work-dir", str(work),
+                 *TILE_ARGS, "--max-memory", "300MB"])
+    err = capsys.readouterr().err
+    assert code == 5
+    lines = [ln for ln in err.strip().splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: "), err
+    assert re.search(r"tile_\d+_\d+_\d+ \(\d+ MB\)", lines[0]) and "--tile-size" in lines[0], lines[0]
+    assert not out.exists() and not out.with_suffix(".json").exists()
+    assert not (work / "fields").exists() and not (work / "summaries").exists()  # nothing was solved
+
+
+def test_dry_run_prints_the_plan_and_writes_nothing(street, tmp_path, capsys):
+    from tiled_gridpull.scene import JobPaths, prepare_job
+
+    out = street / "dry.ply"
+    code = main(["reconstruct", str(street / "street.npy"), "-o", str(out), "-q", *TILE_ARGS, "--dry-run",
+                 "--max-memory", "4GB"])
+    text = capsys.readouterr().out
+    assert code == 0
+    assert not out.exists() and not out.with_suffix(".job").exists()
+    assert "partition of the job directory reused" not in text
+    # the plan agrees with a real partition of the same data
+    _, specs, _ = prepare_job([str(street / "street.npy")], TILING, JobPaths(tmp_path / "job"))
+    counts = sorted(s.n_points for s in specs)
+    m = re.search(r"tiles:\s+(\d+) with points of (\d+) planned", text)
+    assert m and int(m.group(1)) == len(specs)
+    m = re.search(r"points per tile: min ([\d,]+), median ([\d,]+), max ([\d,]+)", text)
+    assert m and int(m.group(1).replace(",", "")) == counts[0] and int(m.group(3).replace(",", "")) == counts[-1]
+    assert "overlap 32 cells" in text and "cell 0.1" in text
+    assert re.search(r"memory:\s+peak per worker about \d", text) and "roughly" in text
+    assert "every tile fits" in text
+
+
+def test_dry_run_on_real_laz_is_fast(tmp_path, capsys):
+    laz = shared_file("lidar", "autzen_trim.laz")  # feet
+    out = tmp_path / "autzen.ply"
+    t0 = time.perf_counter()
+    code = main(["reconstruct", str(laz), "-o", str(out), "-q", "--voxel-size", "0.5", "--tile-size", "64",
+                 "--overlap", "8", "--dry-run"])
+    elapsed = time.perf_counter() - t0
+    text = capsys.readouterr().out
+    assert code == 0, text
+    assert elapsed < 10, elapsed
+    assert "110,000 points" in text and re.search(r"tiles:\s+\d+ with points", text)
+    assert not out.exists() and not out.with_suffix(".job").exists()

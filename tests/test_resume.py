@@ -1,0 +1,126 @@
+"""Resume bookkeeping without a cluster: the partition's key and commit record, result keys, and reuse checks.
+
+(The end-to-end runs -- Ctrl-C mid-job then rerun to identical bytes, settings invalidating only their
+dependents -- are in ``test_reliability.py``.)
+"""
+
+import hashlib
+import json
+import os
+
+import numpy as np
+import pytest
+
+from tiled_gridpull.config import SolverConfig
+from tiled_gridpull.resume import mesh_key, solve_key, solve_tile_resumable
+from tiled_gridpull.scene import JobPaths, prepare_job
+from tiled_gridpull.tile import TilingConfig, read_occupancy
+
+TILING = TilingConfig(voxel_size=0.2, tile_size=6.4, overlap=1.6)
+SOLVER = SolverConfig(m2=6, refine_m2=6, iterations=30, coarse_iterations=30, queries=3000)
+
+
+@pytest.fixture
+def ground(tmp_path):
+    rng = np.random.default_rng(3)
+    xy = rng.uniform(0, 12.0, size=(4000, 2))
+    pts = np.column_stack([xy, 0.3 * np.sin(xy[:, 0])]) + [500000.0, 4000000.0, 20.0]
+    np.save(tmp_path / "g.npy", pts)
+    return tmp_path / "g.npy"
+
+
+def _names(specs):
+    return [(s.name, s.n_points, s.points_sha256) for s in specs]
+
+
+def test_partition_is_reused_only_for_the_same_inputs_and_grid(tmp_path, ground):
+    paths = JobPaths(tmp_path / "job")
+    _, specs, scan = prepare_job([str(ground)], TILING, paths)
+    assert scan["partition_reused"] is False and len(specs) == 4
+    for s in specs:  # the recorded checksum is the spill file's content
+        assert s.points_sha256 == hashlib.sha256(open(s.points_path, "rb").read()).hexdigest()
+        assert read_occupancy(s).sum() == s.occupied_bricks > 0
+    _, again, scan2 = prepare_job([str(ground)], TILING, paths)
+    assert scan2["partition_reused"] is True and _names(again) == _names(specs)
+    assert np.array_equal(scan2["bounds"], scan["bounds"]) and scan2["points"] == scan["points"]
+    # settings that do not change the tile grid keep it
+    other = TilingConfig(voxel_size=0.2, tile_size=6.4, overlap=1.6, trim_distance=1.0, min_points=3)
+    assert prepare_job([str(ground)], other, paths)[2]["partition_reused"] is True
+    # a different grid does not
+    bigger = TilingConfig(voxel_size=0.2, tile_size=8.0, overlap=1.6)
+    assert prepare_job([str(ground)], bigger, paths)[2]["partition_reused"] is False
+    assert prepare_job([str(ground)], TILING, paths)[2]["partition_reused"] is False
+    # nor does a touched input (same content: same tile checksums, so the tiles' results stay reusable)
+    st = ground.stat()
+    os.utime(ground, ns=(st.st_atime_ns, st.st_mtime_ns + 10 ** 9))
+    _, touched, scan3 = prepare_job([str(ground)], TILING, paths)
+    assert scan3["partition_reused"] is False and _names(touched) == _names(specs)
+
+
+def test_damaged_spill_file_forces_a_new_partition(tmp_path, ground):
+    paths = JobPaths(tmp_path / "job")
+    _, specs, _ = prepare_job([str(ground)], TILING, paths)
+    with open(specs[0].points_path, "r+b") as fh:
+        fh.truncate(12 * (specs[0].n_points - 1))
+    _, again, scan = prepare_job([str(ground)], TILING, paths)
+    assert scan["partition_reused"] is False and _names(again) == _names(specs)
+
+
+def test_interrupted_partition_is_never_taken_for_a_finished_one(tmp_path, ground, monkeypatch):
+    import tiled_gridpull.scene as scene
+
+    paths = JobPaths(tmp_path / "job")
+    prepare_job([str(ground)], TILING, paths)
+    real = scene.partition
+
+    def dies(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(scene, "partition", dies)
+    other = TilingConfig(voxel_size=0.2, tile_size=8.0, overlap=1.6)
+    with pytest.raises(KeyboardInterrupt):
+        prepare_job([str(ground)], other, paths)
+    assert not paths.manifest.exists()  # the old commit record is gone before new spill files are written
+    monkeypatch.setattr(scene, "partition", real)
+    assert prepare_job([str(ground)], TILING, paths)[2]["partition_reused"] is False
+
+
+def test_solve_key_follows_the_settings_a_solve_reads(tmp_path, ground):
+    _, specs, _ = prepare_job([str(ground)], TILING, JobPaths(tmp_path / "job"))
+    s = specs[0]
+    base = solve_key(s, TILING, SOLVER)
+    assert solve_key(s, TILING, SOLVER) == base
+    for changed in (SOLVER.replace(iterations=31), SOLVER.replace(seed=1), SOLVER.replace(m2=7),
+                    SOLVER.replace(alpha=2.0)):
+        assert solve_key(s, TILING, changed) != base
+    for same in (SOLVER.replace(resolution=64), SOLVER.replace(margin=2), SOLVER.replace(init="flood"),
+                 SOLVER.replace(normal_weight=1.0)):
+        assert solve_key(s, TILING, same) == base  # shape-mode settings a tile solve never reads
+    up = TilingConfig(voxel_size=0.2, tile_size=6.4, overlap=1.6, orientation="up", trim_distance=1.0)
+    assert solve_key(s, up, SOLVER) == base  # "auto" is "up" for airborne data; trimming is the mesh step's
+    assert solve_key(s, TilingConfig(voxel_size=0.2, tile_size=6.4, overlap=1.6, min_points=7), SOLVER) != base
+    k = mesh_key(s, "a" * 64, [("tile_1_0_0", "b" * 64)], TILING, np.zeros(3, np.int64))
+    assert mesh_key(s, "a" * 64, [("tile_1_0_0", "b" * 64)], up, np.zeros(3, np.int64)) != k  # trim distance
+    assert mesh_key(s, "a" * 64, [("tile_1_0_0", "c" * 64)], TILING, np.zeros(3, np.int64)) != k  # a neighbour
+
+
+def test_solve_result_reused_only_while_its_field_is_intact(tmp_path, ground):
+    paths = JobPaths(tmp_path / "job")
+    _, specs, _ = prepare_job([str(ground)], TILING, paths)
+    s = max(specs, key=lambda t: t.n_points)
+    field, summary = paths.field(s), paths.summary("solve", s)
+    first = solve_tile_resumable(s, TILING, SOLVER, field, summary)
+    assert first["status"] == "solved" and first["reused"] is False
+    rec = json.loads(summary.read_text())
+    assert rec["key"] == solve_key(s, TILING, SOLVER) and rec["field_sha256"] == first["field_sha256"]
+    again = solve_tile_resumable(s, TILING, SOLVER, field, summary, before_solve=pytest.fail)
+    assert again["reused"] is True and again["field_sha256"] == first["field_sha256"]
+    # a field rewritten behind the job's back (or half-copied) no longer matches its record: solved again,
+    # to the very same values
+    st = field.stat()
+    os.utime(field, ns=(st.st_atime_ns, st.st_mtime_ns + 1))
+    third = solve_tile_resumable(s, TILING, SOLVER, field, summary)
+    assert third["reused"] is False and third["field_sha256"] == first["field_sha256"]
+    # other settings: solved again
+    fourth = solve_tile_resumable(s, TILING, SOLVER.replace(iterations=20), field, summary)
+    assert fourth["reused"] is False and fourth["field_sha256"] != first["field_sha256"]

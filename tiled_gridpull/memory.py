@@ -1,0 +1,201 @@
+"""Up-front estimates of a tile's peak memory and solve time, from the partition alone (nothing is solved).
+
+What a tile solve holds (see :mod:`tiled_gridpull.solver`, :mod:`tiled_gridpull.orient`):
+
+* **points** (``N``, before duplicates are dropped): the spill records, float32 and float64 copies, normals,
+  the nearest-neighbour cache of the solver (``k`` neighbours per point, int32 index + float32 distance, plus
+  the KD-tree's own output while it is built; ``k`` grows to 64 where points are dense) and, while normals are
+  estimated, per-neighbourhood covariances for up to 200,000 points at a time;
+* **band** per level: the bricks (8^3 vertices) within reach of an occupied brick -- the candidate bricks
+  :func:`tiled_gridpull.band.build_band` allocates, an upper bound of the bricks it keeps -- hold the
+  float32 state of the optimizer: value (double-buffered), Adam ``m`` and ``v``, the accumulated gradient,
+  the TV weights, flags, plus the transfer from the coarser level (slot positions) and the coarser field;
+* **queries**: per-iteration arrays of ``queries`` x 16 corner slots and gradients;
+* the worker process itself (Python, numpy, numba's compiled kernels, Dask), ``BASE_MB``.
+
+The mesh step of a tile blends its field with those of its solved neighbours (up to 26), so it holds every
+one of their finest bands at 5 bytes per vertex slot, plus marching cubes and trimming.
+
+The byte counts per point and per slot below are the arrays the code allocates, rounded up; they were checked
+against per-task peak resident memory measured on Dask workers (``peak_rss_mb`` of the solve and mesh
+summaries) on the synthetic street: the estimate is an upper bound within about 2x there (see
+``tests/test_memory.py``). Time estimates are rough: a per-query and per-slot rate per iteration and a per-point
+set-up cost, measured single-threaded on the project's 2-core test machine (off by 2x either way elsewhere).
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from .errors import ConfigError
+from .kernels import BRICK
+
+if TYPE_CHECKING:
+    from .config import SolverConfig
+    from .tile import TileSpec, TilingConfig
+
+__all__ = ["parse_size", "band_bricks_bound", "tile_memory", "tile_time", "format_size", "estimate_tiles", "MB"]
+
+MB = 1024 * 1024
+BASE_MB = 230.0  # resident size of a Dask worker that has imported and compiled everything (measured 220 MB)
+SLOT = BRICK ** 3
+# Bytes per vertex slot of a level's band (measured with tracemalloc, rounded up):
+OPT_BYTES_PER_SLOT = 30  # while optimized: d_a, d_b, m, v, qgrad, TV weights (float32), initial values, flags
+INIT_BYTES_PER_SLOT = 50  # transfer from the coarser level / initial field: int64 and float64 slot positions
+FIELD_BYTES_PER_SLOT = 5  # a stored field (the coarser level, a neighbour's): float32 value + flags
+BLEND_BYTES_PER_SLOT = 55  # mesh step: global vertex indices and masks of the tile's own band
+# Bytes per input point (N, before duplicates are dropped):
+POINT_BYTES = 150  # spill records, float32/float64 copies, dedupe sort, normals, index coordinates, Morton order
+POINT_BYTES_SENSOR = 40  # sensor origins in the spill record, float32 and float64 copies
+KNN_BYTES_PER_NEIGHBOUR = 12  # building the cache: KD-tree output (float32 + uint32) and the int32 copy kept
+KNN_KEPT_BYTES_PER_NEIGHBOUR = 8
+KNN_MAX = 64
+NORMALS_CHUNK = 200_000
+NORMALS_BYTES = 750  # per point of a normal-estimation chunk with 16 neighbours: indices, coordinates, covariance
+TRIM_BYTES = 60  # mesh step: the tile's points as float64 and their KD-tree
+QUERY_BYTES = 16 * 8 + 16 * 4 + 4 * 4 + 8 + 3 * 4 * 3 + 8 + 4  # slots, grads, losses, centres, q, s, nn
+UNTRACKED = 1.15  # allocations numpy does not see (KD-trees, numba's per-brick buffers) and heap fragmentation
+# rough solve rates (seconds per iteration per query, per band slot; per point of set-up), one thread
+RATE_QUERY_S = 3e-7
+RATE_SLOT_S = 3e-9
+RATE_POINT_S = 8e-6
+TILE_SETUP_S = 0.3
+
+_SIZE = re.compile(r"^\s*(\d+(?:\.\d*)?|\.\d+)\s*(?:([kmgt])(?:i?b)?|b)?\s*$", re.IGNORECASE)
+
+
+def parse_size(text: str) -> int:
+    """``"2GB"``, ``"1500MB"``, ``"512M"``, ``"1.5g"``, ``"2GiB"`` or a byte count -> bytes (powers of 1024)."""
+    m = _SIZE.match(str(text))
+    if not m:
+        raise ConfigError(f"--max-memory expects a size such as 2GB or 1500MB, got {text!r}")
+    value = float(m.group(1)) * 1024 ** " kmgt".index((m.group(2) or " ").lower())
+    if not math.isfinite(value) or value < MB:
+        raise ConfigError(f"--max-memory must be at least 1MB, got {text!r}")
+    return int(value)
+
+
+def format_size(nbytes: float) -> str:
+    """Bytes as a short human string (``1.4 GB``, ``730 MB``)."""
+    if nbytes >= 1024 ** 3:
+        return f"{nbytes / 1024 ** 3:.1f} GB"
+    return f"{nbytes / MB:.0f} MB"
+
+
+def _dilate(grid: np.ndarray, r: int) -> np.ndarray:
+    """Cube dilation of a small boolean grid by ``r`` (separable running max, clipped at the border)."""
+    out = grid
+    for axis in range(3):
+        n = out.shape[axis]
+        c = np.cumsum(out.astype(np.int32), axis=axis)
+        c = np.concatenate([np.zeros_like(np.take(c, [0], axis=axis)), c], axis=axis)
+        i = np.arange(n)
+        hi = np.minimum(n, i + r + 1)
+        lo = np.maximum(0, i - r)
+        out = (np.take(c, hi, axis=axis) - np.take(c, lo, axis=axis)) > 0
+    return out
+
+
+def band_bricks_bound(occupancy: np.ndarray, block_shape, solver: "SolverConfig") -> list[int]:
+    """Upper bound of the bricks of each level's band (coarsest first): the candidate bricks ``build_band``
+    allocates, i.e. occupied bricks (coarsened to the level) dilated by ``ceil((m2 + 1) / 8)`` bricks."""
+    cells = max(int(s) - 1 for s in block_shape)
+    levels = solver.levels_for(cells)
+    out = []
+    for level in range(levels):
+        f = 2 ** (levels - 1 - level)
+        st = solver.level_settings(level, levels)
+        coarse_shape = [-(-(int(s) - 1) // f) + 1 for s in block_shape]
+        bshape = [-(-s // BRICK) for s in coarse_shape]
+        idx = np.argwhere(occupancy) // f
+        grid = np.zeros(bshape, bool)
+        if len(idx):
+            idx = np.minimum(idx, np.asarray(bshape) - 1)
+            grid[idx[:, 0], idx[:, 1], idx[:, 2]] = True
+        reach = -(-(st["m2"] + 1) // BRICK)
+        out.append(int(_dilate(grid, reach).sum()))
+    return out
+
+
+def _knn_bound(n_points: int, solver: "SolverConfig") -> int:
+    """The solver's candidate-list size: a power of two in [knn, 64], at most the point count."""
+    return int(min(max(KNN_MAX, solver.knn), max(n_points, 1)))
+
+
+def tile_memory(spec: "TileSpec", occupancy: np.ndarray, solver: "SolverConfig", tiling: "TilingConfig",
+                neighbor_bricks: list[int] | None = None) -> dict:
+    """Estimated peak resident memory (bytes) of a worker solving and meshing one tile.
+
+    Parameters
+    ----------
+    spec : TileSpec
+    occupancy : (BX, BY, BZ) bool
+        Occupied bricks of the block (:func:`tiled_gridpull.tile.read_occupancy`).
+    neighbor_bricks : list of int, optional
+        Finest-level band bound of each neighbour (for the mesh step).
+
+    Returns
+    -------
+    dict
+        ``solve``, ``mesh`` and ``peak`` (bytes), ``bricks`` (per level bound), ``points``.
+    """
+    n = int(spec.n_points)
+    bricks = band_bricks_bound(occupancy, spec.block.shape, solver)
+    base = BASE_MB * MB
+    points = n * (POINT_BYTES + (POINT_BYTES_SENSOR if spec.has_sensor else 0))
+    k = _knn_bound(n, solver)
+    phases = [min(n, NORMALS_CHUNK) * NORMALS_BYTES * tiling.normal_neighbors / 16.0]
+    prev = 0
+    for b in bricks:
+        coarser = prev * SLOT * FIELD_BYTES_PER_SLOT
+        phases.append(b * SLOT * INIT_BYTES_PER_SLOT + coarser)  # initial values / transfer
+        phases.append(n * KNN_BYTES_PER_NEIGHBOUR * k + b * SLOT * FIELD_BYTES_PER_SLOT + coarser)  # NN cache
+        phases.append(b * SLOT * OPT_BYTES_PER_SLOT + n * KNN_KEPT_BYTES_PER_NEIGHBOUR * k
+                      + solver.queries * QUERY_BYTES + coarser)  # iterations
+        prev = b
+    solve = base + UNTRACKED * (points + max(phases))
+    own = bricks[-1]
+    fields = (own + sum(neighbor_bricks or [])) * SLOT * FIELD_BYTES_PER_SLOT
+    mesh = base + UNTRACKED * (fields + own * SLOT * BLEND_BYTES_PER_SLOT + n * TRIM_BYTES)
+    return {"solve": float(solve), "mesh": float(mesh), "peak": float(max(solve, mesh)), "bricks": bricks,
+            "points": n}
+
+
+def tile_time(spec: "TileSpec", bricks: list[int], solver: "SolverConfig") -> float:
+    """Rough single-thread seconds to solve one tile (iterations x (queries + band slots) + point set-up)."""
+    levels = len(bricks)
+    t = TILE_SETUP_S + spec.n_points * RATE_POINT_S
+    for level, b in enumerate(bricks):
+        it = solver.level_settings(level, levels)["iterations"]
+        t += it * (solver.queries * RATE_QUERY_S + b * SLOT * RATE_SLOT_S)
+    return t
+
+
+def estimate_tiles(specs: list["TileSpec"], solver: "SolverConfig", tiling: "TilingConfig",
+                   occupancy: dict | None = None) -> list[dict]:
+    """Memory and rough time estimates of every tile (in ``specs`` order), from the partition alone.
+
+    ``occupancy`` maps tile index -> occupied-brick mask (a dry run's in-memory partition); by default each
+    tile's mask is read from beside its spill file.
+    """
+    from .tile import read_occupancy
+
+    bricks = {}
+    for s in specs:
+        occ = occupancy[s.index] if occupancy is not None else read_occupancy(s)
+        bricks[s.index] = (occ, band_bricks_bound(occ, s.block.shape, solver))
+    out = []
+    for s in specs:
+        occ, b = bricks[s.index]
+        i, j, k = s.index
+        nb = [bricks[(i + di, j + dj, k + dk)][1][-1] for di in (-1, 0, 1) for dj in (-1, 0, 1)
+              for dk in (-1, 0, 1) if (di, dj, dk) != (0, 0, 0) and (i + di, j + dj, k + dk) in bricks]
+        est = tile_memory(s, occ, solver, tiling, nb)
+        est["tile"] = s.name
+        est["time_s"] = tile_time(s, est["bricks"], solver)
+        out.append(est)
+    return out

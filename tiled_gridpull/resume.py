@@ -1,0 +1,233 @@
+"""Resuming a tiled job: every result is keyed on what produced it, and reused only when that is unchanged.
+
+A job directory (see :class:`tiled_gridpull.scene.JobPaths`) keeps three kinds of results, each written
+atomically (a killed run leaves at most a hidden temporary file, never a result that looks complete):
+
+* the **partition** (``points/*.points`` spill files, ``points/*.occ.npy`` occupancy masks and
+  ``manifest.json``). Its key hashes each input's resolved path, size and modification time (every file of a
+  KITTI sequence directory), the frame range, the settings that decide the tile grid (``voxel_size`` and the
+  tile and overlap cell counts) and the package version. The manifest, written last, is the commit record:
+  it is removed before a new partition starts, so an interrupted partition is never mistaken for a finished one.
+* each tile's **field** (``fields/<tile>.npz``), recorded in ``summaries/solve_<tile>.json`` with its key: the
+  SHA-256 of the tile's spill file content, its block, the tiling settings a solve reads (``min_points``,
+  the resolved orientation rule, ``normal_neighbors``), every solver setting a tile solve reads (not
+  ``resolution``, ``margin``, ``normal_weight``, nor ``init``/``init_radius`` unless orientation is
+  ``sphere``), the input's centre for ``outward``, and the package version; plus the SHA-256 of the field's
+  arrays.
+* each tile's **mesh piece** (``pieces/<tile>.npz``), recorded in ``summaries/mesh_<tile>.json`` with its key:
+  the field checksums of the tile and of its solved neighbours, its meshed cell range, ``trim_distance``,
+  the overlap, the job's edge-key origin, the spill file checksum (trimming reads the points) and the version.
+
+A result is reused when its summary's key equals the key the current run computes and its output file is
+still the one the summary describes (same size and modification time, so a job directory copied with its
+timestamps stays reusable); anything else is recomputed. Solves
+and meshes are deterministic, so a resumed job writes the same mesh, byte for byte, as an uninterrupted one.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import hashlib
+import json
+import os
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from ._version import __version__
+from .io.atomic import _json_default, write_json
+
+if TYPE_CHECKING:
+    from .config import SolverConfig
+    from .scene import JobPaths
+    from .tile import TileSpec, TilingConfig
+
+__all__ = ["partition_key", "load_partition", "solve_key", "mesh_key", "solve_tile_resumable",
+           "mesh_tile_resumable", "input_fingerprint"]
+
+SPILL_FORMAT = 2  # bump when the spill/occupancy layout changes
+SOLVE_SETTINGS_IGNORED = ("resolution", "margin", "normal_weight")  # shape-mode only / never passed by tiles
+SPHERE_ONLY = ("init", "init_radius")  # read only when the tile starts from the paper's sphere
+
+
+def digest(obj) -> str:
+    """SHA-256 of a JSON-serialisable object (sorted keys, so dict order never matters)."""
+    text = json.dumps(obj, sort_keys=True, separators=(",", ":"), default=_json_default)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def _stat(path: Path) -> dict:
+    st = path.stat()
+    return {"size": st.st_size, "mtime_ns": st.st_mtime_ns}
+
+
+def input_fingerprint(inputs: list) -> list[dict]:
+    """Resolved path, size and modification time of every input (every file of a sequence directory)."""
+    out = []
+    for raw in inputs:
+        p = Path(raw).resolve()
+        try:
+            if p.is_dir():
+                files = sorted(f for f in p.rglob("*") if f.is_file())
+                out.append({"path": str(p),
+                            "files": [[str(f.relative_to(p)), *_stat(f).values()] for f in files]})
+            else:
+                out.append({"path": str(p), **_stat(p)})
+        except OSError:  # missing or unreadable: the scan reports it (InputError); the key is never reused
+            out.append({"path": str(p), "unreadable": os.urandom(8).hex()})
+    return out
+
+
+def partition_key(inputs: list, tiling: "TilingConfig", frames=None) -> str:
+    """Key of a partition: inputs (path, size, mtime), frames, tile grid settings, version."""
+    return digest({"inputs": input_fingerprint(inputs), "frames": list(frames) if frames else None,
+                   "voxel_size": tiling.voxel_size, "tile_cells": tiling.tile_cells,
+                   "overlap_cells": tiling.overlap_cells, "version": __version__, "format": SPILL_FORMAT})
+
+
+def load_partition(paths: "JobPaths", key: str, tiling: "TilingConfig"):
+    """The plan, tiles and scan facts of a finished partition with this key, or None.
+
+    Each tile's spill file must exist with the size its point count implies, and its occupancy mask must exist.
+    """
+    from .tile import _RECORD, _RECORD_SENSOR, TileSpec, plan_tiles
+
+    try:
+        data = json.loads(paths.manifest.read_text())
+    except (OSError, ValueError):
+        return None
+    if not isinstance(data, dict) or data.get("partition_key") != key or "scan" not in data:
+        return None
+    try:
+        scan = data["scan"]
+        bounds = np.asarray(scan["bounds"], dtype=np.float64)
+        plan = plan_tiles(bounds, int(scan["points"]), tiling)
+        if plan.to_dict()["lattice"] != data["plan"]["lattice"]:
+            return None
+        specs = []
+        for d in data["tiles"]:
+            spec = TileSpec.from_dict(d)
+            spill = paths.points() / f"{spec.name}.points"
+            size = (_RECORD_SENSOR if spec.has_sensor else _RECORD).itemsize * spec.n_points
+            spec = dataclasses.replace(spec, points_path=str(spill))
+            if (not spec.points_sha256 or not spill.is_file() or spill.stat().st_size != size
+                    or not Path(spec.occupancy_path).is_file()):
+                return None
+            specs.append(spec)
+    except (KeyError, TypeError, ValueError):
+        return None
+    facts = {"bounds": bounds, "points": int(scan["points"]), "has_sensor": bool(scan["has_sensor"]),
+             "crs": scan.get("crs"), "partition_reused": True}
+    return plan, specs, facts
+
+
+def scan_record(scan: dict) -> dict:
+    """The scan facts a manifest keeps (so a reused partition needs no new pass over the inputs)."""
+    return {"bounds": np.asarray(scan["bounds"]).tolist(), "points": int(scan["points"]),
+            "has_sensor": bool(scan["has_sensor"]), "crs": scan.get("crs")}
+
+
+# ------------------------------------------------------------------------------------------------ tile results
+
+
+def solve_key(spec: "TileSpec", tiling: "TilingConfig", solver: "SolverConfig", centre=None) -> str:
+    """Key of a tile's solve: its points (content hash), block, and the settings a tile solve reads."""
+    from .errors import ConfigError
+    from .tile import _orientation_rule
+
+    try:
+        rule = _orientation_rule(tiling, spec.has_sensor)
+    except ConfigError:
+        rule = tiling.orientation
+    settings = {k: v for k, v in solver.to_dict().items() if k not in SOLVE_SETTINGS_IGNORED}
+    if rule != "sphere":
+        for k in SPHERE_ONLY:
+            settings.pop(k)
+    return digest({"points_sha256": spec.points_sha256, "n_points": spec.n_points, "has_sensor": spec.has_sensor,
+                   "block": spec.block.to_dict(), "min_points": tiling.min_points, "orientation": rule,
+                   "normal_neighbors": tiling.normal_neighbors, "solver": settings,
+                   "centre": list(centre) if rule == "outward" and centre is not None else None,
+                   "version": __version__})
+
+
+def mesh_key(spec: "TileSpec", field_sha: str, neighbors: list[tuple[str, str]], tiling: "TilingConfig",
+             key_ref) -> str:
+    """Key of a tile's mesh piece: the fields it blends (own and solved neighbours') and the meshing settings."""
+    return digest({"tile": spec.name, "field_sha256": field_sha, "neighbors": sorted(neighbors),
+                   "block": spec.block.to_dict(), "mesh_lo": list(spec.mesh_lo), "mesh_hi": list(spec.mesh_hi),
+                   "overlap_cells": tiling.overlap_cells, "trim_distance": tiling.trim_distance,
+                   "points_sha256": spec.points_sha256 if tiling.trim_distance > 0 else None,
+                   "key_ref": [int(v) for v in np.asarray(key_ref)], "version": __version__})
+
+
+def _reusable(summary_path: Path, key: str, statuses: tuple, output: str | Path) -> dict | None:
+    """The recorded summary if its key matches and ``output`` (when it records one) is the file it describes."""
+    try:
+        prev = json.loads(Path(summary_path).read_text())
+    except (OSError, ValueError):
+        return None
+    if not isinstance(prev, dict) or prev.get("key") != key or prev.get("status") not in statuses:
+        return None
+    rec = prev.get("output")
+    if rec is not None:
+        try:
+            if _stat(Path(output)) != {"size": rec["size"], "mtime_ns": rec["mtime_ns"]}:
+                return None
+        except (OSError, KeyError, TypeError):
+            return None
+    prev["reused"] = True
+    return prev
+
+
+def _record(summary: dict, summary_path: str | Path, key: str, output: str | Path | None) -> None:
+    summary["key"] = key
+    if output is not None:
+        summary["output"] = _stat(Path(output))
+    write_json(summary_path, summary)
+
+
+def solve_tile_resumable(spec: "TileSpec", tiling: "TilingConfig", solver: "SolverConfig", field_path: str | Path,
+                         summary_path: str | Path, centre=None, before_solve=None) -> dict:
+    """:func:`tiled_gridpull.tile.solve_tile`, unless its summary shows the same key and the field is intact.
+
+    Solved and skipped tiles are recorded (skipping depends only on the key too); failed tiles are not, so a
+    rerun tries them again. ``before_solve()`` runs only when the tile is actually solved (a test hook).
+    """
+    from .tile import solve_tile
+
+    key = solve_key(spec, tiling, solver, centre)
+    prev = _reusable(Path(summary_path), key, ("solved", "skipped"), field_path)
+    if prev is not None:
+        return prev
+    if before_solve is not None:
+        before_solve()
+    out = solve_tile(spec, tiling, solver, field_path, centre=centre)
+    if out["status"] in ("solved", "skipped"):
+        _record(out, summary_path, key, field_path if out["status"] == "solved" else None)
+    else:
+        out["key"] = key
+        with contextlib.suppress(OSError):
+            os.unlink(summary_path)
+    out["reused"] = False
+    return out
+
+
+def mesh_tile_resumable(spec: "TileSpec", own: dict, neighbors: list[tuple["TileSpec", dict, str]],
+                        tiling: "TilingConfig", key_ref, field_path: str | Path, piece_path: str | Path,
+                        summary_path: str | Path) -> dict:
+    """Blend and mesh a solved tile (:func:`tiled_gridpull.stitch.mesh_tile`) unless an intact piece with the
+    same key exists. ``neighbors`` are ``(spec, solve summary, field path)`` of the solved neighbours."""
+    from .stitch import mesh_tile
+
+    key = mesh_key(spec, own["field_sha256"], [(s.name, summ["field_sha256"]) for s, summ, _ in neighbors],
+                   tiling, key_ref)
+    prev = _reusable(Path(summary_path), key, ("meshed",), piece_path)
+    if prev is not None:
+        return prev
+    out = mesh_tile(spec, [(s, p) for s, _, p in neighbors], tiling, key_ref, field_path, piece_path)
+    out["status"] = "meshed"
+    _record(out, summary_path, key, piece_path)
+    out["reused"] = False
+    return out
