@@ -60,14 +60,18 @@ def accuracy(meshes, clouds) -> None:
             run("accuracy", mesh, cloud, "poisson", poisson_config(cloud))
 
 
-def speed(repeats: int) -> None:
-    # interleaved so both methods see the same machine load
+def speed(repeats: int, extras: bool = True) -> None:
+    """Bunny, 100k points, R = 256: GridPull and Poisson interleaved ``repeats`` times (same machine load); then
+    R = 128 / 512 and 10k / 1M points once each unless ``extras`` is False."""
     for _ in range(repeats):
-        for res in (128, 256, 512):
-            run("speed", "bunny", "100k", "gridpull", {"resolution": res}, resolution=res)
+        run("speed", "bunny", "100k", "gridpull", {"resolution": 256}, resolution=256)
         run("speed", "bunny", "100k", "poisson", poisson_config("100k"))
-        for n in (10_000, 1_000_000):
-            run("speed", "bunny", "100k", "gridpull", {}, points=n, resolution=256, cloud_points=n)
+    if not extras:
+        return
+    for res in (128, 512):
+        run("speed", "bunny", "100k", "gridpull", {"resolution": res}, resolution=res)
+    for n in (10_000, 1_000_000):
+        run("speed", "bunny", "100k", "gridpull", {"resolution": 256}, points=n, resolution=256)
 
 
 def paper(meshes) -> None:
@@ -98,6 +102,7 @@ def main() -> None:
     ap.add_argument("--meshes", nargs="+", default=list(MESHES), choices=list(MESHES))
     ap.add_argument("--clouds", nargs="+", default=list(CLOUDS), choices=list(CLOUDS))
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--no-extras", action="store_true", help="speed: only the R = 256 pair")
     a = ap.parse_args()
     require_shared()
     record("machine", {"method": "machine", **machine(), "load": os.getloadavg()[0]})
@@ -108,7 +113,7 @@ def main() -> None:
     if a.suite in ("paper", "all"):
         paper(a.meshes[:2])
     if a.suite in ("speed", "all"):
-        speed(a.repeats)
+        speed(a.repeats, not a.no_extras)
 
 
 if __name__ == "__main__":

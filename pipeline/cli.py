@@ -75,6 +75,7 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--work-dir", help="job directory for intermediate files (default: OUTPUT with .job suffix)")
     t.add_argument("--frames", metavar="START:STOP", help="KITTI sequences: frame range, e.g. 3000:4000")
     t.add_argument("--fail-fast", action="store_true", help="stop at the first tile that fails")
+    t.add_argument("--tile-meshes", metavar="DIR", help="also write one PLY per tile into DIR")
     t.add_argument("--max-memory", metavar="SIZE",
                    help="memory one worker may use for one tile, e.g. 2GB or 1500MB: tiles estimated to need more "
                         "are refused before anything is solved")
@@ -276,6 +277,7 @@ def _reconstruct_tiled(args, out: Path, solver, tiling) -> int:
             check_memory(None, tiling, solver, max_memory, estimates=info["estimates"])
         return 0
     opts = JobOptions(workers=args.workers, scheduler=args.scheduler, fail_fast=args.fail_fast,
+                      tile_meshes=args.tile_meshes,
                       float32=args.float32, progress=not args.quiet, max_memory=max_memory)
     mesh = run_job(args.inputs, out, tiling, solver, work, opts, frames=frames)
     topo = mesh.topology

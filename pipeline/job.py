@@ -55,12 +55,15 @@ class JobOptions:
         Write float32 vertices with a recorded offset.
     progress : bool
         Show a progress bar with an ETA.
+    tile_meshes : str, optional
+        Directory to also write one PLY per tile into.
     max_memory : int, optional
         Bytes one worker may use for one tile; the job is refused up front if a tile's estimate exceeds it.
     """
 
     workers: int | None = None
     scheduler: str | None = None
+    tile_meshes: str | None = None
     retries: int = 2
     fail_fast: bool = False
     float32: bool = False
@@ -189,18 +192,13 @@ def run_job(inputs: list[str], output: str | Path, tiling: TilingConfig, solver:
         by_index = {s.index: s for s in specs}
         field_paths = {s.name: str(paths.field(s)) for s in specs}
         centre = plan_centre(plan)
-        solve_futs = {s.index: client.submit(solve_task, s, tiling, solver, field_paths[s.name], centre,
-                                             str(paths.summary("solve", s)), key=f"solve-{s.name}",
-                                             retries=options.retries, pure=False)
-                      for s in specs}
         ref = key_reference(plan)
-        mesh_futs = {}
-        for s in specs:
-            nbs = neighbors_of(s, by_index)
-            mesh_futs[s.index] = client.submit(
-                mesh_task, s, solve_futs[s.index], nbs, [solve_futs[n.index] for n in nbs], tiling, ref,
-                field_paths, str(paths.piece(s)), str(paths.summary("mesh", s)), key=f"mesh-{s.name}",
-                retries=options.retries, pure=False)
+        solve_futs, mesh_futs = submit_tiles(
+            client, specs, solve_task,
+            lambda s: (tiling, solver, field_paths[s.name], centre, str(paths.summary("solve", s))),
+            mesh_task,
+            lambda s: (tiling, ref, field_paths, str(paths.piece(s)), str(paths.summary("mesh", s))),
+            options.retries)
         solve_summaries, mesh_summaries = _collect(solve_futs, mesh_futs, options, as_completed)
     finally:
         client.close()
@@ -220,7 +218,7 @@ def run_job(inputs: list[str], output: str | Path, tiling: TilingConfig, solver:
     meta["engine"] = {"scheduler": options.scheduler or "LocalCluster", "workers": options.workers}
     meta["reused"] = {"partition": bool(scan.get("partition_reused")), "solves": n_solve, "meshes": n_mesh}
     pieces = [paths.piece(by_index[tuple(m["index"])]) for m in mesh_summaries if m.get("status") == "meshed"]
-    mesh = finish_job(pieces, output, meta, float32=options.float32)
+    mesh = finish_job(pieces, output, meta, float32=options.float32, tile_meshes=options.tile_meshes)
     mesh.metadata["timings_s"]["merge"] = time.perf_counter() - t_mesh
     mesh.metadata["timings_s"]["total"] = time.perf_counter() - t0
     from tiled_gridpull.io import write_sidecar
@@ -230,6 +228,26 @@ def run_job(inputs: list[str], output: str | Path, tiling: TilingConfig, solver:
 
     write_report(paths.root, mesh.metadata, output=output)  # report.json + tiles.png in the job directory
     return mesh
+
+
+def submit_tiles(client, specs: list[TileSpec], solve_fn, solve_args, mesh_fn, mesh_args, retries: int = 2
+                 ) -> tuple[dict, dict]:
+    """Submit the job's graph: one solve task per tile, then one mesh task per tile that depends on the solves of
+    the tile and its (up to 26) neighbours.
+
+    ``solve_fn(spec, *solve_args(spec))`` and ``mesh_fn(spec, own_summary, neighbour_specs, neighbour_summaries,
+    *mesh_args(spec))``; tasks carry the small spec objects, never arrays. Returns the futures by tile index.
+    """
+    by_index = {s.index: s for s in specs}
+    solve_futs = {s.index: client.submit(solve_fn, s, *solve_args(s), key=f"solve-{s.name}", retries=retries,
+                                         pure=False)
+                  for s in specs}
+    mesh_futs = {}
+    for s in specs:
+        nbs = neighbors_of(s, by_index)
+        mesh_futs[s.index] = client.submit(mesh_fn, s, solve_futs[s.index], nbs, [solve_futs[n.index] for n in nbs],
+                                           *mesh_args(s), key=f"mesh-{s.name}", retries=retries, pure=False)
+    return solve_futs, mesh_futs
 
 
 def check_memory(specs: list[TileSpec] | None, tiling: TilingConfig, solver: SolverConfig, budget: int,

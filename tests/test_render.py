@@ -142,9 +142,24 @@ def job(tmp_path_factory):
     out = d / "ground.ply"
     code = main(["reconstruct", str(d / "ground.npy"), "-o", str(out), "--voxel-size", "0.2", "--tile-size", "6.4",
                  "--overlap", "1.6", "--set", "m2=8", "--set", "refine_m2=6", "--set", "coarse_iterations=100",
-                 "--set", "iterations=100", "--set", "queries=20000", "--workers", "1", "-q"])
+                 "--set", "iterations=100", "--set", "queries=20000", "--workers", "1", "-q",
+                 "--tile-meshes", str(d / "tiles")])
     assert code == 0
     return d, out, out.with_suffix(".job"), pts
+
+
+def test_tile_meshes_add_up_to_the_welded_mesh(job):
+    from tiled_gridpull.io import read_mesh
+
+    d, out, _, _ = job
+    pieces = [read_mesh(p) for p in sorted((d / "tiles").glob("*.ply"))]
+    whole = read_mesh(out)
+    assert len(pieces) == 4
+    assert sum(p.n_faces for p in pieces) == whole.n_faces
+    # pieces share their border vertices: the welded mesh has fewer vertices than the pieces together
+    assert whole.n_vertices < sum(p.n_vertices for p in pieces)
+    allv = np.concatenate([p.vertices for p in pieces])
+    assert np.abs(np.sort(np.unique(allv, axis=0), axis=0) - np.sort(whole.vertices, axis=0)).max() < 1e-9
 
 
 def test_job_writes_report_and_picture(job):

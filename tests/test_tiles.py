@@ -149,3 +149,7 @@ def test_scene_outputs_are_self_describing(sphere_job):
     for key in ("lattice", "tiling", "config", "version", "timings_s", "tile_summaries", "mesh"):
         assert key in side
     assert Lattice.from_dict(side["lattice"]).cell_size == pytest.approx(cell)
+    mem = side["memory_mb"]
+    tile_peaks = [t["peak_rss_mb"] for t in side["tile_summaries"]]
+    assert mem["max_solve_task_peak_rss"] == max(tile_peaks) and 50 < max(tile_peaks) < 4000
+    assert mem["driver_peak_rss"] > 50

@@ -41,7 +41,8 @@ if TYPE_CHECKING:
 __all__ = ["parse_size", "band_bricks_bound", "tile_memory", "tile_time", "format_size", "estimate_tiles", "MB"]
 
 MB = 1024 * 1024
-BASE_MB = 230.0  # resident size of a Dask worker that has imported and compiled everything (measured 220 MB)
+BASE_MB = 260.0  # resident size of a Dask worker that has imported and compiled everything (measured 220 MB
+#                   in a long-lived virtualenv, ~250 MB in a fresh clone's; kept above both so the estimate bounds)
 SLOT = BRICK ** 3
 # Bytes per vertex slot of a level's band (measured with tracemalloc, rounded up):
 OPT_BYTES_PER_SLOT = 30  # while optimized: d_a, d_b, m, v, qgrad, TV weights (float32), initial values, flags

@@ -141,11 +141,22 @@ def key_reference(plan: TilePlan) -> np.ndarray:
 
 
 def finish_job(pieces: Iterable[Path], output: str | Path | None, metadata: dict, *,
-               float32: bool = False) -> Mesh:
-    """Weld the tile pieces into one mesh and write it (and its JSON sidecar) atomically."""
+               float32: bool = False, tile_meshes: str | Path | None = None) -> Mesh:
+    """Weld the tile pieces into one mesh and write it (and its JSON sidecar) atomically.
+
+    ``tile_meshes``: also write each tile's piece as ``<dir>/<tile>.ply`` (input coordinates; pieces share their
+    border vertices exactly, so they fit together without gaps).
+    """
     from .io import write_mesh, write_sidecar
 
-    mesh = weld_pieces([load_piece(p) for p in pieces])
+    loaded = [(Path(p), load_piece(p)) for p in pieces]
+    if tile_meshes is not None:
+        out_dir = Path(tile_meshes)
+        out_dir.mkdir(parents=True, exist_ok=True)
+        for p, piece in loaded:
+            if len(piece.faces):
+                write_mesh(Mesh(piece.vertices, piece.faces), out_dir / f"{p.stem}.ply", float32=float32)
+    mesh = weld_pieces([piece for _, piece in loaded])
     mesh.metadata.update(metadata)
     mesh.metadata["mesh"] = mesh.topology.to_dict()
     if output is not None:
@@ -156,7 +167,7 @@ def finish_job(pieces: Iterable[Path], output: str | Path | None, metadata: dict
 
 def reconstruct_scene(inputs: list[str], output: str | Path | None, tiling: TilingConfig, solver: SolverConfig,
                       work_dir: str | Path, *, frames=None, float32: bool = False,
-                      log: Callable[[str], None] | None = None) -> Mesh:
+                      log: Callable[[str], None] | None = None, tile_meshes: str | Path | None = None) -> Mesh:
     """Tiled reconstruction, one tile after the other in this process (no Dask).
 
     Returns the welded mesh; ``mesh.metadata`` describes the job (lattice, settings, per-tile summaries,
@@ -185,7 +196,8 @@ def reconstruct_scene(inputs: list[str], output: str | Path | None, tiling: Tili
     t_mesh = time.perf_counter()
     meta = job_metadata(plan, tiling, solver, scan, summaries, mesh_summaries,
                         {"partition": t_part - t0, "solve": t_solve - t_part, "mesh": t_mesh - t_solve})
-    mesh = finish_job([paths.piece(s) for s in solved.values()], output, meta, float32=float32)
+    mesh = finish_job([paths.piece(s) for s in solved.values()], output, meta, float32=float32,
+                      tile_meshes=tile_meshes)
     mesh.metadata["timings_s"]["merge"] = time.perf_counter() - t_mesh
     mesh.metadata["timings_s"]["total"] = time.perf_counter() - t0
     if output is not None:
@@ -217,7 +229,20 @@ def job_metadata(plan: TilePlan, tiling: TilingConfig, solver: SolverConfig, sca
         "tile_summaries": [{k: v for k, v in s.items() if k != "loss_curve"} for s in solve_summaries],
         "mesh_summaries": mesh_summaries,
         "timings_s": dict(timings),
+        "memory_mb": _memory_summary(solve_summaries, mesh_summaries),
     }
+
+
+def _memory_summary(solve_summaries: list, mesh_summaries: list) -> dict:
+    """Peak resident memory: the largest single tile task (solve or mesh) and this (driver) process."""
+    from .tile import peak_rss_mb
+
+    def biggest(rows):
+        vals = [r.get("peak_rss_mb") for r in rows if r.get("peak_rss_mb") is not None]
+        return max(vals) if vals else None
+
+    return {"max_solve_task_peak_rss": biggest(solve_summaries), "max_mesh_task_peak_rss": biggest(mesh_summaries),
+            "driver_peak_rss": peak_rss_mb()}
 
 
 def read_job_summary(output: str | Path) -> dict:

@@ -1,0 +1,81 @@
+"""Overhead of the job's Dask graph with a no-op solve and mesh: the pipeline's own cost per tile.
+
+The graph is the one ``run_job`` submits (:func:`pipeline.job.submit_tiles`): a solve task per tile and a mesh
+task per tile depending on the solves of its 26 neighbours, with real ``TileSpec`` objects as arguments, on a
+LocalCluster of 2 single-threaded worker processes. Results append to ``benchmarks/results/dask.jsonl``.
+
+Usage: ``python -m benchmarks.dask_overhead 1000 10000 100000``
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+import time
+
+from benchmarks.common import REPO, machine, peak_rss_mb
+
+RESULTS = REPO / "benchmarks" / "results" / "dask.jsonl"
+
+
+def noop_solve(spec, *args):
+    return {"tile": spec.name, "status": "solved"}
+
+
+def noop_mesh(spec, own, nbs, nb_summaries, *args):
+    return {"tile": spec.name, "status": "meshed", "neighbours": len(nb_summaries)}
+
+
+def make_specs(n: int):
+    from tiled_gridpull.lattice import Lattice
+    from tiled_gridpull.tile import TileSpec
+
+    side = math.ceil(math.sqrt(n))
+    block = Lattice(origin=(500000.0, 4000000.0, 100.0), cell_size=0.1, shape=(321, 321, 321))
+    specs = []
+    for i in range(side):
+        for j in range(side):
+            if len(specs) == n:
+                break
+            specs.append(TileSpec(index=(i, j, 0), core_lo=(0, 0, 0), core_hi=(256, 256, 256), block=block,
+                                  n_points=100_000, points_path=f"/job/points/tile_{i}_{j}_0.npy"))
+    return specs
+
+
+def run(n: int, workers: int = 2) -> dict:
+    from distributed import Client, LocalCluster, wait
+
+    from pipeline.job import submit_tiles
+
+    specs = make_specs(n)
+    cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None)
+    client = Client(cluster)
+    try:
+        client.run(lambda: None)  # workers up before the clock starts
+        t0 = time.perf_counter()
+        solve_futs, mesh_futs = submit_tiles(client, specs, noop_solve, lambda s: (), noop_mesh, lambda s: (), 2)
+        t1 = time.perf_counter()
+        wait(list(mesh_futs.values()))
+        results = client.gather(list(mesh_futs.values()))
+        t2 = time.perf_counter()
+        assert len(results) == n and all(r["status"] == "meshed" for r in results)
+    finally:
+        client.close()
+        cluster.close()
+    return {"tiles": n, "tasks": 2 * n, "workers": workers, "submit_s": t1 - t0, "total_s": t2 - t0,
+            "per_tile_ms": 1e3 * (t2 - t0) / n, "driver_peak_rss_mb": peak_rss_mb()}
+
+
+def main() -> None:
+    sizes = [int(a) for a in sys.argv[1:]] or [1000, 10000]
+    RESULTS.parent.mkdir(parents=True, exist_ok=True)
+    for n in sizes:
+        row = {"suite": "dask_noop", "date": time.strftime("%Y-%m-%d %H:%M"), **run(n), "machine": machine()}
+        print(json.dumps({k: v for k, v in row.items() if k != "machine"}), flush=True)
+        with open(RESULTS, "a") as fh:
+            fh.write(json.dumps(row) + "\n")
+
+
+if __name__ == "__main__":
+    main()
