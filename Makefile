@@ -27,7 +27,9 @@ test: $(STAMP)
 
 bench: $(STAMP)
 	$(PY) -m pip install --quiet -e ".[bench]"
-	$(PY) benchmarks/run.py
+	$(PY) -m benchmarks.shapes all
+	$(PY) -m benchmarks.dask_overhead 1000 10000 100000
+	$(PY) benchmarks/report.py
 
 clean:
 	rm -rf $(DEMO) .pytest_cache
