@@ -49,7 +49,7 @@ def run(n: int, workers: int = 2) -> dict:
     from pipeline.job import submit_tiles
 
     specs = make_specs(n)
-    cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None)
+    cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0")
     client = Client(cluster)
     try:
         client.run(lambda: None)  # workers up before the clock starts

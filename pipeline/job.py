@@ -90,7 +90,7 @@ def make_client(options: JobOptions, n_tiles: int):
     threads = _threads_for(workers)
     env = {"NUMBA_NUM_THREADS": str(threads), "OMP_NUM_THREADS": str(threads), "OMP_WAIT_POLICY": "PASSIVE",
            "TILED_GRIDPULL_THREADS": str(threads)}
-    cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None,
+    cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0",
                            silence_logs=logging.ERROR, env=env)
     return Client(cluster), cluster
 
@@ -188,6 +188,8 @@ def run_job(inputs: list[str], output: str | Path, tiling: TilingConfig, solver:
     if options.max_memory is not None:
         check_memory(specs, tiling, solver, options.max_memory)
     client, cluster = make_client(options, len(specs))
+    if client.dashboard_link:
+        log.info("Dask dashboard: %s", client.dashboard_link)
     try:
         by_index = {s.index: s for s in specs}
         field_paths = {s.name: str(paths.field(s)) for s in specs}
