@@ -6,6 +6,25 @@ import numpy as np
 from numba import njit
 
 
+@njit(cache=True, inline="always")
+def _face_neighbor(x, y, z, d, X, Y, Z):
+    """Face neighbour ``d`` (0..5: -x, +x, -y, +y, -z, +z) of cell (x, y, z) and whether it lies in the grid."""
+    nx, ny, nz = x, y, z
+    if d == 0:
+        nx -= 1
+    elif d == 1:
+        nx += 1
+    elif d == 2:
+        ny -= 1
+    elif d == 3:
+        ny += 1
+    elif d == 4:
+        nz -= 1
+    else:
+        nz += 1
+    return nx, ny, nz, 0 <= nx < X and 0 <= ny < Y and 0 <= nz < Z
+
+
 @njit(cache=True)
 def flood_from_border(free):
     """Cells of ``free`` (X, Y, Z) uint8 reachable from the grid's border through free cells (6-connected).
@@ -32,20 +51,8 @@ def flood_from_border(free):
         x, y, z = queue[head, 0], queue[head, 1], queue[head, 2]
         head += 1
         for d in range(6):
-            nx, ny, nz = x, y, z
-            if d == 0:
-                nx -= 1
-            elif d == 1:
-                nx += 1
-            elif d == 2:
-                ny -= 1
-            elif d == 3:
-                ny += 1
-            elif d == 4:
-                nz -= 1
-            else:
-                nz += 1
-            if nx < 0 or ny < 0 or nz < 0 or nx >= X or ny >= Y or nz >= Z:
+            nx, ny, nz, inside = _face_neighbor(x, y, z, d, X, Y, Z)
+            if not inside:
                 continue
             if free[nx, ny, nz] and not reached[nx, ny, nz]:
                 reached[nx, ny, nz] = 1
@@ -71,20 +78,8 @@ def spread_labels(labels, rounds):
                         continue
                     best = 0
                     for d in range(6):
-                        nx, ny, nz = x, y, z
-                        if d == 0:
-                            nx -= 1
-                        elif d == 1:
-                            nx += 1
-                        elif d == 2:
-                            ny -= 1
-                        elif d == 3:
-                            ny += 1
-                        elif d == 4:
-                            nz -= 1
-                        else:
-                            nz += 1
-                        if nx < 0 or ny < 0 or nz < 0 or nx >= X or ny >= Y or nz >= Z:
+                        nx, ny, nz, inside = _face_neighbor(x, y, z, d, X, Y, Z)
+                        if not inside:
                             continue
                         lab = cur[nx, ny, nz]
                         if lab > best or (best == 0 and lab != 0):
