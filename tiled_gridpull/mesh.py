@@ -112,14 +112,7 @@ class Mesh:
         F = self.faces
         if len(F) == 0:
             return MeshTopology(self.n_vertices, 0, 0, 0, 0, 0, 0, self.n_vertices)
-        directed = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
-        lo = directed.min(axis=1)
-        hi = directed.max(axis=1)
-        key = lo * np.int64(self.n_vertices) + hi
-        order = np.argsort(key, kind="stable")
-        key_sorted = key[order]
-        starts = np.flatnonzero(np.r_[True, key_sorted[1:] != key_sorted[:-1]])
-        counts = np.diff(np.r_[starts, len(key_sorted)])
+        directed, order, starts, counts = _edge_groups(F, self.n_vertices)
         forward = (directed[:, 0] < directed[:, 1])[order]
         fwd_count = np.add.reduceat(forward.astype(np.int64), starts)
         n_edges = len(starts)
@@ -224,19 +217,34 @@ def extract_mesh(fld: Field, iso: float = 0.0, cell_lo: np.ndarray | None = None
     return (mesh, keys) if with_keys else mesh
 
 
+def _edge_groups(faces: np.ndarray, n_vertices: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The faces' directed edges grouped by undirected edge.
+
+    Returns
+    -------
+    directed : (3F, 2) int64
+        Edges (a, b) of faces 0..F-1, then their (b, c), then their (c, a).
+    order : (3F,) int64
+        Directed edges sorted by undirected edge (stable).
+    starts, counts : (E,) int64
+        Where each undirected edge's run begins in ``order`` and how many faces use it.
+    """
+    directed = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    key = directed.min(axis=1) * np.int64(n_vertices) + directed.max(axis=1)
+    order = np.argsort(key, kind="stable")
+    key_sorted = key[order]
+    starts = np.flatnonzero(np.r_[True, key_sorted[1:] != key_sorted[:-1]])
+    counts = np.diff(np.r_[starts, len(key_sorted)])
+    return directed, order, starts, counts
+
+
 def orient_consistently(faces: np.ndarray) -> np.ndarray:
     """Faces (F, 3) int64 reordered so that every manifold edge is traversed in opposite directions by its two faces
     (within each connected piece; the piece's lowest face keeps its orientation)."""
     if len(faces) == 0:
         return faces
-    directed = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    owner = np.tile(np.arange(len(faces), dtype=np.int64), 3)
-    lo, hi = directed.min(axis=1), directed.max(axis=1)
-    key = lo * np.int64(faces.max() + 1) + hi
-    order = np.argsort(key, kind="stable")
-    ks = key[order]
-    starts = np.flatnonzero(np.r_[True, ks[1:] != ks[:-1]])
-    counts = np.diff(np.r_[starts, len(ks)])
+    directed, order, starts, counts = _edge_groups(faces, int(faces.max()) + 1)
+    owner = np.tile(np.arange(len(faces), dtype=np.int64), 3)  # face of each directed edge
     pair = starts[counts == 2]
     a, b = order[pair], order[pair + 1]
     same = directed[a, 0] == directed[b, 0]
