@@ -108,7 +108,7 @@ def reconstruct(points: Any, *, config: SolverConfig | None = None, normals: np.
     if cfg.mode == "udf" and mesh.n_faces:
         # an unsigned field's pseudo-signs extend the sheet up to ``tau`` past the last samples: cut it back to
         # within a cell and a half of the data so the sheet ends where the data ends
-        mesh, _ = trim_faces(mesh, np.zeros(mesh.n_vertices, np.int64), xyz, 1.5 * lattice.cell_size)
+        mesh, _ = trim_faces(mesh, None, xyz, 1.5 * lattice.cell_size)
     # The losses are unchanged by f -> -f, so the sign comes only from the initialisation: a sphere at the lattice
     # centre lies in the hole of a torus or a mug's handle and ends up *outside*. A closed surface whose enclosed
     # volume comes out negative is therefore inside out; flip it (nested shells keep their relative orientation).

@@ -40,10 +40,12 @@ class MeshPiece:
     info: dict = field(default_factory=dict)
 
 
-def trim_faces(mesh: Mesh, keys: np.ndarray, points: np.ndarray, max_distance: float) -> tuple[Mesh, np.ndarray]:
+def trim_faces(mesh: Mesh, keys: np.ndarray | None, points: np.ndarray,
+               max_distance: float) -> tuple[Mesh, np.ndarray | None]:
     """Drop faces whose centroid is farther than ``max_distance`` from every point (same units).
 
-    Returns the trimmed mesh (unreferenced vertices removed) and the keys of its vertices.
+    Returns the trimmed mesh (unreferenced vertices removed) and the keys of its vertices (None when ``keys``
+    is None: a mesh that is not welded to others has none).
     """
     if mesh.n_faces == 0 or max_distance <= 0:
         return mesh, keys
@@ -55,7 +57,8 @@ def trim_faces(mesh: Mesh, keys: np.ndarray, points: np.ndarray, max_distance: f
     keep = np.isfinite(d) & (d <= max_distance)
     faces = mesh.faces[keep]
     used, inverse = np.unique(faces, return_inverse=True)
-    return Mesh(mesh.vertices[used], inverse.reshape(-1, 3), dict(mesh.metadata)), keys[used]
+    trimmed = Mesh(mesh.vertices[used], inverse.reshape(-1, 3), dict(mesh.metadata))
+    return trimmed, (None if keys is None else keys[used])
 
 
 def save_piece(piece: MeshPiece, path: str | Path) -> None:
