@@ -5,6 +5,7 @@ Usage: ``python benchmarks/report.py`` (rewrites BENCHMARKS.md from whatever res
 
 from __future__ import annotations
 
+import functools
 import json
 import statistics
 import sys
@@ -40,7 +41,9 @@ def machine_section(rows: list[dict]) -> str:
             f"{r.get('load', 0):.1f} (the machine is shared: read ratios measured in the same run, not absolute times).")
 
 
+@functools.lru_cache(maxsize=None)
 def gt_watertight(mesh: str) -> str:
+    """Topology of a shared ground-truth mesh (read once per mesh, not once per table row)."""
     from benchmarks.shape_worker import load_unit_mesh
 
     try:

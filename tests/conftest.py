@@ -31,4 +31,13 @@ def unit_sphere_points(n: int, seed: int = 0, radius: float = 0.5) -> np.ndarray
     return radius * p / np.linalg.norm(p, axis=1, keepdims=True)
 
 
+def terrain(extent: float, density: float, seed: int = 0) -> np.ndarray:
+    """A wavy ground patch ``extent`` metres square, ``density`` points per square metre (UTM-like offset)."""
+    rng = np.random.default_rng(seed)
+    n = int(extent * extent * density)
+    xy = rng.uniform(0, extent, size=(n, 2))
+    z = 0.4 * np.sin(xy[:, 0] / 2.0) * np.cos(xy[:, 1] / 3.0)
+    return np.column_stack([xy, z]) + np.array([500000.0, 4000000.0, 50.0])
+
+
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")

@@ -13,18 +13,10 @@ import pytest
 
 from tiled_gridpull.config import SolverConfig
 from tiled_gridpull.tile import TilingConfig
+from conftest import terrain
 
 BIN = Path(sys.executable).parent
 SOLVER = SolverConfig(m2=8, refine_m2=6, coarse_iterations=100, iterations=100, queries=20000)
-
-
-def terrain(extent: float, density: float, seed: int = 0) -> np.ndarray:
-    """A wavy ground patch ``extent`` metres square, ``density`` points per square metre (UTM-like offset)."""
-    rng = np.random.default_rng(seed)
-    n = int(extent * extent * density)
-    xy = rng.uniform(0, extent, size=(n, 2))
-    z = 0.4 * np.sin(xy[:, 0] / 2.0) * np.cos(xy[:, 1] / 3.0)
-    return np.column_stack([xy, z]) + np.array([500000.0, 4000000.0, 50.0])
 
 
 def _free_port() -> int:

@@ -14,16 +14,7 @@ from tiled_gridpull.mesh import Mesh
 from tiled_gridpull.render import render_mesh, render_meshes_image, render_tile_layout_image, save_png
 from tiled_gridpull.report import build_report, format_report_table, load_job, read_report, write_report
 from tiled_gridpull.synthetic import sample_shape, sphere
-
-
-
-def terrain(extent: float, density: float, seed: int = 0) -> np.ndarray:
-    """A wavy ground patch ``extent`` metres square, ``density`` points per square metre (UTM-like offset)."""
-    rng = np.random.default_rng(seed)
-    n = int(extent * extent * density)
-    xy = rng.uniform(0, extent, size=(n, 2))
-    z = 0.4 * np.sin(xy[:, 0] / 2.0) * np.cos(xy[:, 1] / 3.0)
-    return np.column_stack([xy, z]) + np.array([500000.0, 4000000.0, 50.0])
+from conftest import terrain
 
 
 def _png(path):
