@@ -180,8 +180,9 @@ def reconstruct_scene(inputs: list[str], output: str | Path | None, tiling: Tili
     t_part = time.perf_counter()
     solved: dict[tuple, TileSpec] = {}
     summaries = []
+    centre = plan_centre(plan)
     for spec in specs:
-        s = solve_tile(spec, tiling, solver, paths.field(spec), centre=plan_centre(plan))
+        s = solve_tile(spec, tiling, solver, paths.field(spec), centre=centre)
         summaries.append(s)
         if s["status"] == "solved":
             solved[spec.index] = spec

@@ -17,6 +17,7 @@ import time
 from collections.abc import Callable
 
 import numpy as np
+from pykdtree.kdtree import KDTree
 
 from .band import Band, build_band
 from .config import SolverConfig
@@ -62,8 +63,6 @@ def nearest_point_init(band: Band, points: np.ndarray) -> np.ndarray:
     -------
     (n_bricks, 512) float32
     """
-    from pykdtree.kdtree import KDTree
-
     pos = band.slot_positions().astype(np.float32)
     d, _ = KDTree(np.ascontiguousarray(points, dtype=np.float32)).query(pos, k=1)
     return d.astype(np.float32).reshape(band.n_bricks, 512)
