@@ -16,15 +16,7 @@ from tiled_gridpull.errors import ConfigError, InputError
 from tiled_gridpull.io import (SUPPORTED_POINT_FORMATS, PointCloud, clean_points, iter_point_chunks,
                                point_count, read_kitti_sequence, read_points)
 from tiled_gridpull.io import points as points_mod
-
-SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
-
-
-def shared(rel: str) -> Path:
-    p = SHARED / rel
-    if not p.is_file():
-        pytest.skip(f"shared test data {p} not present (needs ../shared/data beside the repository)")
-    return p
+from conftest import shared_file as shared  # a path under ../shared/data, or skip
 
 
 # ---------------------------------------------------------------------------------------------------- writers
@@ -955,3 +947,29 @@ def test_kitti_stray_huge_frame_number(tmp_path):
     with pytest.raises(InputError, match=r"missing frame 000003\.bin and 999999995 more"):
         read_kitti_sequence(tmp_path / "seq")
     assert len(read_kitti_sequence(tmp_path / "seq", frames=(0, 3)).xyz) == 10 + 11 + 12
+
+
+def test_laz_with_no_compressed_items_is_refused_before_lazrs(tmp_path, capfd):
+    """A laszip VLR declaring zero items made lazrs panic (found by the hypothesis header test)."""
+    src = shared("lidar/autzen_trim.laz")
+    data = bytearray(src.read_bytes())
+    record = data.find(b"laszip encoded") - 2 + 54  # VLR header: 2 reserved bytes, then user id; 54 bytes in all
+    data[record + 32:record + 34] = (0).to_bytes(2, "little")
+    bad = tmp_path / "no_items.laz"
+    bad.write_bytes(bytes(data))
+    with pytest.raises(InputError, match="laszip VLR declares 0 compressed items") as err:
+        read_points(bad)
+    assert "\n" not in str(err.value)
+    assert "panicked" not in capfd.readouterr().err  # refused before the Rust decoder could panic
+
+
+def test_rust_panics_become_one_line_input_errors(tmp_path):
+    class PanicException(BaseException):  # what pyo3 raises when a Rust extension panics
+        pass
+
+    with pytest.raises(InputError, match=r"x\.laz: truncated or corrupted .*PanicException: boom"):
+        with points_mod._input_errors(tmp_path / "x.laz", ".laz"):
+            raise PanicException("boom\nbacktrace")
+    with pytest.raises(KeyboardInterrupt):  # other BaseExceptions pass through
+        with points_mod._input_errors(tmp_path / "x.laz", ".laz"):
+            raise KeyboardInterrupt

@@ -422,6 +422,11 @@ def _input_errors(path: Path, suffix: str) -> Iterator[None]:
         raise InputError(f"{path}: cannot read file ({_reason(exc)})") from None
     except Exception as exc:  # parsers raise anything (ValueError, LaspyException, LazrsError, ...)
         raise InputError(f"{path}: truncated or corrupted {kind} file ({_reason(exc)})") from None
+    except BaseException as exc:
+        # a Rust extension (lazrs) that panics raises pyo3's PanicException, which derives from BaseException
+        if type(exc).__name__ != "PanicException":
+            raise
+        raise InputError(f"{path}: truncated or corrupted {kind} file ({_reason(exc)})") from None
 
 
 # ------------------------------------------------------------------------------------------------------------
@@ -1080,6 +1085,21 @@ def _las_precheck(p: Path) -> None:
                              f"of the {size}-byte file)")
 
 
+def _laszip_items_check(p: Path, header) -> None:
+    """Refuse a LAZ whose laszip VLR declares no compressed items (lazrs panics on it, printing a Rust backtrace).
+
+    The VLR's record data holds the item count as a uint16 at byte 32, followed by 6 bytes per item.
+    """
+    for vlr in header.vlrs:
+        if vlr.user_id.rstrip("\0") == "laszip encoded" and vlr.record_id == 22204:
+            data = bytes(getattr(vlr, "record_data", b"") or b"")
+            n_items = int.from_bytes(data[32:34], "little") if len(data) >= 34 else 0
+            if n_items == 0 or len(data) < 34 + 6 * n_items:
+                raise InputError(f"{p}: corrupted LAZ file (the laszip VLR declares {n_items} compressed items "
+                                 f"in {len(data)} bytes)")
+            return
+
+
 def _laz_chunk_table_check(p: Path, fh, data_start: int, size: int) -> None:
     """Refuse a LAZ chunk table whose chunk count cannot fit in the file.
 
@@ -1123,6 +1143,8 @@ def _las_chunks(p: Path, chunk_size: int) -> Iterator[PointCloud]:
             if size < needed:
                 raise InputError(f"{p}: truncated LAS file (header declares {total} points, which needs "
                                  f"{needed} bytes, but the file has {size})")
+        if header.are_points_compressed:
+            _laszip_items_check(p, header)
         crs = _las_crs(header)
         normal_dims = _las_normal_dims(header.point_format)
         has_intensity = "intensity" in header.point_format.dimension_names
