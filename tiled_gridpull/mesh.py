@@ -278,3 +278,53 @@ def remove_small_components(mesh: Mesh, min_extent: float) -> tuple[Mesh, int]:
     if not small.any():
         return mesh, 0
     return mesh.submesh(~small[labels]), int(small.sum())
+
+
+def boundary_loops(mesh: Mesh) -> list[np.ndarray]:
+    """Closed boundary loops of a mesh, each an (n,) int64 array of vertex ids in the order of its faces'
+    boundary edges. Loops through a vertex with more than one outgoing boundary edge (a pinch) are skipped."""
+    F = mesh.faces
+    if len(F) == 0:
+        return []
+    directed, order, starts, counts = _edge_groups(F, mesh.n_vertices)
+    edges = directed[order[starts[counts == 1]]]
+    if len(edges) == 0:
+        return []
+    out_deg = np.bincount(edges[:, 0], minlength=mesh.n_vertices)
+    nxt = np.full(mesh.n_vertices, -1, np.int64)
+    nxt[edges[:, 0]] = edges[:, 1]
+    seen = np.zeros(mesh.n_vertices, bool)
+    loops = []
+    for start in edges[:, 0]:
+        if seen[start]:
+            continue
+        loop, v, ok = [], int(start), True
+        while not seen[v]:
+            seen[v] = True
+            loop.append(v)
+            ok &= out_deg[v] == 1
+            v = int(nxt[v])
+            if v < 0:
+                ok = False
+                break
+        if ok and v == start and len(loop) >= 3:
+            loops.append(np.asarray(loop, dtype=np.int64))
+    return loops
+
+
+def close_holes(mesh: Mesh, loops: list[np.ndarray]) -> Mesh:
+    """Close each boundary loop with a fan of triangles around the loop's centroid (one new vertex per loop).
+
+    The fan runs every boundary edge ``a -> b`` the other way (``b, a, centre``), so it continues the
+    orientation of the faces around the hole.
+    """
+    if not loops:
+        return mesh
+    verts = [mesh.vertices]
+    faces = [mesh.faces]
+    n = mesh.n_vertices
+    for k, loop in enumerate(loops):
+        verts.append(mesh.vertices[loop].mean(axis=0, keepdims=True))
+        centre = np.full(len(loop), n + k, np.int64)
+        faces.append(np.stack([np.roll(loop, -1), loop, centre], axis=1))
+    return Mesh(np.concatenate(verts), np.concatenate(faces), dict(mesh.metadata))

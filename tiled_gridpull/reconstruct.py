@@ -17,7 +17,7 @@ from ._version import __version__
 from .config import SolverConfig
 from .errors import ConfigError, InputError
 from .lattice import Lattice
-from .mesh import Mesh, extract_mesh, remove_small_components
+from .mesh import Mesh, boundary_loops, close_holes, extract_mesh, remove_small_components
 from .solver import ProgressFn, solve
 from .stitch import trim_faces
 
@@ -63,7 +63,7 @@ def prepare_points(points: Any, normals: np.ndarray | None = None, *, what: str 
 
 def reconstruct(points: Any, *, config: SolverConfig | None = None, normals: np.ndarray | None = None,
                 lattice: Lattice | None = None, progress: ProgressFn | None = None,
-                min_component_cells: float = 2.0, **options: Any) -> Mesh:
+                min_component_cells: float = 2.0, close_band_holes: bool = True, **options: Any) -> Mesh:
     """Reconstruct a triangle mesh from a point cloud with GridPull.
 
     Parameters
@@ -83,6 +83,12 @@ def reconstruct(points: Any, *, config: SolverConfig | None = None, normals: np.
         Closed pieces whose bounding box is smaller than this many cells on every side are dropped: they are
         below the lattice's resolution (sign-flip bubbles of one or two cells), not structures it can resolve.
         0 keeps everything.
+    close_band_holes : bool
+        Signed mode only: close (with a fan of triangles) every boundary loop that lies entirely farther than
+        the pull band from the points. Such a loop is where a sheet left the data and ran into the band's
+        edge, which a closed surface cannot have: a thin-walled tube whose bore takes the sign of its wall
+        grows caps over the bore's mouths that stop at the band edge. Closing them keeps the mesh
+        watertight; holes next to the data (real gaps in the scan) are left open.
 
     Returns
     -------
@@ -109,6 +115,9 @@ def reconstruct(points: Any, *, config: SolverConfig | None = None, normals: np.
         # an unsigned field's pseudo-signs extend the sheet up to ``tau`` past the last samples: cut it back to
         # within a cell and a half of the data so the sheet ends where the data ends
         mesh, _ = trim_faces(mesh, None, xyz, 1.5 * lattice.cell_size)
+    closed = 0
+    if cfg.mode == "sdf" and close_band_holes and mesh.n_faces:
+        mesh, closed = _close_band_edge_holes(mesh, xyz, cfg.m1 * lattice.cell_size)
     # The losses are unchanged by f -> -f, so the sign comes only from the initialisation: a sphere at the lattice
     # centre lies in the hole of a torus or a mug's handle and ends up *outside*. A closed surface whose enclosed
     # volume comes out negative is therefore inside out; flip it (nested shells keep their relative orientation).
@@ -131,7 +140,26 @@ def reconstruct(points: Any, *, config: SolverConfig | None = None, normals: np.
         "loss_history": fld.info.get("history", []),
         "small_components_removed": int(removed),
         "orientation_flipped": flipped,
+        "band_edge_holes_closed": int(closed),
         "timings_s": {"prepare": t_prep - t0, "solve": t_solve - t_prep, "mesh": t_mesh - t_solve,
                       "total": t_mesh - t0},
     })
     return mesh
+
+
+def _close_band_edge_holes(mesh: Mesh, points: np.ndarray, min_distance: float) -> tuple[Mesh, int]:
+    """Close the boundary loops whose every vertex is at least ``min_distance`` (world units) from the points."""
+    from pykdtree.kdtree import KDTree
+
+    loops = boundary_loops(mesh)
+    if not loops:
+        return mesh, 0
+    # lattice-local coordinates: float64 kd-tree distances stay exact for georeferenced clouds
+    centre = points.mean(axis=0)
+    tree = KDTree(points - centre)
+    far = []
+    for loop in loops:
+        d, _ = tree.query(mesh.vertices[loop] - centre, k=1)
+        if d.min() >= min_distance:
+            far.append(loop)
+    return close_holes(mesh, far), len(far)

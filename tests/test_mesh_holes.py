@@ -1,0 +1,55 @@
+"""Boundary loops and the closing of holes a signed solve leaves at its band's edge."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from tiled_gridpull.mesh import Mesh, boundary_loops, close_holes
+from tiled_gridpull.metrics import sample_surface
+from tiled_gridpull.reconstruct import _close_band_edge_holes
+
+# unit cube, outward-oriented, two triangles per side: -x, +x, -y, +y, -z, +z
+CUBE_V = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], dtype=np.float64)
+CUBE_F = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
+                   [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]], dtype=np.int64)
+
+
+def open_cube(offset=(0.0, 0.0, 0.0), drop=(10, 11)) -> Mesh:
+    keep = np.setdiff1d(np.arange(12), drop)
+    return Mesh(CUBE_V + np.asarray(offset), CUBE_F[keep])
+
+
+def test_cube_is_closed_and_outward():
+    cube = Mesh(CUBE_V, CUBE_F)
+    assert cube.topology.watertight and cube.signed_volume() > 0.99
+
+
+def test_loops_of_a_cube_missing_two_sides():
+    mesh = open_cube(drop=(0, 1, 2, 3))  # the -x and +x sides
+    loops = boundary_loops(mesh)
+    assert sorted(len(loop) for loop in loops) == [4, 4]
+    assert {frozenset(loop.tolist()) for loop in loops} == {frozenset({0, 1, 2, 3}), frozenset({4, 5, 6, 7})}
+    closed = close_holes(mesh, loops)
+    topo = closed.topology
+    assert topo.boundary_edges == 0 and topo.inconsistent_edges == 0 and topo.nonmanifold_edges == 0
+    assert closed.n_vertices == 8 + 2
+    assert abs(closed.signed_volume() - 1.0) < 1e-12  # fans over planar squares add the missing sides exactly
+    assert closed.is_manifold_solid()
+
+
+def test_no_loops_on_a_closed_mesh():
+    assert boundary_loops(Mesh(CUBE_V, CUBE_F)) == []
+
+
+def test_only_holes_away_from_the_data_are_closed():
+    near = open_cube()                        # its hole (the +z side) is where the samples are
+    far = open_cube(offset=(10.0, 0.0, 0.0))  # a sheet that ran away from the data
+    both = Mesh(np.vstack([near.vertices, far.vertices]), np.vstack([near.faces, far.faces + 8]))
+    pts, _ = sample_surface(Mesh(CUBE_V, CUBE_F), 5000, seed=0)
+    shift = np.array([500000.0, 4000000.0, 100.0])  # georeferenced: distances must stay exact
+    moved = Mesh(both.vertices + shift, both.faces)
+    out, n = _close_band_edge_holes(moved, pts + shift, min_distance=0.5)
+    assert n == 1
+    assert out.topology.boundary_edges == 4      # the hole next to the data stays open
+    far_part = out.submesh(out.components() == out.components()[-1])
+    assert far_part.topology.watertight
