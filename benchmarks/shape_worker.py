@@ -14,14 +14,50 @@ import numpy as np
 from benchmarks.common import MESHES, SHARED, peak_rss_mb
 
 
-def load_unit_mesh(name: str):
-    """A shared ground-truth mesh scaled so its bounding box's longest side is 1, centred at the origin."""
+def unit_transform(name: str):
+    """(mesh in its own units, centre (3,), scale): ``(v - centre) / scale`` fits the bbox's longest side to 1."""
     from tiled_gridpull.io import read_mesh
-    from tiled_gridpull.mesh import Mesh
 
     gt = read_mesh(SHARED / "meshes" / MESHES[name])
     lo, hi = gt.vertices.min(0), gt.vertices.max(0)
-    return Mesh((gt.vertices - (lo + hi) / 2) / float((hi - lo).max()), gt.faces)
+    return gt, (lo + hi) / 2, float((hi - lo).max())
+
+
+def load_unit_mesh(name: str):
+    """A shared ground-truth mesh scaled so its bounding box's longest side is 1, centred at the origin."""
+    from tiled_gridpull.mesh import Mesh
+
+    gt, centre, scale = unit_transform(name)
+    return Mesh((gt.vertices - centre) / scale, gt.faces)
+
+
+def quaternion_matrix(qi: float, qj: float, qk: float, qr: float) -> np.ndarray:
+    """Rotation matrix (3, 3) of a unit quaternion, scalar last."""
+    q = np.array([qi, qj, qk, qr], dtype=np.float64)
+    x, y, z, w = q / np.linalg.norm(q)
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
+def bunny_scans() -> np.ndarray:
+    """The 10 real Stanford bunny range scans merged by ``bun.conf`` into the GT mesh's frame, then into the
+    unit frame of :func:`load_unit_mesh` ("bunny"): (N, 3) float64, about 362k points.
+
+    The conf's rotations are applied transposed (``p' = R(q)^T p + t``), as the data's manifest records."""
+    from tiled_gridpull.io import read_points
+
+    folder = SHARED / "scans" / "stanford_bunny"
+    parts = []
+    for line in (folder / "bun.conf").read_text().splitlines():
+        f = line.split()
+        if not f or f[0] != "bmesh":
+            continue
+        t = np.array(f[2:5], dtype=np.float64)
+        R = quaternion_matrix(*map(float, f[5:9]))
+        parts.append(read_points(folder / f[1]).xyz @ R + t)  # rows: (R^T p)^T = p^T R
+    _, centre, scale = unit_transform("bunny")
+    return (np.concatenate(parts) - centre) / scale
 
 
 def input_cloud(gt, points: int, seed: int, noise: float) -> np.ndarray:
@@ -35,10 +71,10 @@ def input_cloud(gt, points: int, seed: int, noise: float) -> np.ndarray:
     return pts
 
 
-def run_gridpull(pts: np.ndarray, cfg: dict):
+def run_gridpull(pts: np.ndarray, cfg: dict, normals: np.ndarray | None = None):
     from tiled_gridpull import reconstruct
 
-    mesh = reconstruct(pts, **cfg)
+    mesh = reconstruct(pts, normals=normals, **cfg)
     return mesh, {"solve_s": mesh.metadata["timings_s"]["solve"]}
 
 
@@ -62,10 +98,18 @@ def main(args: dict) -> dict:
     from tiled_gridpull.metrics import evaluate
 
     gt = load_unit_mesh(args["mesh"])
-    pts = input_cloud(gt, args["points"], args.get("seed", 0), args.get("noise", 0.0))
+    normals = None
+    if args.get("scans"):
+        pts = bunny_scans()
+    elif args.get("normals"):
+        from tiled_gridpull.metrics import sample_surface
+
+        pts, normals = sample_surface(gt, args["points"], seed=args.get("seed", 0))  # exact normals
+    else:
+        pts = input_cloud(gt, args["points"], args.get("seed", 0), args.get("noise", 0.0))
     t0 = time.perf_counter()
     if args["method"] in ("gridpull", "gridpull-paper"):
-        mesh, extra = run_gridpull(pts, args.get("config", {}))
+        mesh, extra = run_gridpull(pts, args.get("config", {}), normals)
     elif args["method"] == "poisson":
         mesh, extra = run_poisson(pts, args.get("config", {}))
     else:
