@@ -64,6 +64,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--iterations", type=int, help="optimizer iterations (default 1600)")
     r.add_argument("--seed", type=int, help="random seed (default 0)")
     r.add_argument("--mode", choices=("sdf", "udf"), help="signed (closed surfaces) or unsigned (open) field")
+    r.add_argument("--normals", action="store_true",
+                   help="supervise the field's gradient with the input's normals (PLY nx ny nz, LAS extra bytes, "
+                        "XYZ/NPY columns 4-6): normal_weight 1 unless the config sets it; one-shape mode")
     r.add_argument("--float32", action="store_true",
                    help="store vertices as float32 relative to an offset recorded in the header (half the size)")
     t = r.add_argument_group("tiled mode (scenes; enabled by --voxel-size or a config that sets voxel_size)")
@@ -150,6 +153,9 @@ def _setup_logging(args) -> None:
     logging.captureWarnings(True)
 
 
+#: normal_weight set by ``--normals``: measured on exact normals in benchmarks/paper_eval.py (normals suite).
+NORMALS_WEIGHT = 1.0
+
 _CLI_KEYS = {"resolution": "resolution", "iterations": "iterations", "seed": "seed", "mode": "mode",
              "voxel_size": "voxel_size", "tile_size": "tile_size", "overlap": "overlap"}
 
@@ -176,6 +182,10 @@ def resolve_settings(args) -> tuple:
         value = getattr(args, attr, None)
         if value is not None:
             settings[key] = value
+    if getattr(args, "normals", False):
+        if "voxel_size" in settings:
+            raise ConfigError("--normals applies to one-shape mode (tiles orient estimated normals instead)")
+        settings.setdefault("normal_weight", NORMALS_WEIGHT)
     solver_keys = set(SolverConfig.__dataclass_fields__)
     tiling_keys = set(TilingConfig.__dataclass_fields__)
     unknown = set(settings) - solver_keys - tiling_keys

@@ -61,6 +61,9 @@ def test_bad_inputs_one_line_no_output(tmp_path, capsys, content, suffix, needle
     (["--set", "tv_form=cubic"], "tv_form"),
     (["--voxel-size", "0.1", "--tile-size", "1", "--overlap", "5"], "overlap"),
     (["--voxel-size", "-1"], "voxel_size"),
+    (["--normals", "--voxel-size", "0.1"], "one-shape"),
+    (["--set", "noise_cells=-1"], "noise_cells"),
+    (["--set", "noise_cells=1.5", "--voxel-size", "0.1"], "noise_cells"),
 ])
 def test_bad_options_rejected_before_work(tmp_path, capsys, sphere_xyz, opts, needle):
     out = tmp_path / "out.ply"
@@ -102,3 +105,30 @@ def test_help_lists_defaults():
     out = subprocess.run([sys.executable, "-m", "tiled_gridpull", "evaluate", "--help"], capture_output=True,
                          text=True, check=True).stdout
     assert "default: 100000" in out
+
+
+def test_normals_flag_needs_normals_in_the_input(tmp_path, capsys, sphere_xyz):
+    out = tmp_path / "out.ply"
+    code, _, err = run(["reconstruct", str(sphere_xyz), "-o", str(out), "-q", "--normals"], capsys)
+    assert code == 3
+    _one_error_line(err)
+    assert "normals" in err and not out.exists()
+
+
+def test_normals_flag_supervises_with_the_file_normals(tmp_path, capsys):
+    from tiled_gridpull.metrics import sample_surface
+
+    pts, nrm = sample_surface(sphere(), 5000, seed=0)
+    src = tmp_path / "with_normals.xyz"
+    np.savetxt(src, np.hstack([pts, nrm]))
+    out = tmp_path / "mesh.ply"
+    code, _, err = run(["reconstruct", str(src), "-o", str(out), "-q", "--normals", "--resolution", "40",
+                        "--iterations", "100", "--set", "coarse_iterations=100"], capsys)
+    assert code == 0, err
+    side = json.loads(out.with_suffix(".json").read_text())
+    assert side["config"]["normal_weight"] == 1.0
+    assert side["loss_history"][-1]["normal"] > 0  # the normal loss was evaluated
+    code, _, err = run(["reconstruct", str(src), "-o", str(out), "-q", "--normals", "--resolution", "40",
+                        "--iterations", "100", "--set", "coarse_iterations=100", "--set", "normal_weight=0.25"],
+                       capsys)
+    assert code == 0 and json.loads(out.with_suffix(".json").read_text())["config"]["normal_weight"] == 0.25

@@ -82,6 +82,10 @@ class SolverConfig:
         Candidate list size of the nearest-neighbour cache.
     seed : int
         Random seed (queries). Results are bitwise reproducible for a given seed.
+    noise_cells : float
+        One-shape mode: 0 keeps ``resolution``; > 0 lowers it (never raises it) so that the finest cell is at
+        least ``noise_cells`` x the cloud's estimated noise sigma (:func:`tiled_gridpull.noise.estimate_noise`).
+        A field whose cell is finer than the noise reproduces the noise; ``configs/noisy.yaml`` uses 1.5.
     """
 
     resolution: int = 256
@@ -113,6 +117,7 @@ class SolverConfig:
     refine_tv_form: str = "squared"
     knn: int = 16
     seed: int = 0
+    noise_cells: float = 0.0
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -137,7 +142,7 @@ class SolverConfig:
             if getattr(self, name) <= 0:
                 raise ConfigError(f"{name} must be positive, got {getattr(self, name)!r}")
         nonneg = ["margin", "m1", "m2", "alpha", "beta", "gamma", "query_sigma", "init_radius", "normal_weight",
-                  "seed", "refine_m2", "refine_gamma"]
+                  "seed", "refine_m2", "refine_gamma", "noise_cells"]
         for name in nonneg:
             if getattr(self, name) < 0:
                 raise ConfigError(f"{name} must be >= 0, got {getattr(self, name)!r}")

@@ -9,6 +9,7 @@ maps the mesh back to the input's own coordinates. The mesh carries everything n
 from __future__ import annotations
 
 import time
+import warnings
 from typing import Any
 
 import numpy as np
@@ -18,10 +19,14 @@ from .config import SolverConfig
 from .errors import ConfigError, InputError
 from .lattice import Lattice
 from .mesh import Mesh, boundary_loops, close_holes, extract_mesh, remove_small_components
+from .noise import estimate_noise
 from .solver import ProgressFn, solve
 from .stitch import trim_faces
 
 __all__ = ["reconstruct", "prepare_points"]
+
+#: Lowest resolution ``noise_cells`` may pick (coarser lattices lose the shape, not just the noise).
+MIN_NOISY_RESOLUTION = 32
 
 
 def prepare_points(points: Any, normals: np.ndarray | None = None, *, what: str = "input",
@@ -105,8 +110,18 @@ def reconstruct(points: Any, *, config: SolverConfig | None = None, normals: np.
     xyz, nrm, report = prepare_points(points, normals)
     if cfg.normal_weight > 0 and nrm is None:
         raise InputError("normal_weight > 0 needs input normals, but the cloud has none")
+    noise = estimate_noise(xyz)
     if lattice is None:
+        if cfg.noise_cells > 0 and noise.sigma > 0:
+            extent = float((xyz.max(axis=0) - xyz.min(axis=0)).max())
+            coarse = max(MIN_NOISY_RESOLUTION, int(extent / (cfg.noise_cells * noise.sigma)))
+            if coarse < cfg.resolution:
+                cfg = cfg.replace(resolution=coarse)
         lattice = Lattice.fit(xyz, cfg.resolution, cfg.margin)
+    if noise.noisy and cfg.beta > 0 and noise.sigma > lattice.cell_size:
+        warnings.warn(f"the cloud looks noisy (sigma ~ {noise.sigma:.3g}, {noise.sigma / lattice.cell_size:.1f} "
+                      f"cells at this resolution): the surface will follow the noise; try configs/noisy.yaml",
+                      UserWarning, stacklevel=2)
     t_prep = time.perf_counter()
     fld = solve(xyz, lattice, cfg, normals=nrm, progress=progress)
     t_solve = time.perf_counter()
@@ -138,6 +153,7 @@ def reconstruct(points: Any, *, config: SolverConfig | None = None, normals: np.
         "input": {"points": int(len(xyz)), **report},
         "solve": info,
         "loss_history": fld.info.get("history", []),
+        "noise_estimate": {**noise.to_dict(), "cells": noise.sigma / lattice.cell_size},
         "small_components_removed": int(removed),
         "orientation_flipped": flipped,
         "band_edge_holes_closed": int(closed),

@@ -132,6 +132,10 @@ def check_compatible(tiling: TilingConfig, solver: "SolverConfig") -> None:
     cells marching cubes may use) agree only if every point within ``M2 + 1`` cells of the face is in both
     blocks, i.e. ``overlap >= M2 + 1`` cells for the finest level's band.
     """
+    if solver.noise_cells > 0:
+        raise ConfigError("noise_cells applies to one-shape mode (tiled mode fixes the cell size with voxel_size)")
+    if solver.normal_weight > 0:
+        raise ConfigError("normal_weight applies to one-shape mode (tiles orient estimated normals instead)")
     m2 = solver.refine_m2 if solver.levels > 1 else solver.m2
     if tiling.overlap_cells < m2 + 1:
         raise ConfigError(f"overlap of {tiling.overlap_cells} cells is too small for a TV band of {m2} cells at "

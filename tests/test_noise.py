@@ -1,0 +1,80 @@
+"""Noise estimate, the noisy preset (noise_cells, beta = 0) and its warning."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+
+from tiled_gridpull import reconstruct
+from tiled_gridpull.config import SolverConfig, load_config_file
+from tiled_gridpull.errors import ConfigError
+from tiled_gridpull.noise import estimate_noise
+from tiled_gridpull.synthetic import sample_shape, sphere
+
+from conftest import REPO
+
+SPHERE = sphere(radius=0.5)
+FAST = {"iterations": 150, "coarse_iterations": 150, "queries": 20_000}
+
+
+def noisy_sphere(n: int, sigma: float, seed: int = 0) -> np.ndarray:
+    pts, _ = sample_shape(SPHERE, n, seed=seed)
+    return pts + np.random.default_rng(seed + 1).normal(scale=sigma, size=pts.shape)
+
+
+def sphere_error(mesh) -> float:
+    """Mean distance of the mesh's vertices to the analytic sphere of radius 0.5."""
+    return float(np.abs(np.linalg.norm(mesh.vertices, axis=1) - 0.5).mean())
+
+
+@pytest.mark.parametrize("sigma,noisy", [(0.004, False), (0.01, True)])
+def test_estimate_recovers_gaussian_noise(sigma, noisy):
+    est = estimate_noise(noisy_sphere(50_000, sigma))
+    assert 0.6 * sigma < est.sigma < 1.2 * sigma
+    # 0.004 is below the samples' spacing (~0.0055 here): mild; 0.01 is nearly twice it
+    assert est.noisy is noisy
+
+
+def test_clean_cloud_is_not_noisy_and_shift_does_not_matter():
+    pts, _ = sample_shape(SPHERE, 50_000, seed=0)
+    est = estimate_noise(pts)
+    assert not est.noisy and est.sigma < 0.3 * est.spacing
+    far = estimate_noise(pts + np.array([500000.0, 4000000.0, 100.0]))
+    assert abs(far.sigma - est.sigma) < 1e-3 * est.spacing
+
+
+def test_noise_cells_lowers_the_resolution_and_is_recorded():
+    pts = noisy_sphere(30_000, 0.01)
+    mesh = reconstruct(pts, resolution=128, noise_cells=1.5, beta=0.0, **FAST)
+    est = mesh.metadata["noise_estimate"]
+    expected = int(1.0 / (1.5 * est["sigma"]))  # extent of the cloud ~ 1 + noise
+    assert 32 <= mesh.metadata["config"]["resolution"] < 128
+    assert abs(mesh.metadata["config"]["resolution"] - expected) <= 0.1 * expected
+    assert est["cells"] == pytest.approx(est["sigma"] / mesh.metadata["lattice"]["cell_size"])
+
+
+def test_noisy_preset_beats_the_default_on_a_noisy_sphere():
+    """1 % of the diameter of noise: the preset's surface lies closer to the true sphere."""
+    pts = noisy_sphere(40_000, 0.01)
+    preset = load_config_file(REPO / "configs" / "noisy.yaml")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        default = reconstruct(pts, resolution=128, **FAST)
+    assert any("looks noisy" in str(w.message) for w in caught)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        tuned = reconstruct(pts, **{"resolution": 128, **preset, **FAST})
+    assert not any("looks noisy" in str(w.message) for w in caught)
+    assert tuned.topology.watertight and tuned.topology.components == 1
+    assert sphere_error(tuned) < 0.7 * sphere_error(default)
+
+
+def test_noise_cells_refused_in_tiled_mode():
+    from tiled_gridpull.tile import TilingConfig, check_compatible
+
+    with pytest.raises(ConfigError, match="noise_cells"):
+        check_compatible(TilingConfig(voxel_size=0.1), SolverConfig(noise_cells=1.5))
+    with pytest.raises(ConfigError, match="noise_cells"):
+        SolverConfig(noise_cells=-1)
