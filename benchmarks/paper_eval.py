@@ -9,6 +9,7 @@ Usage::
     python -m benchmarks.paper_eval noise        # 0.5 % and 1 % noise: default, noisy preset, Poisson
     python -m benchmarks.paper_eval scans        # the 10 real bunny range scans merged: ours vs Poisson
     python -m benchmarks.paper_eval normals      # exact normals: normal_weight 0 vs 1
+    python -m benchmarks.paper_eval open         # half-sphere, terrain: --mode udf vs sdf
     python -m benchmarks.paper_eval resolution   # R = 32 .. 512 (bunny)
     python -m benchmarks.paper_eval losses       # pull; +grad; +TV; +surface (bunny)
     python -m benchmarks.paper_eval bandwidth    # M2 = 2, 14, 30 (bunny)
@@ -26,7 +27,7 @@ import time
 from benchmarks.common import REPO, machine, require_shared, run_isolated
 
 RESULTS = REPO / "benchmarks" / "results" / "paper_eval.jsonl"
-SUITES = ("noise", "scans", "normals", "resolution", "losses", "bandwidth", "points")
+SUITES = ("noise", "scans", "normals", "open", "resolution", "losses", "bandwidth", "points")
 NOISE_MESHES = ("bunny", "armadillo", "fandisk")
 
 
@@ -42,7 +43,7 @@ def run(suite: str, label: str, method: str = "gridpull", config: dict | None = 
     out = run_isolated("benchmarks.shape_worker", args)
     row = {"suite": suite, "label": label, "date": time.strftime("%Y-%m-%d %H:%M"), **out}
     RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    with open(RESULTS, "a") as fh:
+    with RESULTS.open("a") as fh:
         fh.write(json.dumps(row, default=float) + "\n")
     print(f"{suite:10s} {mesh:10s} {label:28s} wall {out['wall_s']:7.1f} s  CD-L1 {out['chamfer_l1_exact'] * 1e3:7.3f}e-3"
           f"  NC {out['normal_consistency_exact']:.4f}  pieces {out['components']}", flush=True)
@@ -75,6 +76,13 @@ def normals() -> None:
         run("normals", "normal_weight 1", config={"normal_weight": 1.0}, mesh=mesh, normals=True)
 
 
+def open_surfaces() -> None:
+    """Open surfaces: the unsigned mode beside the signed one on the same clouds."""
+    for mesh in ("half_sphere", "terrain"):
+        run("open", "udf", config={"mode": "udf"}, mesh=mesh)
+        run("open", "sdf", mesh=mesh)
+
+
 def resolution() -> None:
     for res in (32, 64, 128, 256, 512):
         run("resolution", f"R={res}", config={"resolution": res})
@@ -105,12 +113,12 @@ def main() -> None:
     ap.add_argument("suite", choices=(*SUITES, "all"))
     a = ap.parse_args()
     require_shared()
-    with open(RESULTS, "a") as fh:
+    with RESULTS.open("a") as fh:
         fh.write(json.dumps({"suite": "machine", "date": time.strftime("%Y-%m-%d %H:%M"), **machine(),
                              "load": os.getloadavg()[0]}) + "\n")
     for name in SUITES:
         if a.suite in (name, "all"):
-            globals()[name]()
+            globals()["open_surfaces" if name == "open" else name]()
 
 
 def render(rows: list[dict]) -> str:

@@ -23,9 +23,19 @@ def unit_transform(name: str):
     return gt, (lo + hi) / 2, float((hi - lo).max())
 
 
+#: Open surfaces made by the project (already about unit size): the UDF benchmarks' ground truth.
+SYNTHETIC_OPEN = ("half_sphere", "terrain")
+
+
 def load_unit_mesh(name: str):
-    """A shared ground-truth mesh scaled so its bounding box's longest side is 1, centred at the origin."""
+    """A shared ground-truth mesh scaled so its bounding box's longest side is 1, centred at the origin
+    (or one of the project's open surfaces, ``SYNTHETIC_OPEN``)."""
     from tiled_gridpull.mesh import Mesh
+
+    if name in SYNTHETIC_OPEN:
+        from tiled_gridpull.synthetic.shapes import half_sphere, height_field
+
+        return half_sphere() if name == "half_sphere" else height_field(200)
 
     gt, centre, scale = unit_transform(name)
     return Mesh((gt.vertices - centre) / scale, gt.faces)

@@ -204,6 +204,7 @@ def _optimize(P: np.ndarray, N: np.ndarray | None, band: Band, values: np.ndarra
     if N is not None:
         N = np.ascontiguousarray(N[order])
     gamma = 0.0 if cfg.mode == "udf" else st.get("gamma", cfg.gamma)
+    beta = cfg.udf_beta if cfg.mode == "udf" else cfg.beta
     sigma = np.float32(st.get("sigma", cfg.query_sigma))
     nn = NearestPoints(P, cfg.knn, sigma=float(sigma))
     flat_flags = band.flags.reshape(-1)
@@ -237,7 +238,7 @@ def _optimize(P: np.ndarray, N: np.ndarray | None, band: Band, values: np.ndarra
         s = P[nn_idx]
         nrm = N[nn_idx] if N is not None else empty_normals
         n_valid = kl.query_losses(d_a, flat_flags, band.brick_table, shape, q, s, nrm, CELL_PULL,
-                                  cfg.beta, gamma, cfg.normal_weight, surface_form, slots, grads, losses)
+                                  beta, gamma, cfg.normal_weight, surface_form, slots, grads, losses)
         if n_valid:
             kl.scatter_add(qgrad, slots, grads, np.float32(1.0 / n_valid))
         tb = time.perf_counter()

@@ -13,7 +13,7 @@ import numpy as np
 from ..mesh import Mesh
 from ..metrics import sample_surface
 
-__all__ = ["sphere", "torus", "box", "sample_shape"]
+__all__ = ["sphere", "torus", "box", "half_sphere", "height_field", "sample_shape"]
 
 
 def _icosahedron() -> tuple[np.ndarray, np.ndarray]:
@@ -163,6 +163,23 @@ def box(size: tuple[float, float, float] = (0.8, 0.6, 0.4), divisions: int = 40)
                 faces += [np.stack([v00, v11, v10], 1), np.stack([v00, v01, v11], 1)]
     return Mesh(v, np.concatenate(faces), {"generator": "tiled_gridpull.synthetic.box",
                                            "size": size.tolist()})
+
+
+def half_sphere(radius: float = 0.5) -> Mesh:
+    """Upper half (z > 0) of :func:`sphere`: an open surface with one circular boundary."""
+    gt = sphere(radius)
+    centroids = gt.vertices[gt.faces].mean(axis=1)
+    return gt.submesh(centroids[:, 2] > 0)
+
+
+def height_field(n: int = 80, amplitude: float = 0.08) -> Mesh:
+    """An open terrain patch ``z = a sin(3x) cos(2y)`` over [-0.5, 0.5]^2, ``n`` x ``n`` vertices."""
+    x, y = np.meshgrid(np.linspace(-0.5, 0.5, n), np.linspace(-0.5, 0.5, n), indexing="ij")
+    z = amplitude * np.sin(3 * x) * np.cos(2 * y)
+    v = np.stack([x.ravel(), y.ravel(), z.ravel()], axis=1)
+    i = (np.arange(n - 1)[:, None] * n + np.arange(n - 1)[None, :]).ravel()
+    f = np.concatenate([np.stack([i, i + n, i + 1], 1), np.stack([i + 1, i + n, i + n + 1], 1)])
+    return Mesh(v, f)
 
 
 def sample_shape(mesh: Mesh, n: int, seed: int = 0, noise: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
