@@ -37,8 +37,14 @@ def _noisy_config() -> dict:
     return load_config_file(REPO / "configs" / "noisy.yaml")
 
 
+#: Only runs whose label contains this string (``--only``), e.g. "preset" to re-run one row kind.
+ONLY = ""
+
+
 def run(suite: str, label: str, method: str = "gridpull", config: dict | None = None, mesh: str = "bunny",
-        points: int = 100_000, **extra) -> dict:
+        points: int = 100_000, **extra) -> dict | None:
+    if ONLY not in label:
+        return None
     args = {"mesh": mesh, "points": points, "method": method, "config": config or {}, "seed": 0, **extra}
     out = run_isolated("benchmarks.shape_worker", args)
     row = {"suite": suite, "label": label, "date": time.strftime("%Y-%m-%d %H:%M"), **out}
@@ -111,7 +117,10 @@ def points() -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("suite", choices=(*SUITES, "all"))
+    ap.add_argument("--only", default="", help="only runs whose label contains this text")
     a = ap.parse_args()
+    global ONLY
+    ONLY = a.only
     require_shared()
     with RESULTS.open("a") as fh:
         fh.write(json.dumps({"suite": "machine", "date": time.strftime("%Y-%m-%d %H:%M"), **machine(),

@@ -1,0 +1,161 @@
+"""Scene benchmarks (issue 4): the synthetic street at several sizes and the shared real LiDAR files, end to end
+through the command line on the default local Dask cluster.
+
+For each run: wall time of ``tiled-gridpull reconstruct`` (sample generation not counted), peak RSS of the
+biggest process (largest tile task or the driver, from the job's sidecar), points per second, the per-stage
+split (partition, solve, blend, mesh, merge; solve/blend/mesh as summed task-seconds over the workers), and for
+the synthetic street the accuracy against its ground-truth mesh over the observed region. Results append to
+``benchmarks/results/scenes.jsonl``; ``python benchmarks/report.py`` renders them into BENCHMARKS.md.
+
+Usage::
+
+    python -m benchmarks.scenes street --points 1000000 14000000 [--workers 2]
+    python -m benchmarks.scenes workers --points 1000000          # 1 vs 2 workers, same cloud
+    python -m benchmarks.scenes lidar                              # ../shared/data/lidar files
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from benchmarks.common import REPO, machine
+
+RESULTS = REPO / "benchmarks" / "results" / "scenes.jsonl"
+CLI = [sys.executable, "-m", "tiled_gridpull"]
+#: Shared LiDAR files and the cell size each is run at (its units: metres, or US feet for Autzen).
+LIDAR = {"ahn3_cropped_2.laz": 0.5, "autzen_trim.laz": 2.0}
+
+
+def record(row: dict) -> None:
+    row = {"date": time.strftime("%Y-%m-%d %H:%M"), **row}
+    RESULTS.parent.mkdir(parents=True, exist_ok=True)
+    with RESULTS.open("a") as fh:
+        fh.write(json.dumps(row, default=float) + "\n")
+    keys = ("scene", "points", "workers", "tiles", "wall_s", "points_per_s", "peak_rss_mb", "chamfer_l1_m")
+    print("  ".join(f"{k}={row[k]:.4g}" if isinstance(row.get(k), float) else f"{k}={row.get(k)}" for k in keys),
+          flush=True)
+
+
+def reconstruct(src: Path, out: Path, workers: int, extra: list[str]) -> dict:
+    """Run the CLI job; returns wall time and the facts read back from its sidecar."""
+    cmd = [*CLI, "reconstruct", str(src), "-o", str(out), "--workers", str(workers), "-q", *extra]
+    t0 = time.perf_counter()
+    subprocess.run(cmd, check=True)
+    wall = time.perf_counter() - t0
+    side = json.loads(out.with_suffix(".json").read_text())
+    solves = side.get("tile_summaries", [])
+    meshes = side.get("mesh_summaries", [])
+    mem = side.get("memory_mb", {})
+    t = side["timings_s"]
+    mesh_s = sum(m.get("time_s", 0.0) for m in meshes)
+    blend_s = sum(m.get("blend_s", 0.0) for m in meshes)
+    return {
+        "wall_s": wall, "tiles": side["tiles"]["solved"], "tiles_planned": side["tiles"]["planned"],
+        "points": side["input"].get("points") if isinstance(side.get("input"), dict) else None,
+        "peak_rss_mb": max(float(v) for v in mem.values() if isinstance(v, (int, float))) if mem else None,
+        "memory_mb": mem,
+        "stages_s": {"partition": t.get("partition"), "solve_task_s": sum(s.get("time_s", 0.0) for s in solves),
+                     "blend_task_s": blend_s, "mesh_task_s": mesh_s - blend_s,
+                     "solve_and_mesh_wall": t.get("solve_and_mesh"), "merge": t.get("merge"),
+                     "total": t.get("total")},
+        "faces": side["mesh"]["n_faces"] if isinstance(side.get("mesh"), dict) else None,
+    }
+
+
+def evaluate(mesh: Path, gt: Path, observed: Path) -> dict:
+    out = subprocess.run([*CLI, "evaluate", str(mesh), str(gt), "--observed", str(observed), "--json",
+                          "--thresholds", "0.05", "0.1", "0.2"], check=True, capture_output=True, text=True).stdout
+    res = json.loads(out)
+    return {"chamfer_l1_m": res["chamfer_l1_exact"], "normal_consistency": res["normal_consistency_exact"],
+            "fscore_0.1m": res.get("fscore_exact@0.1", res.get("fscore@0.1")), "components": res["components"],
+            "boundary_edges": res["boundary_edges"]}
+
+
+def street(n_points: int, workers: int, work: Path) -> None:
+    from tiled_gridpull.synthetic.street import make_street_sample
+
+    t0 = time.perf_counter()
+    sample = make_street_sample(work / f"street_{n_points}", n_points=n_points, origin=(500000.0, 4000000.0, 100.0))
+    t_sample = time.perf_counter() - t0
+    out = work / f"street_{n_points}" / "mesh.ply"
+    row = reconstruct(sample["laz"], out, workers, ["--config", str(REPO / "configs" / "scene.yaml")])
+    row.update(evaluate(out, sample["gt_mesh"], sample["laz"]))
+    row.update(scene="street (synthetic)", points=sample["n_points"], workers=workers, sample_s=t_sample,
+               points_per_s=sample["n_points"] / row["wall_s"], cell_m=0.1)
+    record(row)
+
+
+def lidar(workers: int, work: Path) -> None:
+    folder = REPO.parent / "shared" / "data" / "lidar"
+    for name, cell in LIDAR.items():
+        src = folder / name
+        if not src.exists():
+            print(f"skip {name}: not in ../shared/data/lidar", flush=True)
+            continue
+        out = work / (src.stem + ".ply")
+        row = reconstruct(src, out, workers, ["--config", str(REPO / "configs" / "scene.yaml"),
+                                              "--voxel-size", str(cell), "--tile-size", str(256 * cell),
+                                              "--overlap", str(32 * cell)])
+        row.update(scene=name, workers=workers, cell=cell)
+        row["points_per_s"] = (row["points"] or 0) / row["wall_s"]
+        record(row)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("suite", choices=("street", "workers", "lidar"))
+    ap.add_argument("--points", type=int, nargs="+", default=[1_000_000])
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--keep", action="store_true", help="keep the work directory (printed)")
+    a = ap.parse_args()
+    record({"scene": "machine", **machine(), "load": os.getloadavg()[0]})
+    work = Path(tempfile.mkdtemp(prefix="tg-scenes-"))
+    try:
+        if a.suite == "street":
+            for n in a.points:
+                street(n, a.workers, work)
+        elif a.suite == "workers":
+            for w in (1, 2):
+                street(a.points[0], w, work)
+        else:
+            lidar(a.workers, work)
+    finally:
+        if a.keep:
+            print(f"work directory: {work}")
+        else:
+            shutil.rmtree(work, ignore_errors=True)
+
+
+def render(rows: list[dict]) -> str:
+    """Markdown table of every scene run (newest last)."""
+    runs = [r for r in rows if r.get("scene") not in (None, "machine")]
+    if not runs:
+        return ""
+    out = ["| scene | points | workers | tiles | wall s | points/s | peak RSS MB | partition s | solve task-s | "
+           "blend task-s | mesh task-s | merge s | CD-L1 m | NC | F@0.1 m | pieces |",
+           "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in runs:
+        st = r["stages_s"]
+
+        def f(v, fmt=".1f"):
+            return "-" if v is None else format(v, fmt)
+
+        out.append(f"| {r['scene']} | {r.get('points') or '-'} | {r['workers']} | {r['tiles']}/{r['tiles_planned']} | "
+                   f"{r['wall_s']:.1f} | {r['points_per_s']:.0f} | {f(r.get('peak_rss_mb'), '.0f')} | "
+                   f"{f(st['partition'])} | {f(st['solve_task_s'])} | {f(st['blend_task_s'])} | "
+                   f"{f(st['mesh_task_s'])} | {f(st['merge'])} | {f(r.get('chamfer_l1_m'), '.4f')} | "
+                   f"{f(r.get('normal_consistency'), '.3f')} | {f(r.get('fscore_0.1m'), '.3f')} | "
+                   f"{r.get('components', '-')} |")
+    return "\n".join(out)
+
+
+if __name__ == "__main__":
+    main()
