@@ -89,7 +89,7 @@ class SolverConfig:
     noise_cells : float
         One-shape mode: 0 keeps ``resolution``; > 0 lowers it (never raises it) so that the finest cell is at
         least ``noise_cells`` x the cloud's estimated noise sigma (:func:`tiled_gridpull.noise.estimate_noise`).
-        A field whose cell is finer than the noise reproduces the noise; ``configs/noisy.yaml`` uses 1.5.
+        A field whose cell is finer than the noise reproduces the noise; ``configs/noisy.yaml`` uses 1.2.
     """
 
     resolution: int = 256
