@@ -61,11 +61,11 @@ def test_noisy_preset_beats_the_default_on_a_noisy_sphere():
     preset = load_config_file(REPO / "configs" / "noisy.yaml")
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        default = reconstruct(pts, resolution=128, **FAST)
+        default = reconstruct(pts, resolution=128)
     assert any("looks noisy" in str(w.message) for w in caught)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        tuned = reconstruct(pts, **{"resolution": 128, **preset, **FAST})
+        tuned = reconstruct(pts, **{"resolution": 128, **preset})  # the full schedule: 150 iterations fragment it
     assert not any("looks noisy" in str(w.message) for w in caught)
     assert tuned.topology.watertight and tuned.topology.components == 1
     assert sphere_error(tuned) < 0.7 * sphere_error(default)
