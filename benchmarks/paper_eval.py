@@ -28,7 +28,7 @@ from benchmarks.common import REPO, machine, require_shared, run_isolated
 
 RESULTS = REPO / "benchmarks" / "results" / "paper_eval.jsonl"
 SUITES = ("noise", "scans", "normals", "open", "resolution", "losses", "bandwidth", "points")
-NOISE_MESHES = ("bunny", "armadillo", "fandisk")
+NOISE_MESHES = ("bunny", "armadillo", "fandisk", "abc_00011084", "abc_00016513", "abc_00994122")
 
 
 def _noisy_config() -> dict:
@@ -39,6 +39,8 @@ def _noisy_config() -> dict:
 
 #: Only runs whose label contains this string (``--only``), e.g. "preset" to re-run one row kind.
 ONLY = ""
+#: Meshes for the noise and normals suites (``--meshes``; default: all of ``NOISE_MESHES`` for noise).
+MESHES: tuple = ()
 
 
 def run(suite: str, label: str, method: str = "gridpull", config: dict | None = None, mesh: str = "bunny",
@@ -63,7 +65,7 @@ def poisson(cloud_points: int) -> dict:
 def noise() -> None:
     noisy = _noisy_config()
     for level in (0.005, 0.01):
-        for mesh in NOISE_MESHES:
+        for mesh in MESHES or NOISE_MESHES:
             tag = f"{level * 100:g}%"
             run("noise", f"{tag} default", mesh=mesh, noise=level)
             run("noise", f"{tag} noisy preset", config=noisy, mesh=mesh, noise=level)
@@ -77,7 +79,7 @@ def scans() -> None:
 
 
 def normals() -> None:
-    for mesh in NOISE_MESHES:
+    for mesh in MESHES or NOISE_MESHES[:3]:
         run("normals", "normal_weight 0", config={"normal_weight": 0.0}, mesh=mesh, normals=True)
         run("normals", "normal_weight 1", config={"normal_weight": 1.0}, mesh=mesh, normals=True)
 
@@ -118,9 +120,10 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("suite", choices=(*SUITES, "all"))
     ap.add_argument("--only", default="", help="only runs whose label contains this text")
+    ap.add_argument("--meshes", nargs="+", default=[], choices=NOISE_MESHES)
     a = ap.parse_args()
-    global ONLY
-    ONLY = a.only
+    global ONLY, MESHES
+    ONLY, MESHES = a.only, tuple(a.meshes)
     require_shared()
     with RESULTS.open("a") as fh:
         fh.write(json.dumps({"suite": "machine", "date": time.strftime("%Y-%m-%d %H:%M"), **machine(),
