@@ -24,6 +24,7 @@ from pykdtree.kdtree import KDTree
 
 from ._optional import require
 from .mesh import Mesh
+from .nearest import distances_to_cloud
 
 __all__ = ["sample_surface", "point_to_mesh", "evaluate", "DEFAULT_THRESHOLDS"]
 
@@ -77,9 +78,7 @@ def point_to_mesh(points: np.ndarray, mesh: Mesh) -> tuple[np.ndarray, np.ndarra
 
 def _near(pts: np.ndarray, nrm: np.ndarray, ref: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
     """Samples within ``radius`` of a reference cloud (distances from a local origin: georeferenced-safe)."""
-    ref = np.asarray(ref, dtype=np.float64)
-    c = ref.mean(axis=0)
-    d, _ = KDTree(ref - c).query(pts - c, k=1, distance_upper_bound=radius * 1.0001)
+    d = distances_to_cloud(pts, ref, radius)
     keep = np.isfinite(d) & (d <= radius)
     return pts[keep], nrm[keep]
 

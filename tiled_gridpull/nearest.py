@@ -12,7 +12,36 @@ from pykdtree.kdtree import KDTree
 
 from .kernels import nn as knn_kernels
 
-__all__ = ["NearestPoints"]
+__all__ = ["NearestPoints", "distances_to_cloud"]
+
+
+def distances_to_cloud(queries: np.ndarray, points: np.ndarray, upper_bound: float = np.inf) -> np.ndarray:
+    """Distance from each query to its nearest point, measured from the cloud's mean in float64.
+
+    Subtracting a local origin first keeps georeferenced coordinates (y ~ 4e6) exact.
+
+    Parameters
+    ----------
+    queries : (M, 3) float
+    points : (N, 3) float
+        Same units and frame as ``queries``.
+    upper_bound : float
+        Distances beyond this (times 1.0001, so the bound itself is kept) come back as ``inf``; a finite bound
+        lets the KD-tree stop early.
+
+    Returns
+    -------
+    (M,) float64
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    ref = pts.mean(axis=0)
+    tree = KDTree(np.ascontiguousarray(pts - ref))
+    q = np.ascontiguousarray(np.asarray(queries, dtype=np.float64) - ref)
+    if np.isfinite(upper_bound):
+        d, _ = tree.query(q, k=1, distance_upper_bound=upper_bound * 1.0001)
+    else:
+        d, _ = tree.query(q, k=1)
+    return d
 
 
 class NearestPoints:

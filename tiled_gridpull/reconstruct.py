@@ -19,6 +19,7 @@ from .config import SolverConfig
 from .errors import ConfigError, InputError
 from .lattice import Lattice
 from .mesh import Mesh, boundary_loops, close_holes, extract_mesh, remove_small_components
+from .nearest import distances_to_cloud
 from .noise import estimate_noise
 from .solver import ProgressFn, solve
 from .stitch import trim_faces
@@ -167,17 +168,10 @@ def reconstruct(points: Any, *, config: SolverConfig | None = None, normals: np.
 
 def _close_band_edge_holes(mesh: Mesh, points: np.ndarray, min_distance: float) -> tuple[Mesh, int]:
     """Close the boundary loops whose every vertex is at least ``min_distance`` (world units) from the points."""
-    from pykdtree.kdtree import KDTree
-
     loops = boundary_loops(mesh)
     if not loops:
         return mesh, 0
-    # lattice-local coordinates: float64 kd-tree distances stay exact for georeferenced clouds
-    centre = points.mean(axis=0)
-    tree = KDTree(points - centre)
-    far = []
-    for loop in loops:
-        d, _ = tree.query(mesh.vertices[loop] - centre, k=1)
-        if d.min() >= min_distance:
-            far.append(loop)
+    d = distances_to_cloud(mesh.vertices[np.concatenate(loops)], points)
+    nearest = np.minimum.reduceat(d, np.cumsum([0] + [len(loop) for loop in loops[:-1]]))
+    far = [loop for loop, dmin in zip(loops, nearest) if dmin >= min_distance]
     return close_holes(mesh, far), len(far)

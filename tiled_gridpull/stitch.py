@@ -13,10 +13,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from pykdtree.kdtree import KDTree
 
 from .io.atomic import atomic_path
 from .mesh import Mesh
+from .nearest import distances_to_cloud
 
 __all__ = ["MeshPiece", "trim_faces", "save_piece", "load_piece", "weld_pieces"]
 
@@ -49,11 +49,7 @@ def trim_faces(mesh: Mesh, keys: np.ndarray | None, points: np.ndarray,
     """
     if mesh.n_faces == 0 or max_distance <= 0:
         return mesh, keys
-    centroids = mesh.vertices[mesh.faces].mean(axis=1)
-    ref = points.mean(axis=0)  # distances from a local origin keep georeferenced inputs exact in float32
-    tree = KDTree(np.ascontiguousarray(points - ref, dtype=np.float64))
-    d, _ = tree.query(np.ascontiguousarray(centroids - ref, dtype=np.float64), k=1,
-                      distance_upper_bound=max_distance * 1.0001)
+    d = distances_to_cloud(mesh.vertices[mesh.faces].mean(axis=1), points, max_distance)
     keep = np.isfinite(d) & (d <= max_distance)
     faces = mesh.faces[keep]
     used, inverse = np.unique(faces, return_inverse=True)
