@@ -19,8 +19,11 @@ tiles solved and meshed as tasks on a cluster.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
+import signal
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -175,8 +178,6 @@ def mesh_task(spec: TileSpec, own: dict, neighbor_specs: list, neighbor_summarie
 def run_job(inputs: list[str], output: str | Path, tiling: TilingConfig, solver: SolverConfig, work_dir: str | Path,
             options: JobOptions = JobOptions(), *, frames=None) -> Mesh:
     """Tiled reconstruction on Dask; writes ``output`` and its sidecar, returns the welded mesh."""
-    from distributed import as_completed
-
     t0 = time.perf_counter()
     check_compatible(tiling, solver)
     paths = JobPaths(work_dir)
@@ -187,26 +188,10 @@ def run_job(inputs: list[str], output: str | Path, tiling: TilingConfig, solver:
              len(specs), int(plan.tile_range[0] * plan.tile_range[1] * plan.tile_range[2]), t_part - t0)
     if options.max_memory is not None:
         check_memory(specs, tiling, solver, options.max_memory)
-    client, cluster = make_client(options, len(specs))
-    if client.dashboard_link:
-        log.info("Dask dashboard: %s", client.dashboard_link)
-    try:
-        by_index = {s.index: s for s in specs}
-        field_paths = {s.name: str(paths.field(s)) for s in specs}
-        centre = plan_centre(plan)
-        ref = key_reference(plan)
-        solve_futs, mesh_futs = submit_tiles(
-            client, specs, solve_task,
-            lambda s: (tiling, solver, field_paths[s.name], centre, str(paths.summary("solve", s))),
-            mesh_task,
-            lambda s: (tiling, ref, field_paths, str(paths.piece(s)), str(paths.summary("mesh", s))),
-            options.retries)
-        solve_summaries, mesh_summaries = _collect(solve_futs, mesh_futs, options, as_completed)
-    finally:
-        client.close()
-        if cluster is not None:
-            cluster.close()
+    with _deferred_interrupt() as interrupted:
+        solve_summaries, mesh_summaries = _run_tasks(specs, tiling, solver, paths, plan, options, interrupted)
     t_mesh = time.perf_counter()
+    by_index = {s.index: s for s in specs}
     n_solve = sum(1 for s in solve_summaries if s.get("reused"))
     n_mesh = sum(1 for m in mesh_summaries if m.get("reused"))
     log.info("reused %d of %d tile solves and %d of %d mesh pieces from %s", n_solve, len(solve_summaries), n_mesh,
@@ -230,6 +215,58 @@ def run_job(inputs: list[str], output: str | Path, tiling: TilingConfig, solver:
 
     write_report(paths.root, mesh.metadata, output=output)  # report.json + tiles.png in the job directory
     return mesh
+
+
+@contextlib.contextmanager
+def _deferred_interrupt():
+    """Turn Ctrl-C into a flag that the task loop checks, instead of an exception raised wherever it lands.
+
+    A KeyboardInterrupt raised inside one of distributed's blocking calls (a result fetch, ``client.close``)
+    leaves its event loop half-way through a callback, which then logs a traceback from distributed's
+    internals; checked between tasks, the interrupt unwinds through our own code and closes the cluster
+    cleanly. A second Ctrl-C interrupts at once. Off the main thread (signals cannot be handled there) the
+    event never fires and Ctrl-C behaves as usual.
+    """
+    interrupted = threading.Event()
+    if threading.current_thread() is not threading.main_thread():
+        yield interrupted
+        return
+
+    def handler(signum, frame):
+        if interrupted.is_set():
+            raise KeyboardInterrupt
+        interrupted.set()
+
+    previous = signal.signal(signal.SIGINT, handler)
+    try:
+        yield interrupted
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if interrupted.is_set():
+        raise KeyboardInterrupt
+
+
+def _run_tasks(specs: list[TileSpec], tiling: TilingConfig, solver: SolverConfig, paths: JobPaths, plan,
+               options: JobOptions, interrupted: threading.Event) -> tuple[list, list]:
+    """Start the cluster, submit every tile's solve and mesh task, collect their summaries, close the cluster."""
+    client, cluster = make_client(options, len(specs))
+    if client.dashboard_link:
+        log.info("Dask dashboard: %s", client.dashboard_link)
+    try:
+        field_paths = {s.name: str(paths.field(s)) for s in specs}
+        centre = plan_centre(plan)
+        ref = key_reference(plan)
+        solve_futs, mesh_futs = submit_tiles(
+            client, specs, solve_task,
+            lambda s: (tiling, solver, field_paths[s.name], centre, str(paths.summary("solve", s))),
+            mesh_task,
+            lambda s: (tiling, ref, field_paths, str(paths.piece(s)), str(paths.summary("mesh", s))),
+            options.retries)
+        return _collect(solve_futs, mesh_futs, options, interrupted)
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
 
 
 def submit_tiles(client, specs: list[TileSpec], solve_fn, solve_args, mesh_fn, mesh_args, retries: int = 2
@@ -276,8 +313,14 @@ def check_memory(specs: list[TileSpec] | None, tiling: TilingConfig, solver: Sol
     return est
 
 
-def _collect(solve_futs: dict, mesh_futs: dict, options: JobOptions, as_completed) -> tuple[list, list]:
-    """Wait for every task with a progress bar (tiles done / total, ETA); results in tile order."""
+def _collect(solve_futs: dict, mesh_futs: dict, options: JobOptions, interrupted: threading.Event
+             ) -> tuple[list, list]:
+    """Wait for every task with a progress bar (tiles done / total, ETA); results in tile order.
+
+    Finished tasks are taken in batches, and ``interrupted`` (Ctrl-C, see :func:`_deferred_interrupt`) is checked
+    between them: the job stops within a tenth of a second, outside any of distributed's own calls.
+    """
+    from distributed import as_completed
     from tqdm import tqdm
 
     total = len(solve_futs) + len(mesh_futs)
@@ -285,19 +328,23 @@ def _collect(solve_futs: dict, mesh_futs: dict, options: JobOptions, as_complete
     results: dict = {}
     kinds = {f.key: ("solve", idx) for idx, f in solve_futs.items()}
     kinds.update({f.key: ("mesh", idx) for idx, f in mesh_futs.items()})
+    pending = as_completed(list(solve_futs.values()) + list(mesh_futs.values()))
     try:
-        for fut in as_completed(list(solve_futs.values()) + list(mesh_futs.values())):
-            kind, idx = kinds[fut.key]
-            res = fut.result()
-            res["index"] = list(idx)
-            results[(kind, idx)] = res
-            bar.update(1)
-            if kind == "solve":
-                bar.set_postfix_str(f"{res['tile']} {res['status']}", refresh=False)
-                if res["status"] == "failed":
-                    log.warning("%s failed: %s", res["tile"], res.get("reason"))
-                    if options.fail_fast:
-                        raise TileFailedError(f"{res['tile']} failed: {res.get('reason')}")
+        while not pending.is_empty():
+            if interrupted.wait(0.1 if not pending.has_ready() else 0):
+                raise KeyboardInterrupt
+            for fut in pending.next_batch(block=False):
+                kind, idx = kinds[fut.key]
+                res = fut.result()
+                res["index"] = list(idx)
+                results[(kind, idx)] = res
+                bar.update(1)
+                if kind == "solve":
+                    bar.set_postfix_str(f"{res['tile']} {res['status']}", refresh=False)
+                    if res["status"] == "failed":
+                        log.warning("%s failed: %s", res["tile"], res.get("reason"))
+                        if options.fail_fast:
+                            raise TileFailedError(f"{res['tile']} failed: {res.get('reason')}")
     finally:
         bar.close()
     solve = [results[("solve", i)] for i in sorted(solve_futs)]
