@@ -1,8 +1,8 @@
 """Overhead of the job's Dask graph with a no-op solve and mesh: the pipeline's own cost per tile.
 
-The graph is the one ``run_job`` submits (:func:`pipeline.job.submit_tiles`): a solve task per tile and a mesh
-task per tile depending on the solves of its 26 neighbours, with real ``TileSpec`` objects as arguments, on a
-LocalCluster of 2 single-threaded worker processes. Results append to ``benchmarks/results/dask.jsonl``.
+The graph is the one ``run_job`` runs (:func:`pipeline.job.run_tiles`): a solve task per tile and a mesh task per
+tile depending on the solves of its 26 neighbours, with real ``TileSpec`` objects as arguments, submitted as a
+sliding window of at most ``DEFAULT_WINDOW`` tasks, on a LocalCluster of 2 single-threaded worker processes. Results append to ``benchmarks/results/dask.jsonl``.
 
 Usage: ``python -m benchmarks.dask_overhead 1000 10000 100000``
 """
@@ -44,9 +44,9 @@ def make_specs(n: int):
 
 
 def run(n: int, workers: int = 2) -> dict:
-    from distributed import Client, LocalCluster, wait
+    from distributed import Client, LocalCluster
 
-    from pipeline.job import submit_tiles
+    from pipeline.job import DEFAULT_WINDOW, run_tiles
 
     specs = make_specs(n)
     cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0")
@@ -54,16 +54,15 @@ def run(n: int, workers: int = 2) -> dict:
     try:
         client.run(lambda: None)  # workers up before the clock starts
         t0 = time.perf_counter()
-        solve_futs, mesh_futs = submit_tiles(client, specs, noop_solve, lambda s: (), noop_mesh, lambda s: (), 2)
-        t1 = time.perf_counter()
-        wait(list(mesh_futs.values()))
-        results = client.gather(list(mesh_futs.values()))
+        meshed = sum(1 for kind, _, r in run_tiles(client, specs, noop_solve, lambda s: (), noop_mesh, lambda s: (),
+                                                   2, window=DEFAULT_WINDOW)
+                     if kind == "mesh" and r["status"] == "meshed")
         t2 = time.perf_counter()
-        assert len(results) == n and all(r["status"] == "meshed" for r in results)
+        assert meshed == n
     finally:
         client.close()
         cluster.close()
-    return {"tiles": n, "tasks": 2 * n, "workers": workers, "submit_s": t1 - t0, "total_s": t2 - t0,
+    return {"tiles": n, "tasks": 2 * n, "workers": workers, "window": DEFAULT_WINDOW, "total_s": t2 - t0,
             "per_tile_ms": 1e3 * (t2 - t0) / n, "driver_peak_rss_mb": peak_rss_mb()}
 
 

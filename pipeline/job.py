@@ -37,7 +37,11 @@ from tiled_gridpull.tile import TileSpec, TilingConfig, check_compatible
 
 log = logging.getLogger("tiled_gridpull")
 
-__all__ = ["JobOptions", "run_job", "make_client"]
+__all__ = ["JobOptions", "run_job", "run_tiles", "make_client"]
+
+#: Tasks in flight at once: enough to keep any cluster busy (a task is a whole tile, seconds to minutes of work)
+#: and to cover a slab of tiles, so mesh tasks follow their solves closely.
+DEFAULT_WINDOW = 4000
 
 
 @dataclass(frozen=True)
@@ -62,6 +66,8 @@ class JobOptions:
         Directory to also write one PLY per tile into.
     max_memory : int, optional
         Bytes one worker may use for one tile; the job is refused up front if a tile's estimate exceeds it.
+    window : int
+        Most tasks in flight at once (:func:`run_tiles`); tiles are submitted as a sliding window in tile order.
     """
 
     workers: int | None = None
@@ -73,6 +79,7 @@ class JobOptions:
     progress: bool = True
     extra: dict = field(default_factory=dict)
     max_memory: int | None = None
+    window: int = DEFAULT_WINDOW
 
 
 def _threads_for(workers: int) -> int:
@@ -256,37 +263,98 @@ def _run_tasks(specs: list[TileSpec], tiling: TilingConfig, solver: SolverConfig
         field_paths = {s.name: str(paths.field(s)) for s in specs}
         centre = plan_centre(plan)
         ref = key_reference(plan)
-        solve_futs, mesh_futs = submit_tiles(
+        events = run_tiles(
             client, specs, solve_task,
             lambda s: (tiling, solver, field_paths[s.name], centre, str(paths.summary("solve", s))),
             mesh_task,
             lambda s: (tiling, ref, field_paths, str(paths.piece(s)), str(paths.summary("mesh", s))),
-            options.retries)
-        return _collect(solve_futs, mesh_futs, options, interrupted)
+            options.retries, window=options.window, stop=interrupted)
+        return _collect(events, len(specs), options)
     finally:
         client.close()
         if cluster is not None:
             cluster.close()
 
 
-def submit_tiles(client, specs: list[TileSpec], solve_fn, solve_args, mesh_fn, mesh_args, retries: int = 2
-                 ) -> tuple[dict, dict]:
-    """Submit the job's graph: one solve task per tile, then one mesh task per tile that depends on the solves of
-    the tile and its (up to 26) neighbours.
+def run_tiles(client, specs: list[TileSpec], solve_fn, solve_args, mesh_fn, mesh_args, retries: int = 2,
+              window: int = DEFAULT_WINDOW, stop: threading.Event | None = None):
+    """Run the job's graph on ``client``, yielding ``(kind, tile index, summary)`` as tasks finish.
 
-    ``solve_fn(spec, *solve_args(spec))`` and ``mesh_fn(spec, own_summary, neighbour_specs, neighbour_summaries,
-    *mesh_args(spec))``; tasks carry the small spec objects, never arrays. Returns the futures by tile index.
+    The graph: one solve task per tile, then one mesh task per tile that depends on the solves of the tile and
+    its (up to 26) neighbours. ``solve_fn(spec, *solve_args(spec))`` and ``mesh_fn(spec, own_summary,
+    neighbour_specs, neighbour_summaries, *mesh_args(spec))``; tasks carry the small spec objects, never arrays.
+
+    Tasks are submitted in tile order as a sliding window of at most ``window`` unfinished tasks (a mesh task
+    goes in as soon as its last neighbour's solve has), and a solve's future is released once its result is in
+    and every mesh task that needs it has been submitted. The scheduler, the workers and this process thus hold
+    state for a window of tiles, not the whole job: submitting all 200,000 tasks of a 100,000-tile job at once
+    overloaded the local scheduler until it dropped the client's connection.
+
+    Parameters
+    ----------
+    window : int
+        Most tasks submitted and not yet returned; at least 1.
+    stop : threading.Event, optional
+        Checked between results (every 0.1 s while waiting): when set, raises KeyboardInterrupt.
     """
+    from distributed import as_completed
+
+    if window < 1:
+        raise ValueError(f"window must be at least 1, got {window}")
+    specs = sorted(specs, key=lambda s: s.index)
     by_index = {s.index: s for s in specs}
-    solve_futs = {s.index: client.submit(solve_fn, s, *solve_args(s), key=f"solve-{s.name}", retries=retries,
-                                         pure=False)
-                  for s in specs}
-    mesh_futs = {}
-    for s in specs:
-        nbs = neighbors_of(s, by_index)
-        mesh_futs[s.index] = client.submit(mesh_fn, s, solve_futs[s.index], nbs, [solve_futs[n.index] for n in nbs],
-                                           *mesh_args(s), key=f"mesh-{s.name}", retries=retries, pure=False)
-    return solve_futs, mesh_futs
+    position = {s.index: i for i, s in enumerate(specs)}
+    neighbours = [neighbors_of(s, by_index) for s in specs]
+    # a tile's mesh can be submitted once the solves up to its furthest neighbour (in tile order) have been
+    last_needed = [max([i] + [position[n.index] for n in nbs]) for i, nbs in enumerate(neighbours)]
+    # every solve is read by its own mesh and by each neighbour's mesh (the neighbour relation is symmetric)
+    readers = [1 + len(nbs) for nbs in neighbours]
+    collected = [False] * len(specs)
+    solve_futs: dict[int, object] = {}
+    kinds: dict[str, tuple[str, int]] = {}
+    pending = as_completed()
+    n, next_solve, next_mesh, in_flight = len(specs), 0, 0, 0
+
+    def release(i: int) -> None:
+        if collected[i] and readers[i] == 0:
+            del solve_futs[i]
+
+    while next_mesh < n or in_flight:
+        while in_flight < window and next_mesh < n:
+            if next_solve < n and last_needed[next_mesh] >= next_solve:
+                s = specs[next_solve]
+                fut = client.submit(solve_fn, s, *solve_args(s), key=f"solve-{s.name}", retries=retries, pure=False)
+                solve_futs[next_solve] = fut
+                kinds[fut.key] = ("solve", next_solve)
+                next_solve += 1
+            else:
+                s = specs[next_mesh]
+                deps = [next_mesh] + [position[nb.index] for nb in neighbours[next_mesh]]
+                fut = client.submit(mesh_fn, s, solve_futs[next_mesh], neighbours[next_mesh],
+                                    [solve_futs[j] for j in deps[1:]], *mesh_args(s), key=f"mesh-{s.name}",
+                                    retries=retries, pure=False)
+                kinds[fut.key] = ("mesh", next_mesh)
+                next_mesh += 1
+                for j in deps:
+                    readers[j] -= 1
+                    release(j)
+            pending.add(fut)
+            in_flight += 1
+        while not pending.has_ready():
+            if stop is not None and stop.wait(0.1):
+                raise KeyboardInterrupt
+            if stop is None:
+                time.sleep(0.01)
+        for fut in pending.next_batch(block=False):
+            kind, i = kinds.pop(fut.key)
+            result = fut.result()
+            in_flight -= 1
+            if kind == "solve":
+                collected[i] = True
+                release(i)
+            yield kind, specs[i].index, result
+        if stop is not None and stop.is_set():
+            raise KeyboardInterrupt
 
 
 def check_memory(specs: list[TileSpec] | None, tiling: TilingConfig, solver: SolverConfig, budget: int,
@@ -313,40 +381,25 @@ def check_memory(specs: list[TileSpec] | None, tiling: TilingConfig, solver: Sol
     return est
 
 
-def _collect(solve_futs: dict, mesh_futs: dict, options: JobOptions, interrupted: threading.Event
-             ) -> tuple[list, list]:
-    """Wait for every task with a progress bar (tiles done / total, ETA); results in tile order.
-
-    Finished tasks are taken in batches, and ``interrupted`` (Ctrl-C, see :func:`_deferred_interrupt`) is checked
-    between them: the job stops within a tenth of a second, outside any of distributed's own calls.
-    """
-    from distributed import as_completed
+def _collect(events, n_tiles: int, options: JobOptions) -> tuple[list, list]:
+    """Consume :func:`run_tiles` with a progress bar (tasks done / total, ETA); summaries in tile order."""
     from tqdm import tqdm
 
-    total = len(solve_futs) + len(mesh_futs)
-    bar = tqdm(total=total, unit="task", desc="tiles", disable=not options.progress, dynamic_ncols=True)
+    bar = tqdm(total=2 * n_tiles, unit="task", desc="tiles", disable=not options.progress, dynamic_ncols=True)
     results: dict = {}
-    kinds = {f.key: ("solve", idx) for idx, f in solve_futs.items()}
-    kinds.update({f.key: ("mesh", idx) for idx, f in mesh_futs.items()})
-    pending = as_completed(list(solve_futs.values()) + list(mesh_futs.values()))
     try:
-        while not pending.is_empty():
-            if interrupted.wait(0.1 if not pending.has_ready() else 0):
-                raise KeyboardInterrupt
-            for fut in pending.next_batch(block=False):
-                kind, idx = kinds[fut.key]
-                res = fut.result()
-                res["index"] = list(idx)
-                results[(kind, idx)] = res
-                bar.update(1)
-                if kind == "solve":
-                    bar.set_postfix_str(f"{res['tile']} {res['status']}", refresh=False)
-                    if res["status"] == "failed":
-                        log.warning("%s failed: %s", res["tile"], res.get("reason"))
-                        if options.fail_fast:
-                            raise TileFailedError(f"{res['tile']} failed: {res.get('reason')}")
+        for kind, idx, res in events:
+            res["index"] = list(idx)
+            results[(kind, idx)] = res
+            bar.update(1)
+            if kind == "solve":
+                bar.set_postfix_str(f"{res['tile']} {res['status']}", refresh=False)
+                if res["status"] == "failed":
+                    log.warning("%s failed: %s", res["tile"], res.get("reason"))
+                    if options.fail_fast:
+                        raise TileFailedError(f"{res['tile']} failed: {res.get('reason')}")
     finally:
         bar.close()
-    solve = [results[("solve", i)] for i in sorted(solve_futs)]
-    mesh = [results[("mesh", i)] for i in sorted(mesh_futs)]
+    solve = [v for (kind, _), v in sorted(results.items()) if kind == "solve"]
+    mesh = [v for (kind, _), v in sorted(results.items()) if kind == "mesh"]
     return solve, mesh

@@ -88,3 +88,68 @@ def test_worker_memory_does_not_grow_with_tile_count(tmp_path):
     small, large = sorted(peaks)
     assert small == 4 and large == 16
     assert peaks[large] < 1.25 * peaks[small], peaks
+
+
+def _grid_specs(nx: int, ny: int, nz: int):
+    from tiled_gridpull.lattice import Lattice
+    from tiled_gridpull.tile import TileSpec
+
+    block = Lattice(origin=(0.0, 0.0, 0.0), cell_size=0.1, shape=(41, 41, 41))
+    return [TileSpec(index=(i, j, k), core_lo=(0, 0, 0), core_hi=(32, 32, 32), block=block, n_points=100,
+                     points_path=f"/nowhere/tile_{i}_{j}_{k}.npy")
+            for i in range(nx) for j in range(ny) for k in range(nz) if (i + j + k) % 5 != 3]  # some tiles empty
+
+
+def _solve_echo(spec):
+    return {"tile": spec.name, "status": "solved"}
+
+
+def _mesh_echo(spec, own, nbs, nb_summaries):
+    return {"tile": spec.name, "own": own["tile"], "neighbours": sorted(n.name for n in nbs),
+            "summaries": sorted(s["tile"] for s in nb_summaries)}
+
+
+class _CountingClient:
+    """Counts submissions, so the test can see how many tasks were in flight."""
+
+    def __init__(self, client):
+        self.client, self.submitted = client, 0
+
+    def submit(self, *args, **kwargs):
+        self.submitted += 1
+        return self.client.submit(*args, **kwargs)
+
+
+@pytest.mark.parametrize("window", [1, 7, 10_000])
+def test_sliding_window_keeps_the_graph_and_bounds_tasks_in_flight(window):
+    from distributed import Client
+
+    from pipeline.job import run_tiles
+    from tiled_gridpull.scene import neighbors_of
+
+    specs = _grid_specs(5, 4, 3)
+    by_index = {s.index: s for s in specs}
+    with Client(processes=False, n_workers=1, threads_per_worker=2, dashboard_address=":0") as client:
+        counting = _CountingClient(client)
+        seen, most_in_flight = [], 0
+        for kind, idx, res in run_tiles(counting, specs, _solve_echo, lambda s: (), _mesh_echo, lambda s: (),
+                                        window=window):
+            most_in_flight = max(most_in_flight, counting.submitted - len(seen))
+            seen.append((kind, idx, res))
+    assert most_in_flight <= window
+    if window < len(specs):
+        assert most_in_flight == window  # the window is used, not just respected
+    assert sorted((k, i) for k, i, _ in seen) == sorted([("solve", s.index) for s in specs]
+                                                       + [("mesh", s.index) for s in specs])
+    for kind, idx, res in seen:
+        if kind == "mesh":
+            want = sorted(n.name for n in neighbors_of(by_index[idx], by_index))
+            assert res["own"] == by_index[idx].name
+            assert res["neighbours"] == want and res["summaries"] == want
+
+
+def test_sliding_window_rejects_an_empty_window():
+    from pipeline.job import run_tiles
+
+    with pytest.raises(ValueError, match="window"):
+        next(run_tiles(None, _grid_specs(1, 1, 1), _solve_echo, lambda s: (), _mesh_echo, lambda s: (), window=0))
