@@ -137,7 +137,7 @@ def dask_section(rows: list[dict]) -> str:
     if not rows:
         return ""
     for r in rows:
-        r["how"] = f"sliding window of {r['window']:,} tasks" if r.get("window") else "whole graph at once"
+        r["how"] = r.get("variant") or "whole graph at once"
     table = markdown_table(rows, [("date", "date", "s"), ("tiles", "tiles", ","), ("tasks", "tasks", ","),
                                   ("workers", "workers", "d"), ("how", "submission", "s"),
                                   ("total_s", "total s", ".1f"), ("per_tile_ms", "ms per tile", ".2f"),

@@ -312,7 +312,7 @@ def run_tiles(client, specs: list[TileSpec], solve_fn, solve_args, mesh_fn, mesh
     collected = [False] * len(specs)
     solve_futs: dict[int, object] = {}
     kinds: dict[str, tuple[str, int]] = {}
-    pending = as_completed()
+    pending = as_completed(with_results=True)  # results come with the futures, not one request each
     n, next_solve, next_mesh, in_flight = len(specs), 0, 0, 0
 
     def release(i: int) -> None:
@@ -341,13 +341,16 @@ def run_tiles(client, specs: list[TileSpec], solve_fn, solve_args, mesh_fn, mesh
             pending.add(fut)
             in_flight += 1
         while not pending.has_ready():
-            if stop is not None and stop.wait(0.1):
+            if stop is not None and stop.is_set():
                 raise KeyboardInterrupt
-            if stop is None:
-                time.sleep(0.01)
-        for fut in pending.next_batch(block=False):
+            with pending.thread_condition:  # notified as each task finishes
+                pending.thread_condition.wait(timeout=0.1)
+        for fut, result in pending.next_batch(block=False):
             kind, i = kinds.pop(fut.key)
-            result = fut.result()
+            if fut.status == "error":
+                raise result[1].with_traceback(result[2])
+            if isinstance(result, BaseException):  # cancelled (e.g. the cluster went away)
+                raise result
             in_flight -= 1
             if kind == "solve":
                 collected[i] = True

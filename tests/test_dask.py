@@ -153,3 +153,21 @@ def test_sliding_window_rejects_an_empty_window():
 
     with pytest.raises(ValueError, match="window"):
         next(run_tiles(None, _grid_specs(1, 1, 1), _solve_echo, lambda s: (), _mesh_echo, lambda s: (), window=0))
+
+
+def _solve_fails_on_one(spec):
+    if spec.index == (1, 1, 0):
+        raise RuntimeError(f"worker crashed on {spec.name}")
+    return {"tile": spec.name, "status": "solved"}
+
+
+def test_sliding_window_raises_a_task_error():
+    from distributed import Client
+
+    from pipeline.job import run_tiles
+
+    with Client(processes=False, n_workers=1, threads_per_worker=1, dashboard_address=":0") as client:
+        with pytest.raises(RuntimeError, match="worker crashed on tile_1_1_0"):
+            for _ in run_tiles(client, _grid_specs(3, 3, 3), _solve_fails_on_one, lambda s: (), _mesh_echo,
+                               lambda s: (), retries=0, window=5):
+                pass

@@ -72,18 +72,37 @@ COARSE_POINTS_PER_CELL = 4
 
 
 def _thin(P: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """At most ~``COARSE_POINTS_PER_CELL`` points per occupied cell, chosen at random (coarse levels).
+    """At most ``COARSE_POINTS_PER_CELL`` points in every occupied cell, chosen at random (coarse levels).
 
-    A coarse cell holds many points; its field needs a few. Thinning keeps the queries' nearest neighbours
-    a fraction of a cell apart, as at the finest level, which keeps the exact nearest-neighbour fast path
-    effective (with 10+ points per cell most queries fell back to the KD-tree) and the coarse levels cheap.
+    A coarse cell holds many points; its field needs a few. Capping each cell (rather than thinning the whole
+    cloud at one rate) evens out LiDAR's density, tens of times higher near the scanner than far from it:
+    the queries, drawn around points, then cover the scene evenly instead of crowding the dense patches, and
+    the candidate lists of the exact nearest-neighbour fast path span a useful distance everywhere. On the
+    1M-point street this cut solve time 7 % and Chamfer-L1 21 % against a single global rate
+    (docs/solver.md).
+
+    Parameters
+    ----------
+    P : (N, 3) float32
+        Points in index units of the level's lattice (cell ``(i, j, k)`` spans ``[i, i + 1)`` etc.).
+    seed : int
+
+    Returns
+    -------
+    kept : (M, 3) float32
+    keep : (M,) int64
+        Indices of the kept points, ascending.
     """
     cells = np.floor(P).astype(np.int64)
-    n_occ = len(np.unique(cells[:, 0] * (1 << 42) + cells[:, 1] * (1 << 21) + cells[:, 2]))
-    target = COARSE_POINTS_PER_CELL * n_occ
-    if len(P) <= target:
+    key = cells[:, 0] * (1 << 42) + cells[:, 1] * (1 << 21) + cells[:, 2]
+    perm = np.random.default_rng(seed).permutation(len(P))
+    order = perm[np.argsort(key[perm], kind="stable")]  # by cell, random within a cell
+    sorted_key = key[order]
+    first = np.r_[0, np.flatnonzero(np.diff(sorted_key)) + 1]
+    rank = np.arange(len(P)) - np.repeat(first, np.diff(np.r_[first, len(P)]))
+    keep = np.sort(order[rank < COARSE_POINTS_PER_CELL])
+    if len(keep) == len(P):
         return P, np.arange(len(P))
-    keep = np.sort(np.random.default_rng(seed).choice(len(P), target, replace=False))
     return np.ascontiguousarray(P[keep]), keep
 
 
