@@ -47,6 +47,8 @@ def record(row: dict) -> None:
 def reconstruct(src: Path, out: Path, workers: int, extra: list[str]) -> dict:
     """Run the CLI job; returns wall time and the facts read back from its sidecar."""
     cmd = [*CLI, "reconstruct", str(src), "-o", str(out), "--workers", str(workers), "-q", *extra]
+    # a job directory left by an earlier run would be resumed, not recomputed (the workers suite reruns a cloud)
+    shutil.rmtree(out.with_suffix(".job"), ignore_errors=True)
     t0 = time.perf_counter()
     subprocess.run(cmd, check=True)
     wall = time.perf_counter() - t0
@@ -139,16 +141,18 @@ def render(rows: list[dict]) -> str:
     runs = [r for r in rows if r.get("scene") not in (None, "machine")]
     if not runs:
         return ""
-    out = ["| scene | points | workers | tiles | wall s | points/s | peak RSS MB | partition s | solve task-s | "
+    out = ["| date | scene | coarse thinning | points | workers | tiles | wall s | points/s | peak RSS MB | partition s | solve task-s | "
            "blend task-s | mesh task-s | merge s | CD-L1 m | NC | F@0.1 m | pieces |",
-           "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+           "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in runs:
         st = r["stages_s"]
 
         def f(v, fmt=".1f"):
             return "-" if v is None else format(v, fmt)
 
-        out.append(f"| {r['scene']} | {r.get('points') or '-'} | {r['workers']} | {r['tiles']}/{r['tiles_planned']} | "
+        # rows before 2026-11-22 10:40 thinned coarse levels at one global rate (recorded as such)
+        out.append(f"| {r.get('date', '-')} | {r['scene']} | {r.get('coarse_thinning', 'per cell')} | "
+                   f"{r.get('points') or '-'} | {r['workers']} | {r['tiles']}/{r['tiles_planned']} | "
                    f"{r['wall_s']:.1f} | {r['points_per_s']:.0f} | {f(r.get('peak_rss_mb'), '.0f')} | "
                    f"{f(st['partition'])} | {f(st['solve_task_s'])} | {f(st['blend_task_s'])} | "
                    f"{f(st['mesh_task_s'])} | {f(st['merge'])} | {f(r.get('chamfer_l1_m'), '.4f')} | "
