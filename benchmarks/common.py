@@ -49,6 +49,13 @@ def machine() -> dict:
     return info
 
 
+def append_jsonl(path: Path, row: dict) -> None:
+    """Append ``row`` as one JSON line to a results file (created with its folder if missing)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("a") as fh:
+        fh.write(json.dumps(row, default=float) + "\n")
+
+
 def run_isolated(module: str, args: dict, timeout: float = 3600) -> dict:
     """Run ``python -m <module>`` with JSON args in a fresh process; returns its JSON result.
 

@@ -14,7 +14,7 @@ import math
 import sys
 import time
 
-from benchmarks.common import REPO, machine, peak_rss_mb
+from benchmarks.common import REPO, append_jsonl, machine, peak_rss_mb
 
 RESULTS = REPO / "benchmarks" / "results" / "dask.jsonl"
 
@@ -69,12 +69,10 @@ def run(n: int, workers: int = 2) -> dict:
 
 def main() -> None:
     sizes = [int(a) for a in sys.argv[1:]] or [1000, 10000]
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
     for n in sizes:
         row = {"suite": "dask_noop", "date": time.strftime("%Y-%m-%d %H:%M"), **run(n), "machine": machine()}
         print(json.dumps({k: v for k, v in row.items() if k != "machine"}), flush=True)
-        with open(RESULTS, "a") as fh:
-            fh.write(json.dumps(row) + "\n")
+        append_jsonl(RESULTS, row)
 
 
 if __name__ == "__main__":

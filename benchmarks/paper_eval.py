@@ -20,11 +20,10 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import time
 
-from benchmarks.common import REPO, machine, require_shared, run_isolated
+from benchmarks.common import REPO, append_jsonl, machine, require_shared, run_isolated
 
 RESULTS = REPO / "benchmarks" / "results" / "paper_eval.jsonl"
 SUITES = ("noise", "scans", "normals", "open", "resolution", "losses", "bandwidth", "points")
@@ -50,9 +49,7 @@ def run(suite: str, label: str, method: str = "gridpull", config: dict | None = 
     args = {"mesh": mesh, "points": points, "method": method, "config": config or {}, "seed": 0, **extra}
     out = run_isolated("benchmarks.shape_worker", args)
     row = {"suite": suite, "label": label, "date": time.strftime("%Y-%m-%d %H:%M"), **out}
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    with RESULTS.open("a") as fh:
-        fh.write(json.dumps(row, default=float) + "\n")
+    append_jsonl(RESULTS, row)
     print(f"{suite:10s} {mesh:10s} {label:28s} wall {out['wall_s']:7.1f} s  CD-L1 {out['chamfer_l1_exact'] * 1e3:7.3f}e-3"
           f"  NC {out['normal_consistency_exact']:.4f}  pieces {out['components']}", flush=True)
     return out
@@ -125,9 +122,8 @@ def main() -> None:
     global ONLY, MESHES
     ONLY, MESHES = a.only, tuple(a.meshes)
     require_shared()
-    with RESULTS.open("a") as fh:
-        fh.write(json.dumps({"suite": "machine", "date": time.strftime("%Y-%m-%d %H:%M"), **machine(),
-                             "load": os.getloadavg()[0]}) + "\n")
+    append_jsonl(RESULTS, {"suite": "machine", "date": time.strftime("%Y-%m-%d %H:%M"), **machine(),
+                           "load": os.getloadavg()[0]})
     for name in SUITES:
         if a.suite in (name, "all"):
             globals()["open_surfaces" if name == "open" else name]()

@@ -26,7 +26,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from benchmarks.common import REPO, machine
+from benchmarks.common import REPO, append_jsonl, machine
 
 RESULTS = REPO / "benchmarks" / "results" / "scenes.jsonl"
 CLI = [sys.executable, "-m", "tiled_gridpull"]
@@ -36,9 +36,7 @@ LIDAR = {"ahn3_cropped_2.laz": 0.5, "autzen_trim.laz": 2.0}
 
 def record(row: dict) -> None:
     row = {"date": time.strftime("%Y-%m-%d %H:%M"), **row}
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    with RESULTS.open("a") as fh:
-        fh.write(json.dumps(row, default=float) + "\n")
+    append_jsonl(RESULTS, row)
     keys = ("scene", "points", "workers", "tiles", "wall_s", "points_per_s", "peak_rss_mb", "chamfer_l1_m")
     print("  ".join(f"{k}={row[k]:.4g}" if isinstance(row.get(k), float) else f"{k}={row.get(k)}" for k in keys),
           flush=True)

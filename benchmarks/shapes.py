@@ -15,13 +15,12 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import shutil
 import tempfile
 import time
 
-from benchmarks.common import MESHES, REPO, machine, require_shared, run_isolated
+from benchmarks.common import MESHES, REPO, append_jsonl, machine, require_shared, run_isolated
 
 RESULTS = REPO / "benchmarks" / "results" / "shapes.jsonl"
 CLOUDS = {"100k": (100_000, 0.0), "10k": (10_000, 0.0), "noisy0.5%": (100_000, 0.005)}
@@ -29,9 +28,7 @@ CLOUDS = {"100k": (100_000, 0.0), "10k": (10_000, 0.0), "noisy0.5%": (100_000, 0
 
 def record(suite: str, row: dict) -> None:
     row = {"suite": suite, "date": time.strftime("%Y-%m-%d %H:%M"), **row}
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    with open(RESULTS, "a") as fh:
-        fh.write(json.dumps(row, default=float) + "\n")
+    append_jsonl(RESULTS, row)
     keys = ("mesh", "cloud", "method", "resolution", "wall_s", "peak_rss_mb", "chamfer_l1_exact",
             "normal_consistency_exact", "watertight", "components")
     print("  ".join(f"{k}={row[k]:.4g}" if isinstance(row.get(k), float) else f"{k}={row.get(k)}" for k in keys),
