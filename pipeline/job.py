@@ -403,6 +403,7 @@ def _collect(events, n_tiles: int, options: JobOptions) -> tuple[list, list]:
                         raise TileFailedError(f"{res['tile']} failed: {res.get('reason')}")
     finally:
         bar.close()
-    solve = [v for (kind, _), v in sorted(results.items()) if kind == "solve"]
-    mesh = [v for (kind, _), v in sorted(results.items()) if kind == "mesh"]
+    ordered = sorted(results.items())  # by (kind, tile index)
+    solve = [v for (kind, _), v in ordered if kind == "solve"]
+    mesh = [v for (kind, _), v in ordered if kind == "mesh"]
     return solve, mesh
