@@ -79,17 +79,27 @@ def evaluate(mesh: Path, gt: Path, observed: Path) -> dict:
             "boundary_edges": res["boundary_edges"]}
 
 
-def street(n_points: int, workers: int, work: Path) -> None:
+def scene_config(work: Path, overrides: dict) -> Path:
+    """configs/scene.yaml, or a copy of it with ``overrides`` appended (later keys win)."""
+    base = REPO / "configs" / "scene.yaml"
+    if not overrides:
+        return base
+    path = work / "scene_overrides.yaml"
+    path.write_text(base.read_text() + "".join(f"{k}: {json.dumps(v)}\n" for k, v in overrides.items()))
+    return path
+
+
+def street(n_points: int, workers: int, work: Path, overrides: dict | None = None) -> None:
     from tiled_gridpull.synthetic.street import make_street_sample
 
     t0 = time.perf_counter()
     sample = make_street_sample(work / f"street_{n_points}", n_points=n_points, origin=(500000.0, 4000000.0, 100.0))
     t_sample = time.perf_counter() - t0
     out = work / f"street_{n_points}" / "mesh.ply"
-    row = reconstruct(sample["laz"], out, workers, ["--config", str(REPO / "configs" / "scene.yaml")])
+    row = reconstruct(sample["laz"], out, workers, ["--config", str(scene_config(work, overrides or {}))])
     row.update(evaluate(out, sample["gt_mesh"], sample["laz"]))
     row.update(scene="street (synthetic)", points=sample["n_points"], workers=workers, sample_s=t_sample,
-               points_per_s=sample["n_points"] / row["wall_s"], cell_m=0.1)
+               points_per_s=sample["n_points"] / row["wall_s"], cell_m=0.1, overrides=overrides or {})
     record(row)
 
 
@@ -115,13 +125,23 @@ def main() -> None:
     ap.add_argument("--points", type=int, nargs="+", default=[1_000_000])
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--keep", action="store_true", help="keep the work directory (printed)")
+    ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
+                    help="street: settings added to configs/scene.yaml for this run (YAML values), e.g. query_pool=0")
     a = ap.parse_args()
+    import yaml
+
+    overrides = {}
+    for item in a.set:
+        key, sep, value = item.partition("=")
+        if not sep:
+            ap.error(f"--set expects KEY=VALUE, got {item!r}")
+        overrides[key] = yaml.safe_load(value)
     record({"scene": "machine", **machine(), "load": os.getloadavg()[0]})
     work = Path(tempfile.mkdtemp(prefix="tg-scenes-"))
     try:
         if a.suite == "street":
             for n in a.points:
-                street(n, a.workers, work)
+                street(n, a.workers, work, overrides)
         elif a.suite == "workers":
             for w in (1, 2):
                 street(a.points[0], w, work)

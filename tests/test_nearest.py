@@ -53,3 +53,25 @@ def test_fast_path_and_kdtree_agree_on_indices():
     b, _ = NearestPoints(pts, 1).query(q, centres)
     _, ref = KDTree(pts).query(q, k=1)
     assert np.array_equal(a, b) and np.array_equal(a, ref)
+
+
+@pytest.mark.parametrize("sigma", [0.5, 2.0])
+def test_predicted_fast_share_matches_the_measured_one(sigma, monkeypatch):
+    monkeypatch.setattr(NearestPoints, "MIN_FAST_SHARE", 0.0)  # build the lists whatever the prediction
+    pts = _dense_sheet(40_000)
+    nn = NearestPoints(pts, 8, sigma=sigma)
+    q, centres = _queries(pts, sigma, 20_000)
+    nn.query(q, centres)
+    assert abs(nn.fast_share - (1.0 - nn.fallbacks / nn.queries)) < 0.05
+
+
+def test_lists_are_skipped_where_they_would_rarely_answer():
+    pts = _dense_sheet(40_000)  # ~25 points per cell: 64 neighbours span less than the query spread
+    nn = NearestPoints(pts, 8, sigma=2.0)
+    assert nn.fast_share < NearestPoints.MIN_FAST_SHARE and nn.knn is None
+    q, centres = _queries(pts, 2.0, 5000)
+    idx, dist = nn.query(q, centres)
+    ref_d, ref = KDTree(pts).query(q, k=1)
+    assert np.array_equal(idx, ref) and nn.fallbacks == len(q)
+    close = NearestPoints(pts, 8, sigma=0.02)  # queries close to their centres: the lists answer them
+    assert close.fast_share > 0.9 and close.knn is not None

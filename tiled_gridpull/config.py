@@ -84,6 +84,11 @@ class SolverConfig:
         surface at the cell scale (see docs/solver.md for the measurements).
     knn : int
         Candidate list size of the nearest-neighbour cache.
+    query_pool : int
+        0 (paper): fresh queries every iteration. ``B > 0``: each level draws ``B`` batches of queries once,
+        finds their nearest points in one go, and cycles through them (NeuralPull's precomputed queries), so
+        nearest-neighbour search costs ``B`` batches instead of one per iteration. Pays where that search
+        dominates: dense LiDAR tiles (see docs/solver.md).
     seed : int
         Random seed (queries). Results are bitwise reproducible for a given seed.
     noise_cells : float
@@ -121,6 +126,7 @@ class SolverConfig:
     refine_sigma: float = 0.5
     refine_tv_form: str = "squared"
     knn: int = 16
+    query_pool: int = 200
     seed: int = 0
     noise_cells: float = 0.0
 
@@ -147,7 +153,7 @@ class SolverConfig:
             if getattr(self, name) <= 0:
                 raise ConfigError(f"{name} must be positive, got {getattr(self, name)!r}")
         nonneg = ["margin", "m1", "m2", "alpha", "beta", "gamma", "query_sigma", "init_radius", "normal_weight",
-                  "seed", "refine_m2", "refine_gamma", "noise_cells", "udf_beta"]
+                  "seed", "refine_m2", "refine_gamma", "noise_cells", "udf_beta", "query_pool"]
         for name in nonneg:
             if getattr(self, name) < 0:
                 raise ConfigError(f"{name} must be >= 0, got {getattr(self, name)!r}")

@@ -10,7 +10,8 @@ What a tile solve holds (see :mod:`tiled_gridpull.solver`, :mod:`tiled_gridpull.
   :func:`tiled_gridpull.band.build_band` allocates, an upper bound of the bricks it keeps -- hold the
   float32 state of the optimizer: value (double-buffered), Adam ``m`` and ``v``, the accumulated gradient,
   the TV weights, flags, plus the transfer from the coarser level (slot positions) and the coarser field;
-* **queries**: per-iteration arrays of ``queries`` x 16 corner slots and gradients;
+* **queries**: per-iteration arrays of ``queries`` x 16 corner slots and gradients, and the query pool's
+  nearest-point indices (``query_pool`` x ``queries``, int32);
 * the worker process itself (Python, numpy, numba's compiled kernels, Dask), ``BASE_MB``.
 
 The mesh step of a tile blends its field with those of its solved neighbours (up to 26), so it holds every
@@ -59,6 +60,7 @@ NORMALS_CHUNK = 200_000
 NORMALS_BYTES = 750  # per point of a normal-estimation chunk with 16 neighbours: indices, coordinates, covariance
 TRIM_BYTES = 60  # mesh step: the tile's points as float64 and their KD-tree
 QUERY_BYTES = 16 * 8 + 16 * 4 + 4 * 4 + 8 + 3 * 4 * 3 + 8 + 4  # slots, grads, losses, centres, q, s, nn
+POOL_BYTES_PER_QUERY = 4  # int32 nearest-point index per pooled query
 UNTRACKED = 1.15  # allocations numpy does not see (KD-trees, numba's per-brick buffers) and heap fragmentation
 # rough solve rates (seconds per iteration per query, per band slot; per point of set-up), one thread
 RATE_QUERY_S = 3e-7
@@ -151,12 +153,13 @@ def tile_memory(spec: "TileSpec", occupancy: np.ndarray, solver: "SolverConfig",
     k = _knn_bound(n, solver)
     phases = [min(n, NORMALS_CHUNK) * NORMALS_BYTES * tiling.normal_neighbors / 16.0]
     prev = 0
-    for b in bricks:
+    for level, b in enumerate(bricks):
+        pool = min(solver.query_pool, solver.level_settings(level, len(bricks))["iterations"])
         coarser = prev * SLOT * FIELD_BYTES_PER_SLOT
         phases.append(b * SLOT * INIT_BYTES_PER_SLOT + coarser)  # initial values / transfer
         phases.append(n * KNN_BYTES_PER_NEIGHBOUR * k + b * SLOT * FIELD_BYTES_PER_SLOT + coarser)  # NN cache
         phases.append(b * SLOT * OPT_BYTES_PER_SLOT + n * KNN_KEPT_BYTES_PER_NEIGHBOUR * k
-                      + solver.queries * QUERY_BYTES + coarser)  # iterations
+                      + solver.queries * (QUERY_BYTES + pool * POOL_BYTES_PER_QUERY) + coarser)  # iterations
         prev = b
     solve = base + UNTRACKED * (points + max(phases))
     own = bricks[-1]

@@ -249,11 +249,22 @@ def _optimize(P: np.ndarray, N: np.ndarray | None, band: Band, values: np.ndarra
     beta1, beta2, eps = 0.9, 0.999, 1e-8
     iterations, lr0, lr_step = st["iterations"], st["lr"], st["lr_step"]
     t_query = t_step = 0.0
+    pool = min(cfg.query_pool, iterations)
+    tp = time.perf_counter()
+    if pool:
+        # nearest points found once per batch; the batch's queries are re-drawn from the counter-based RNG each
+        # time it comes round (0.2 ms), so the pool holds 4 bytes per query
+        pool_nn = np.empty((pool, nq), np.int32)
+        for b in range(pool):
+            ksamp.draw_queries(P, cfg.seed, it0 + b, sigma, centres, q)
+            pool_nn[b] = nn.query(q, centres)[0]
+    t_pool = time.perf_counter() - tp
     for it in range(iterations):
         ta = time.perf_counter()
         # the iteration number seeds the queries: levels draw different queries
-        ksamp.draw_queries(P, cfg.seed, it0 + it, sigma, centres, q)
-        nn_idx, _ = nn.query(q, centres)
+        batch = it % pool if pool else it
+        ksamp.draw_queries(P, cfg.seed, it0 + batch, sigma, centres, q)
+        nn_idx = pool_nn[batch] if pool else nn.query(q, centres)[0]
         s = P[nn_idx]
         nrm = N[nn_idx] if N is not None else empty_normals
         n_valid = kl.query_losses(d_a, flat_flags, band.brick_table, shape, q, s, nrm, CELL_PULL,
@@ -287,9 +298,12 @@ def _optimize(P: np.ndarray, N: np.ndarray | None, band: Band, values: np.ndarra
         "iterations": iterations,
         "time_solve_s": time.perf_counter() - t0,
         "time_queries_s": t_query,
+        "time_query_pool_s": t_pool,
         "time_steps_s": t_step,
+        "nn_queries": nn.queries,
         "nn_fallback_fraction": nn.fallbacks / max(nn.queries, 1),
-        "nn_candidates": int(nn.knn.shape[1]),
+        "nn_candidates": int(nn.knn.shape[1]) if nn.knn is not None else 0,
+        "nn_fast_share_predicted": nn.fast_share,
         "threads": _threads(),
     }
     return Field(band, d_a.reshape(band.n_bricks, 512), signed=cfg.mode == "sdf", info=info)
