@@ -28,6 +28,8 @@ test: $(STAMP)
 bench: $(STAMP)
 	$(PY) -m pip install --quiet -e ".[bench]"
 	$(PY) -m benchmarks.shapes all
+	$(PY) -m benchmarks.floor
+	$(PY) -m benchmarks.scenes street --points 1000000 4000000 14000000
 	$(PY) -m benchmarks.dask_overhead 1000 10000 100000
 	$(PY) benchmarks/report.py
 

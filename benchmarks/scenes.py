@@ -67,6 +67,7 @@ def reconstruct(src: Path, out: Path, workers: int, extra: list[str]) -> dict:
                      "solve_and_mesh_wall": t.get("solve_and_mesh"), "merge": t.get("merge"),
                      "total": t.get("total")},
         "faces": side["mesh"]["n_faces"] if isinstance(side.get("mesh"), dict) else None,
+        "query_pool": side.get("config", {}).get("query_pool", 0),
     }
 
 
@@ -159,9 +160,9 @@ def render(rows: list[dict]) -> str:
     runs = [r for r in rows if r.get("scene") not in (None, "machine")]
     if not runs:
         return ""
-    out = ["| date | scene | coarse thinning | points | workers | tiles | wall s | points/s | peak RSS MB | partition s | solve task-s | "
+    out = ["| date | scene | coarse thinning | query pool | points | workers | tiles | wall s | points/s | peak RSS MB | partition s | solve task-s | "
            "blend task-s | mesh task-s | merge s | CD-L1 m | NC | F@0.1 m | pieces |",
-           "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+           "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in runs:
         st = r["stages_s"]
 
@@ -169,7 +170,10 @@ def render(rows: list[dict]) -> str:
             return "-" if v is None else format(v, fmt)
 
         # rows before 2026-11-22 10:40 thinned coarse levels at one global rate (recorded as such)
+        # rows before 2026-11-22 12:30 drew fresh queries every iteration (no query pool)
+        pool = r.get("query_pool", 0)
         out.append(f"| {r.get('date', '-')} | {r['scene']} | {r.get('coarse_thinning', 'per cell')} | "
+                   f"{pool or 'fresh'} | "
                    f"{r.get('points') or '-'} | {r['workers']} | {r['tiles']}/{r['tiles_planned']} | "
                    f"{r['wall_s']:.1f} | {r['points_per_s']:.0f} | {f(r.get('peak_rss_mb'), '.0f')} | "
                    f"{f(st['partition'])} | {f(st['solve_task_s'])} | {f(st['blend_task_s'])} | "

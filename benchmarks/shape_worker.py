@@ -85,7 +85,8 @@ def run_gridpull(pts: np.ndarray, cfg: dict, normals: np.ndarray | None = None):
     from tiled_gridpull import reconstruct
 
     mesh = reconstruct(pts, normals=normals, **cfg)
-    return mesh, {"solve_s": mesh.metadata["timings_s"]["solve"]}
+    return mesh, {"solve_s": mesh.metadata["timings_s"]["solve"],
+                  "query_pool": mesh.metadata["config"].get("query_pool", 0)}
 
 
 def run_poisson(pts: np.ndarray, cfg: dict):
