@@ -119,7 +119,7 @@ def main(args: dict) -> dict:
     else:
         pts = input_cloud(gt, args["points"], args.get("seed", 0), args.get("noise", 0.0))
     t0 = time.perf_counter()
-    if args["method"] in ("gridpull", "gridpull-paper"):
+    if args["method"] in ("gridpull", "gridpull-paper", "gridpull-paper-pool"):
         mesh, extra = run_gridpull(pts, args.get("config", {}), normals)
     elif args["method"] == "poisson":
         mesh, extra = run_poisson(pts, args.get("config", {}))
