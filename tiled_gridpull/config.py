@@ -189,16 +189,16 @@ class SolverConfig:
         return n
 
     def level_settings(self, level: int, n_levels: int) -> dict:
-        """Iterations, learning-rate schedule, TV band, gradient weight, query noise and TV form of ``level``
-        (0 = coarsest) out of ``n_levels``."""
-        last = level == n_levels - 1
+        """Iterations, query pool length, learning-rate schedule, TV band, gradient weight, query noise and TV
+        form of ``level`` (0 = coarsest) out of ``n_levels``."""
+        iterations = self.iterations if level == n_levels - 1 else self.coarse_iterations
+        # a pool longer than the level would never be cycled through
+        common = {"iterations": iterations, "query_pool": min(self.query_pool, iterations)}
         if level == 0:
-            return {"iterations": self.iterations if last else self.coarse_iterations, "lr": self.lr,
-                    "lr_step": self.lr_step, "m2": self.m2, "gamma": self.gamma, "sigma": self.query_sigma,
-                    "tv_form": self.tv_form}
-        return {"iterations": self.iterations if last else self.coarse_iterations, "lr": self.refine_lr,
-                "lr_step": self.refine_lr_step, "m2": self.refine_m2, "gamma": self.refine_gamma,
-                "sigma": self.refine_sigma, "tv_form": self.refine_tv_form}
+            return {**common, "lr": self.lr, "lr_step": self.lr_step, "m2": self.m2, "gamma": self.gamma,
+                    "sigma": self.query_sigma, "tv_form": self.tv_form}
+        return {**common, "lr": self.refine_lr, "lr_step": self.refine_lr_step, "m2": self.refine_m2,
+                "gamma": self.refine_gamma, "sigma": self.refine_sigma, "tv_form": self.refine_tv_form}
 
 
 def finite_number(name: str, value: Any) -> float:

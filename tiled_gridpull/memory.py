@@ -154,7 +154,7 @@ def tile_memory(spec: "TileSpec", occupancy: np.ndarray, solver: "SolverConfig",
     phases = [min(n, NORMALS_CHUNK) * NORMALS_BYTES * tiling.normal_neighbors / 16.0]
     prev = 0
     for level, b in enumerate(bricks):
-        pool = min(solver.query_pool, solver.level_settings(level, len(bricks))["iterations"])
+        pool = solver.level_settings(level, len(bricks))["query_pool"]
         coarser = prev * SLOT * FIELD_BYTES_PER_SLOT
         phases.append(b * SLOT * INIT_BYTES_PER_SLOT + coarser)  # initial values / transfer
         phases.append(n * KNN_BYTES_PER_NEIGHBOUR * k + b * SLOT * FIELD_BYTES_PER_SLOT + coarser)  # NN cache

@@ -249,7 +249,7 @@ def _optimize(P: np.ndarray, N: np.ndarray | None, band: Band, values: np.ndarra
     beta1, beta2, eps = 0.9, 0.999, 1e-8
     iterations, lr0, lr_step = st["iterations"], st["lr"], st["lr_step"]
     t_query = t_step = 0.0
-    pool = min(cfg.query_pool, iterations)
+    pool = st["query_pool"]
     tp = time.perf_counter()
     if pool:
         # nearest points found once per batch; the batch's queries are re-drawn from the counter-based RNG each
