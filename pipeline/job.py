@@ -98,8 +98,11 @@ def make_client(options: JobOptions, n_tiles: int):
     cores = os.cpu_count() or 1
     workers = options.workers or max(1, min(cores, n_tiles))
     threads = _threads_for(workers)
-    env = {"NUMBA_NUM_THREADS": str(threads), "OMP_NUM_THREADS": str(threads), "OMP_WAIT_POLICY": "PASSIVE",
-           "TILED_GRIDPULL_THREADS": str(threads)}
+    # Not NUMBA_NUM_THREADS: a worker re-imports the driver's main module, hence numba, before this env is
+    # applied, so numba's pool would be sized from the old value while its first compilation re-reads the new
+    # one and refuses ("Cannot set NUMBA_NUM_THREADS ..."; a cold cache broke `make demo`). The worker caps
+    # its threads with numba.set_num_threads(TILED_GRIDPULL_THREADS) instead (_configure_worker_threads).
+    env = {"OMP_NUM_THREADS": str(threads), "OMP_WAIT_POLICY": "PASSIVE", "TILED_GRIDPULL_THREADS": str(threads)}
     cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0",
                            silence_logs=logging.ERROR, env=env)
     return Client(cluster), cluster

@@ -171,3 +171,49 @@ def test_sliding_window_raises_a_task_error():
             for _ in run_tiles(client, _grid_specs(3, 3, 3), _solve_fails_on_one, lambda s: (), _mesh_echo,
                                lambda s: (), retries=0, window=5):
                 pass
+
+
+WORKER_COMPILE_SCRIPT = '''
+import numba  # imported by the main module, as the CLI does: spawned workers re-import it before their env is set
+from numba import njit, prange
+import numpy as np
+
+from pipeline.job import JobOptions, make_client, _configure_worker_threads
+
+
+def fresh_compile(seed):
+    _configure_worker_threads()
+
+    @njit(parallel=True)  # no cache: compiles inside the worker, as a cold numba cache does
+    def total(a):
+        s = 0.0
+        for i in prange(a.shape[0]):
+            s += a[i]
+        return s
+
+    total(np.ones(1000))  # launches the worker's thread pool
+    numba.core.config.reload_config()  # what every further compilation does first
+    return total(np.arange(seed + 10.0)), numba.get_num_threads()
+
+
+if __name__ == "__main__":
+    client, cluster = make_client(JobOptions(workers=2, progress=False), n_tiles=2)
+    try:
+        print(client.gather(client.map(fresh_compile, [0, 1])))
+    finally:
+        client.close()
+        cluster.close()
+'''
+
+
+def test_workers_compile_fresh_kernels_when_numba_was_imported_first(tmp_path):
+    """A cold numba cache compiles inside the workers; that must not trip over the thread-pool size (it did:
+    `make demo` on a fresh machine failed with "Cannot set NUMBA_NUM_THREADS ...")."""
+    script = tmp_path / "compile_in_workers.py"
+    script.write_text(WORKER_COMPILE_SCRIPT)
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
+    env.pop("NUMBA_NUM_THREADS", None)
+    run = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, env=env, timeout=300)
+    assert run.returncode == 0, run.stderr[-2000:]
+    expected_threads = max(1, (os.cpu_count() or 1) // 2)
+    assert f"[(45.0, {expected_threads}), (55.0, {expected_threads})]" in run.stdout
