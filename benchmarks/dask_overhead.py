@@ -1,8 +1,10 @@
 """Overhead of the job's Dask graph with a no-op solve and mesh: the pipeline's own cost per tile.
 
 The graph is the one ``run_job`` runs (:func:`pipeline.job.run_tiles`): a solve task per tile and a mesh task per
-tile depending on the solves of its 26 neighbours, with real ``TileSpec`` objects as arguments, submitted as a
-sliding window of at most ``DEFAULT_WINDOW`` tasks, on a LocalCluster of 2 single-threaded worker processes. Results append to ``benchmarks/results/dask.jsonl``.
+tile that takes the solve summaries of the tile and its neighbours, with the arguments the job's tasks carry
+(:func:`pipeline.job.task_arguments`: real ``TileSpec``, ``TilingConfig`` and ``SolverConfig`` objects, paths), submitted as a sliding window of at most
+``DEFAULT_WINDOW`` tasks, on a LocalCluster of 2 single-threaded worker processes. Results append to
+``benchmarks/results/dask.jsonl``.
 
 Usage: ``python -m benchmarks.dask_overhead 1000 10000 100000``
 """
@@ -46,16 +48,23 @@ def make_specs(n: int):
 def run(n: int, workers: int = 2) -> dict:
     from distributed import Client, LocalCluster
 
-    from pipeline.job import DEFAULT_WINDOW, run_tiles
+    import numpy as np
+
+    from pipeline.job import DEFAULT_WINDOW, run_tiles, task_arguments
+    from tiled_gridpull.config import SolverConfig
+    from tiled_gridpull.scene import JobPaths
+    from tiled_gridpull.tile import TilingConfig
 
     specs = make_specs(n)
+    solve_args, mesh_args = task_arguments(specs, TilingConfig(), SolverConfig(), JobPaths("/job"),
+                                           (500000.0, 4000000.0, 100.0), np.zeros(3, np.int64))
     cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0")
     client = Client(cluster)
     try:
         client.run(lambda: None)  # workers up before the clock starts
         t0 = time.perf_counter()
-        meshed = sum(1 for kind, _, r in run_tiles(client, specs, noop_solve, lambda s: (), noop_mesh, lambda s: (),
-                                                   2, window=DEFAULT_WINDOW)
+        meshed = sum(1 for kind, _, r in run_tiles(client, specs, noop_solve, solve_args, noop_mesh, mesh_args, 2,
+                                                   window=DEFAULT_WINDOW)
                      if kind == "mesh" and r["status"] == "meshed")
         t2 = time.perf_counter()
         assert meshed == n
@@ -63,7 +72,7 @@ def run(n: int, workers: int = 2) -> dict:
         client.close()
         cluster.close()
     return {"tiles": n, "tasks": 2 * n, "workers": workers, "window": DEFAULT_WINDOW,
-            "variant": "window; results streamed with the futures", "total_s": t2 - t0,
+            "variant": "window; summaries as arguments, batched submits, job-shaped arguments", "total_s": t2 - t0,
             "per_tile_ms": 1e3 * (t2 - t0) / n, "driver_peak_rss_mb": peak_rss_mb()}
 
 

@@ -119,6 +119,10 @@ class _CountingClient:
         self.submitted += 1
         return self.client.submit(*args, **kwargs)
 
+    def map(self, *args, key, **kwargs):
+        self.submitted += len(key)
+        return self.client.map(*args, key=key, **kwargs)
+
 
 @pytest.mark.parametrize("window", [1, 7, 10_000])
 def test_sliding_window_keeps_the_graph_and_bounds_tasks_in_flight(window):
@@ -153,6 +157,33 @@ def test_sliding_window_rejects_an_empty_window():
 
     with pytest.raises(ValueError, match="window"):
         next(run_tiles(None, _grid_specs(1, 1, 1), _solve_echo, lambda s: (), _mesh_echo, lambda s: (), window=0))
+
+
+def test_task_arguments_do_not_grow_with_the_tile_count():
+    """A mesh task carries the field paths of its own tile and neighbours only (not the whole job's map, which
+    made every task's message grow with the tile count)."""
+    import pickle
+
+    import numpy as np
+
+    from pipeline.job import task_arguments
+    from tiled_gridpull.config import SolverConfig
+    from tiled_gridpull.scene import JobPaths, neighbors_of
+    from tiled_gridpull.tile import TilingConfig
+
+    def mesh_arg_bytes(specs, spec):
+        _, mesh_args = task_arguments(specs, TilingConfig(), SolverConfig(), JobPaths("/job"), (0.0, 0.0, 0.0),
+                                      np.zeros(3, np.int64))
+        args = mesh_args(spec)
+        by_index = {s.index: s for s in specs}
+        assert set(args[2]) == {t.name for t in [spec, *neighbors_of(spec, by_index)]}
+        assert args[2][spec.name] == str(JobPaths("/job").field(spec))
+        return len(pickle.dumps(args))
+
+    small = _grid_specs(3, 3, 3)
+    large = _grid_specs(20, 20, 5)
+    centre = next(s for s in small if s.index == (1, 1, 0))
+    assert mesh_arg_bytes(large, centre) == mesh_arg_bytes(small, centre)
 
 
 def _solve_fails_on_one(spec):
