@@ -134,6 +134,37 @@ def shapes_speed(rows: list[dict]) -> str:
                                 ("cd", "CD-L1 x1e3", ".3f"), ("nc", "NC", ".4f")])
 
 
+def shapes_grid(rows: list[dict]) -> str:
+    """The latest ``grid`` run of each (mesh, points, method, R), GridPull as ratios to Poisson on that cloud."""
+    latest: dict[tuple, dict] = {}
+    for r in rows:
+        if r["suite"] == "grid":
+            latest[(r["mesh"], r["points"], r["method"], r.get("resolution"))] = r
+    out = []
+    for (mesh, pts, method, res), r in sorted(latest.items(), key=lambda kv: (kv[0][0], kv[0][1], kv[0][3] or 0)):
+        if method != "gridpull":
+            continue
+        p = latest.get((mesh, pts, "poisson", None))
+        cd, nc = r["chamfer_l1_exact"], r["normal_consistency_exact"]
+        out.append({"mesh": mesh, "points": pts, "res": res, "wall": r["wall_s"], "mem": r["peak_rss_mb"],
+                    "cd": 1e3 * cd, "cd2": 1e5 * r["chamfer_l2_exact"], "nc": nc,
+                    "f": r.get("fscore_exact@0.01"),
+                    "p_cd": 1e3 * p["chamfer_l1_exact"] if p else None, "p_nc": p["normal_consistency_exact"] if p else None,
+                    "p_wall": p["wall_s"] if p else None, "p_mem": p["peak_rss_mb"] if p else None,
+                    "cd_ratio": cd / p["chamfer_l1_exact"] if p else None,
+                    "t_ratio": r["wall_s"] / p["wall_s"] if p else None,
+                    "m_ratio": r["peak_rss_mb"] / p["peak_rss_mb"] if p else None})
+    if not out:
+        return ""
+    return markdown_table(out, [("mesh", "mesh", ""), ("points", "points", ","), ("res", "R", ""),
+                                ("cd", "CD-L1 x1e3", ".3f"), ("cd2", "CD-L2 x1e5", ".3f"), ("nc", "NC", ".4f"),
+                                ("f", "F@0.01", ".3f"), ("wall", "wall s", ".1f"), ("mem", "peak MB", ".0f"),
+                                ("p_cd", "Poisson CD-L1 x1e3", ".3f"), ("p_nc", "Poisson NC", ".4f"),
+                                ("p_wall", "Poisson s", ".1f"), ("p_mem", "Poisson MB", ".0f"),
+                                ("cd_ratio", "CD-L1 ratio", ".2f"), ("t_ratio", "time ratio", ".2f"),
+                                ("m_ratio", "memory ratio", ".2f")])
+
+
 def compile_section(rows: list[dict]) -> str:
     c = [r for r in rows if r["suite"] == "compile" and r.get("method") == "compile"]
     if not c:
@@ -145,22 +176,36 @@ def compile_section(rows: list[dict]) -> str:
 
 
 def dask_section(rows: list[dict]) -> str:
+    import statistics
+
     rows = [r for r in rows if r.get("suite") == "dask_noop"]
     if not rows:
         return ""
+    groups: dict[tuple, list[dict]] = {}
     for r in rows:
-        r["how"] = r.get("variant") or "whole graph at once"
-    table = markdown_table(rows, [("date", "date", "s"), ("tiles", "tiles", ","), ("tasks", "tasks", ","),
-                                  ("workers", "workers", "d"), ("how", "submission", "s"),
-                                  ("total_s", "total s", ".1f"), ("per_tile_ms", "ms per tile", ".2f"),
-                                  ("driver_peak_rss_mb", "driver peak MB", ".0f")])
+        groups.setdefault((r.get("variant") or "whole graph at once", r["tiles"]), []).append(r)
+    summary = []
+    for (how, tiles), rs in groups.items():  # in order of first appearance: oldest variant first
+        summary.append({"date": rs[-1]["date"], "tiles": tiles, "tasks": rs[-1]["tasks"],
+                        "workers": rs[-1]["workers"], "how": how, "runs": len(rs),
+                        "total_s": statistics.median(r["total_s"] for r in rs),
+                        "per_tile_ms": statistics.median(r["per_tile_ms"] for r in rs),
+                        "driver_peak_rss_mb": max(r["driver_peak_rss_mb"] for r in rs)})
+    table = markdown_table(summary, [("date", "last run", "s"), ("tiles", "tiles", ","), ("tasks", "tasks", ","),
+                                     ("workers", "workers", "d"), ("how", "submission", "s"), ("runs", "runs", "d"),
+                                     ("total_s", "median total s", ".1f"),
+                                     ("per_tile_ms", "median ms per tile", ".2f"),
+                                     ("driver_peak_rss_mb", "driver peak MB", ".0f")])
     return "\n".join(["## Dask graph overhead (no-op solve and mesh)", "",
                       "The job's own graph (`pipeline.job.run_tiles`: a solve task per tile, a mesh task per tile "
-                      "depending on its neighbours' solves) on a LocalCluster of 2 single-threaded worker processes, "
-                      "with functions that do nothing: what the pipeline costs per tile before any work. "
+                      "reading the solve summaries of its neighbours) on a LocalCluster of 2 single-threaded worker "
+                      "processes, with functions that do nothing: what the pipeline costs per tile before any work. "
                       "Submitting the whole graph at once (the first rows) lost the client's connection to the "
                       "scheduler at 100,000 tiles (CommClosedError about 50 s after submitting 200,000 tasks); "
-                      "the job now submits tiles as a sliding window in tile order.", "", table, ""])
+                      "the job now submits tiles as a sliding window in tile order. In the last variant a mesh task "
+                      "gets its neighbours' summaries as plain arguments (no futures as dependencies), tasks go to "
+                      "the scheduler in batches, and each task carries the job's real arguments "
+                      "(`pipeline.job.task_arguments`).", "", table, ""])
 
 
 def main() -> None:
@@ -185,6 +230,12 @@ def main() -> None:
             parts += ["## Speed and memory on one shape (bunny)", "",
                       "Medians of the runs listed; `x Poisson time` is against Poisson's median in the same session.",
                       "", speed_md, ""]
+        grid_md = shapes_grid(shapes)
+        if grid_md:
+            parts += ["## Shapes at 10k / 100k / 1M points and R = 128 / 256 / 512 (`benchmarks/shapes.py grid`)", "",
+                      "GridPull (defaults but R) beside Open3D screened Poisson (depth 9, normals estimated by Open3D) "
+                      "on the same cloud in the same session; ratios are GridPull / Poisson (below 1: GridPull more "
+                      "accurate, faster or smaller). One run each.", "", grid_md, ""]
         parts += [compile_section(shapes), ""]
     from benchmarks import floor, paper_eval, scenes
 
@@ -207,6 +258,12 @@ def main() -> None:
                   scene_table, ""]
     elif scenes_md.exists():
         parts += [scenes_md.read_text()]
+    tiles_table = scenes.render_tiles(load("scenes"))
+    if tiles_table:
+        parts += ["## Time against tile count at fixed density (`benchmarks/scenes.py tiles`)", "",
+                  "The middle 25.6 m (one tile core) of a synthetic street scan repeated 1, 2, 4 and 8 times along "
+                  "x, so every tile holds the same points: the job's cost per occupied tile, with configs/scene.yaml "
+                  "on the default local Dask cluster.", "", tiles_table, ""]
     paper_tables = paper_eval.render(load("paper_eval"))
     if paper_tables:
         parts += ["## The paper's evaluation, re-run (`benchmarks/paper_eval.py`)", "",

@@ -12,6 +12,7 @@ Usage::
     python -m benchmarks.scenes street --points 1000000 14000000 [--workers 2]
     python -m benchmarks.scenes workers --points 1000000          # 1 vs 2 workers, same cloud
     python -m benchmarks.scenes lidar                              # ../shared/data/lidar files
+    python -m benchmarks.scenes tiles --points 4000000 --copies 1 2 4 8   # time vs tile count, fixed density
 """
 
 from __future__ import annotations
@@ -104,6 +105,54 @@ def street(n_points: int, workers: int, work: Path, overrides: dict | None = Non
     record(row)
 
 
+#: Length of the street slab the ``tiles`` suite repeats: one tile core of configs/scene.yaml (256 cells of 0.1 m).
+SLAB_M = 25.6
+
+
+def slab_copies(xyz, copies: int, cell: float = 0.1, length: float = SLAB_M):
+    """The middle ``length`` metres of a street scan along x, repeated ``copies`` times end to end.
+
+    Every copy has the same points, so every tile the job lays over the result has the same density: the slab
+    starts on a cell boundary and keeps half a cell clear of both ends, so the job's tile cores (which start at
+    the first occupied cell and are ``length`` long) line up with the copies (``copies`` tiles along x).
+
+    Parameters
+    ----------
+    xyz : (N, 3) float64
+        Street points (m), local frame (origin 0).
+    copies : int
+
+    Returns
+    -------
+    (M, 3) float64
+    """
+    import numpy as np
+
+    x = xyz[:, 0]
+    x0 = np.floor((0.5 * (x.min() + x.max()) - 0.5 * length) / cell) * cell
+    keep = (x >= x0 + 0.5 * cell) & (x < x0 + length - 0.5 * cell)
+    slab = xyz[keep] - [x0, 0.0, 0.0]
+    return np.concatenate([slab + [c * length, 0.0, 0.0] for c in range(copies)])
+
+
+def tile_count(n_points: int, copies: list[int], workers: int, work: Path) -> None:
+    """Time and memory against the number of occupied tiles at a fixed point density (issue 4's "time linear in
+    the number of occupied tiles"): a slab of the ``n_points`` street repeated 1, 2, 4, ... times along x."""
+    from tiled_gridpull.io import read_points
+    from tiled_gridpull.synthetic.street import make_street_sample, write_las
+
+    sample = make_street_sample(work / f"street_{n_points}", n_points=n_points)
+    xyz = read_points(sample["laz"]).xyz
+    for k in copies:
+        src = write_las(work / f"slab_x{k}.laz", slab_copies(xyz, k))
+        out = work / f"slab_x{k}.ply"
+        row = reconstruct(src, out, workers, ["--config", str(REPO / "configs" / "scene.yaml")])
+        row.update(scene=f"street slab x{k}", suite="tiles", copies=k, source_points=sample["n_points"],
+                   workers=workers, cell_m=0.1)
+        row["points_per_s"] = (row["points"] or 0) / row["wall_s"]
+        record(row)
+
+
 def lidar(workers: int, work: Path) -> None:
     folder = REPO.parent / "shared" / "data" / "lidar"
     for name, cell in LIDAR.items():
@@ -122,7 +171,9 @@ def lidar(workers: int, work: Path) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("suite", choices=("street", "workers", "lidar"))
+    ap.add_argument("suite", choices=("street", "workers", "lidar", "tiles"))
+    ap.add_argument("--copies", type=int, nargs="+", default=[1, 2, 4, 8],
+                    help="tiles: how many times the street slab is repeated, one run each")
     ap.add_argument("--points", type=int, nargs="+", default=[1_000_000])
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--keep", action="store_true", help="keep the work directory (printed)")
@@ -143,6 +194,8 @@ def main() -> None:
         if a.suite == "street":
             for n in a.points:
                 street(n, a.workers, work, overrides)
+        elif a.suite == "tiles":
+            tile_count(a.points[0], a.copies, a.workers, work)
         elif a.suite == "workers":
             for w in (1, 2):
                 street(a.points[0], w, work)
@@ -157,7 +210,7 @@ def main() -> None:
 
 def render(rows: list[dict]) -> str:
     """Markdown table of every scene run (newest last)."""
-    runs = [r for r in rows if r.get("scene") not in (None, "machine")]
+    runs = [r for r in rows if r.get("scene") not in (None, "machine") and r.get("suite") != "tiles"]
     if not runs:
         return ""
     out = ["| date | scene | coarse thinning | query pool | points | workers | tiles | wall s | points/s | peak RSS MB | partition s | solve task-s | "
@@ -180,6 +233,34 @@ def render(rows: list[dict]) -> str:
                    f"{f(st['mesh_task_s'])} | {f(st['merge'])} | {f(r.get('chamfer_l1_m'), '.4f')} | "
                    f"{f(r.get('normal_consistency'), '.3f')} | {f(r.get('fscore_0.1m'), '.3f')} | "
                    f"{r.get('components', '-')} |")
+    return "\n".join(out)
+
+
+def render_tiles(rows: list[dict]) -> str:
+    """Markdown table of the ``tiles`` suite's latest series, with the least-squares line wall = a + b * tiles."""
+    import numpy as np
+
+    runs = [r for r in rows if r.get("suite") == "tiles"]
+    if not runs:
+        return ""
+    series: list[dict] = []
+    for r in runs:  # the latest run of each copy count
+        series = [q for q in series if q["copies"] != r["copies"]] + [r]
+    series.sort(key=lambda r: r["tiles"])
+    out = ["| date | copies | points | workers | tiles | wall s | wall s per tile | solve task-s per tile | "
+           "peak RSS MB |", "|---|---|---|---|---|---|---|---|---|"]
+    for r in series:
+        out.append(f"| {r['date']} | {r['copies']} | {r['points']} | {r['workers']} | "
+                   f"{r['tiles']}/{r['tiles_planned']} | {r['wall_s']:.1f} | {r['wall_s'] / r['tiles']:.1f} | "
+                   f"{r['stages_s']['solve_task_s'] / r['tiles']:.1f} | {r['peak_rss_mb']:.0f} |")
+    if len(series) >= 2:
+        t = np.array([r["tiles"] for r in series], float)
+        w = np.array([r["wall_s"] for r in series], float)
+        b, a = np.polyfit(t, w, 1)
+        fit = a + b * t
+        r2 = 1.0 - float(np.sum((w - fit) ** 2)) / float(np.sum((w - w.mean()) ** 2))
+        out += ["", f"Least squares: wall = {a:.1f} s + {b:.2f} s x tiles (R^2 = {r2:.4f}); largest deviation "
+                    f"from the line {np.max(np.abs(w - fit) / w) * 100:.1f} %."]
     return "\n".join(out)
 
 
