@@ -9,6 +9,7 @@ Usage::
     python -m benchmarks.shapes accuracy        # every mesh: 100k, 10k and noisy clouds, GridPull vs Poisson
     python -m benchmarks.shapes speed --repeats 3   # bunny: R = 128/256/512, 10k/100k/1M points, medians
     python -m benchmarks.shapes paper           # the paper's literal single-level recipe beside ours
+    python -m benchmarks.shapes grid --meshes bunny armadillo   # 10k/100k/1M points x R = 128/256/512 vs Poisson
     python -m benchmarks.shapes compile         # numba compile time (empty cache) vs a warm run
 """
 
@@ -36,7 +37,7 @@ def record(suite: str, row: dict) -> None:
 
 
 def run(suite: str, mesh: str, cloud: str, method: str, config: dict | None = None, **extra) -> dict:
-    points, noise = CLOUDS[cloud]
+    points, noise = CLOUDS.get(cloud, (None, 0.0))
     args = {"mesh": mesh, "points": extra.pop("points", points), "noise": noise, "method": method,
             "config": config or {}, "seed": 0, **extra}
     out = run_isolated("benchmarks.shape_worker", args)
@@ -73,6 +74,22 @@ def speed(repeats: int, extras: bool = True) -> None:
         run("speed", "bunny", "100k", "gridpull", {"resolution": 256}, points=n, resolution=256)
 
 
+#: Point counts and resolutions of the ``grid`` suite (issue 4's single-shape matrix).
+GRID_POINTS = (10_000, 100_000, 1_000_000)
+GRID_RESOLUTIONS = (128, 256, 512)
+
+
+def grid(meshes) -> None:
+    """Every mesh at 10k / 100k / 1M points and R = 128 / 256 / 512, with Poisson on the same cloud (same seed)
+    once per point count, so the report can give each GridPull run as a ratio to Poisson."""
+    for mesh in meshes:
+        for n in GRID_POINTS:
+            label = f"{n // 1000}k"
+            run("grid", mesh, label, "poisson", poisson_config("10k" if n <= 10_000 else "100k"), points=n)
+            for res in GRID_RESOLUTIONS:
+                run("grid", mesh, label, "gridpull", {"resolution": res}, points=n, resolution=res)
+
+
 def paper(meshes) -> None:
     from tiled_gridpull.config import load_config_file
 
@@ -97,7 +114,7 @@ def compile_time() -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("suite", choices=("accuracy", "speed", "paper", "compile", "all"))
+    ap.add_argument("suite", choices=("accuracy", "speed", "paper", "compile", "grid", "all"))
     ap.add_argument("--meshes", nargs="+", default=list(MESHES), choices=list(MESHES))
     ap.add_argument("--clouds", nargs="+", default=list(CLOUDS), choices=list(CLOUDS))
     ap.add_argument("--repeats", type=int, default=3)
@@ -113,6 +130,8 @@ def main() -> None:
         accuracy(a.meshes, a.clouds, a.methods)
     if a.suite in ("paper", "all"):
         paper(a.meshes[:2])
+    if a.suite == "grid":
+        grid(a.meshes)
     if a.suite in ("speed", "all"):
         speed(a.repeats, not a.no_extras)
 
