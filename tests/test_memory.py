@@ -132,3 +132,22 @@ def test_dry_run_on_real_laz_is_fast(tmp_path, capsys):
     assert elapsed < 10, elapsed
     assert "110,000 points" in text and re.search(r"tiles:\s+\d+ with points", text)
     assert not out.exists() and not out.with_suffix(".job").exists()
+
+
+def test_time_estimate_counts_one_search_per_pooled_query():
+    """A query pool searches each pooled query once, not every iteration: the estimate must see the difference."""
+    from types import SimpleNamespace
+
+    from tiled_gridpull.memory import RATE_NN_S, tile_time
+
+    spec = SimpleNamespace(n_points=100_000)
+    bricks = [1000, 2000, 4000]
+    pooled = SolverConfig(query_pool=100)
+    fresh = SolverConfig(query_pool=0)
+    levels = [pooled.level_settings(i, 3) for i in range(3)]
+    searches_saved = sum(st["iterations"] - st["query_pool"] for st in levels) * pooled.queries
+    assert searches_saved > 0
+    assert tile_time(spec, bricks, fresh) - tile_time(spec, bricks, pooled) == pytest.approx(searches_saved * RATE_NN_S)
+    # more band bricks and more points cost more
+    assert tile_time(spec, [2 * b for b in bricks], pooled) > tile_time(spec, bricks, pooled)
+    assert tile_time(SimpleNamespace(n_points=200_000), bricks, pooled) > tile_time(spec, bricks, pooled)

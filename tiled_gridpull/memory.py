@@ -20,8 +20,9 @@ one of their finest bands at 5 bytes per vertex slot, plus marching cubes and tr
 The byte counts per point and per slot below are the arrays the code allocates, rounded up; they were checked
 against per-task peak resident memory measured on Dask workers (``peak_rss_mb`` of the solve and mesh
 summaries) on the synthetic street: the estimate is an upper bound within about 2x there (see
-``tests/test_memory.py``). Time estimates are rough: a per-query and per-slot rate per iteration and a per-point
-set-up cost, measured single-threaded on the project's 2-core test machine (off by 2x either way elsewhere).
+``tests/test_memory.py``). Time estimates are rough: a per-query and per-slot rate per iteration, a rate per nearest-point
+search (the query pool's, or every iteration's without one) and a per-point set-up cost, measured
+single-threaded on the project's 2-core test machine (off by 2x either way elsewhere).
 """
 
 from __future__ import annotations
@@ -62,10 +63,14 @@ TRIM_BYTES = 60  # mesh step: the tile's points as float64 and their KD-tree
 QUERY_BYTES = 16 * 8 + 16 * 4 + 4 * 4 + 8 + 3 * 4 * 3 + 8 + 4  # slots, grads, losses, centres, q, s, nn
 POOL_BYTES_PER_QUERY = 4  # int32 nearest-point index per pooled query
 UNTRACKED = 1.15  # allocations numpy does not see (KD-trees, numba's per-brick buffers) and heap fragmentation
-# rough solve rates (seconds per iteration per query, per band slot; per point of set-up), one thread
-RATE_QUERY_S = 3e-7
+# rough solve rates, one thread, measured per level on street tiles of 4k and 793k points (2026-11-22):
+# losses, interpolation and scatter 88-181 ns per query and iteration; nearest-point search 55-313 ns per query
+# searched (once per pooled query, or every iteration without a pool); TV + Adam 2.6-4.8 ns per band slot and
+# iteration; 4 us per point of set-up (normals, orientation, band building)
+RATE_QUERY_S = 1e-7
+RATE_NN_S = 2e-7
 RATE_SLOT_S = 3e-9
-RATE_POINT_S = 8e-6
+RATE_POINT_S = 4e-6
 TILE_SETUP_S = 0.3
 
 _SIZE = re.compile(r"^\s*(\d+(?:\.\d*)?|\.\d+)\s*(?:([kmgt])(?:i?b)?|b)?\s*$", re.IGNORECASE)
@@ -170,12 +175,15 @@ def tile_memory(spec: "TileSpec", occupancy: np.ndarray, solver: "SolverConfig",
 
 
 def tile_time(spec: "TileSpec", bricks: list[int], solver: "SolverConfig") -> float:
-    """Rough single-thread seconds to solve one tile (iterations x (queries + band slots) + point set-up)."""
+    """Rough single-thread seconds to solve one tile: per level, iterations x (queries + band slots) plus the
+    nearest-point searches (the query pool's batches once, or every iteration's), and the points' set-up."""
     levels = len(bricks)
     t = TILE_SETUP_S + spec.n_points * RATE_POINT_S
     for level, b in enumerate(bricks):
-        it = solver.level_settings(level, levels)["iterations"]
-        t += it * (solver.queries * RATE_QUERY_S + b * SLOT * RATE_SLOT_S)
+        st = solver.level_settings(level, levels)
+        it = st["iterations"]
+        searched = (st["query_pool"] or it) * solver.queries
+        t += it * (solver.queries * RATE_QUERY_S + b * SLOT * RATE_SLOT_S) + searched * RATE_NN_S
     return t
 
 
