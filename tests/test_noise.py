@@ -78,3 +78,31 @@ def test_noise_cells_refused_in_tiled_mode():
         check_compatible(TilingConfig(voxel_size=0.1), SolverConfig(noise_cells=1.5))
     with pytest.raises(ConfigError, match="noise_cells"):
         SolverConfig(noise_cells=-1)
+
+
+def test_plane_projection_removes_scatter_across_the_surface_only():
+    from tiled_gridpull.noise import project_to_local_planes
+
+    pts = noisy_sphere(50_000, 0.01)
+    radial = lambda p: np.linalg.norm(p - p.mean(axis=0), axis=1) - 0.5  # noqa: E731
+    out = project_to_local_planes(pts + [500000.0, 4000000.0, 100.0], k=64, iterations=2) - [500000.0, 4000000.0, 100.0]
+    assert out.shape == pts.shape
+    # scatter across the sphere falls by more than half; the radius itself barely moves (curvature bias)
+    assert np.std(radial(out)) < 0.5 * np.std(radial(pts))
+    assert abs(np.mean(radial(out))) < 0.002
+    # points keep their place along the surface: each stays within a few noise sigmas of where it was
+    assert np.percentile(np.linalg.norm(out - pts, axis=1), 99) < 0.05
+    assert np.array_equal(project_to_local_planes(pts, iterations=0), pts)
+
+
+def test_denoise_is_recorded_checked_and_refused_in_tiled_mode():
+    from tiled_gridpull.tile import TilingConfig, check_compatible
+
+    with pytest.raises(ConfigError, match="denoise"):
+        check_compatible(TilingConfig(voxel_size=0.1), SolverConfig(denoise=2))
+    with pytest.raises(ConfigError, match="denoise"):
+        SolverConfig(denoise=-1)
+    with pytest.raises(ConfigError, match="denoise_neighbors"):
+        SolverConfig(denoise_neighbors=2)
+    preset = load_config_file(REPO / "configs" / "noisy.yaml")
+    assert preset["denoise"] == 2

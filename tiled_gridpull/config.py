@@ -95,6 +95,12 @@ class SolverConfig:
         One-shape mode: 0 keeps ``resolution``; > 0 lowers it (never raises it) so that the finest cell is at
         least ``noise_cells`` x the cloud's estimated noise sigma (:func:`tiled_gridpull.noise.estimate_noise`).
         A field whose cell is finer than the noise reproduces the noise; ``configs/noisy.yaml`` uses 1.2.
+    denoise : int
+        One-shape mode: passes of :func:`tiled_gridpull.noise.project_to_local_planes` (each point moved onto
+        the plane of its ``denoise_neighbors`` nearest neighbours) before the noise estimate and the solve;
+        0 (default) leaves the points as they are. ``configs/noisy.yaml`` uses 2.
+    denoise_neighbors : int
+        Neighbours per plane fit of ``denoise``.
     """
 
     resolution: int = 256
@@ -129,6 +135,8 @@ class SolverConfig:
     query_pool: int = 200
     seed: int = 0
     noise_cells: float = 0.0
+    denoise: int = 0
+    denoise_neighbors: int = 64
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -149,11 +157,13 @@ class SolverConfig:
                     raise ConfigError(f"{f.name} must be one of {', '.join(_CHOICES[f.name])}; got {value!r}")
         positive = ["resolution", "iterations", "queries", "lr", "lr_step", "knn", "levels", "coarse_iterations",
                     "refine_lr", "refine_lr_step", "refine_sigma"]
+        if self.denoise_neighbors < 4:
+            raise ConfigError(f"denoise_neighbors must be at least 4 (a plane fit), got {self.denoise_neighbors!r}")
         for name in positive:
             if getattr(self, name) <= 0:
                 raise ConfigError(f"{name} must be positive, got {getattr(self, name)!r}")
         nonneg = ["margin", "m1", "m2", "alpha", "beta", "gamma", "query_sigma", "init_radius", "normal_weight",
-                  "seed", "refine_m2", "refine_gamma", "noise_cells", "udf_beta", "query_pool"]
+                  "seed", "refine_m2", "refine_gamma", "noise_cells", "udf_beta", "query_pool", "denoise"]
         for name in nonneg:
             if getattr(self, name) < 0:
                 raise ConfigError(f"{name} must be >= 0, got {getattr(self, name)!r}")

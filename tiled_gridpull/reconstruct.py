@@ -20,7 +20,7 @@ from .errors import ConfigError, InputError
 from .lattice import Lattice
 from .mesh import Mesh, boundary_loops, close_holes, extract_mesh, remove_small_components
 from .nearest import distances_to_cloud
-from .noise import estimate_noise
+from .noise import estimate_noise, project_to_local_planes
 from .solver import ProgressFn, solve
 from .stitch import trim_faces
 
@@ -112,6 +112,8 @@ def reconstruct(points: Any, *, config: SolverConfig | None = None, normals: np.
     xyz, nrm, report = prepare_points(points, normals)
     if cfg.normal_weight > 0 and nrm is None:
         raise InputError("normal_weight > 0 needs input normals, but the cloud has none")
+    if cfg.denoise > 0:
+        xyz = project_to_local_planes(xyz, cfg.denoise_neighbors, cfg.denoise)
     noise = estimate_noise(xyz)
     if lattice is None:
         if cfg.noise_cells > 0 and noise.sigma > 0:

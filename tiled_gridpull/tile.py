@@ -134,6 +134,9 @@ def check_compatible(tiling: TilingConfig, solver: "SolverConfig") -> None:
     """
     if solver.noise_cells > 0:
         raise ConfigError("noise_cells applies to one-shape mode (tiled mode fixes the cell size with voxel_size)")
+    if solver.denoise > 0:
+        raise ConfigError("denoise applies to one-shape mode (tiles are not denoised; it is untested across tile "
+                          "borders)")
     if solver.normal_weight > 0:
         raise ConfigError("normal_weight applies to one-shape mode (tiles orient estimated normals instead)")
     m2 = solver.refine_m2 if solver.levels > 1 else solver.m2
