@@ -274,7 +274,9 @@ def main() -> None:
         parts += ["## The paper's evaluation, re-run (`benchmarks/paper_eval.py`)", "",
                   "Bunny unless a mesh is named; 100k area-uniform samples; exact metrics against the unit-scaled "
                   "ground truth; `scans` is the 10 real Stanford range scans merged by `bun.conf`. Times were taken "
-                  "while other jobs shared the machine.", "", paper_tables, ""]
+                  "while other jobs shared the machine. The `noisy preset` rows below predate the preset's "
+                  "`denoise: 2` (2026-11-22); the current preset's figures on the same clouds are in "
+                  "docs/solver.md (Variants: noise).", "", paper_tables, ""]
     (REPO / "BENCHMARKS.md").write_text("\n".join(parts).rstrip() + "\n")
     print((REPO / "BENCHMARKS.md").read_text())
 
