@@ -16,11 +16,45 @@ from pykdtree.kdtree import KDTree
 
 from .band import Band
 
-__all__ = ["estimate_normals", "orient_normals", "plane_distance_init", "orientation_score", "flood_init"]
+__all__ = ["plane_fits", "estimate_normals", "orient_normals", "plane_distance_init", "orientation_score", "flood_init"]
+
+
+def plane_fits(points: np.ndarray, k: int, chunk: int = 200_000):
+    """Least-squares plane (PCA) of every point's ``k`` nearest neighbours, ``chunk`` points at a time.
+
+    Parameters
+    ----------
+    points : (N, 3) float
+    k : int
+        Neighbours per fit (at most N), the point itself included.
+    chunk : int
+        Points whose neighbourhoods are fitted at once (memory about ``chunk * k * 24`` bytes).
+
+    Yields
+    ------
+    start, stop : int
+        The rows of ``points`` this chunk covers.
+    centroids : (stop - start, 3) float64
+        Mean of each neighbourhood.
+    normals : (stop - start, 3) float64
+        Unit eigenvector of the smallest eigenvalue of each neighbourhood's covariance (unoriented).
+    """
+    pts = np.ascontiguousarray(points, dtype=np.float64)
+    n = len(pts)
+    k = int(min(k, n))
+    tree = KDTree(pts)
+    for s in range(0, n, chunk):
+        e = min(n, s + chunk)
+        _, idx = tree.query(pts[s:e], k=k)
+        nb = pts[idx.reshape(e - s, k)]
+        centroids = nb.mean(axis=1, keepdims=True)
+        nb -= centroids
+        _, vecs = np.linalg.eigh(np.einsum("nki,nkj->nij", nb, nb))
+        yield s, e, centroids[:, 0], vecs[:, :, 0]
 
 
 def estimate_normals(points: np.ndarray, k: int = 16, chunk: int = 200_000) -> np.ndarray:
-    """Unoriented unit normals by PCA over the ``k`` nearest neighbours.
+    """Unoriented unit normals by PCA over the ``k`` nearest neighbours (:func:`plane_fits`).
 
     Parameters
     ----------
@@ -32,19 +66,9 @@ def estimate_normals(points: np.ndarray, k: int = 16, chunk: int = 200_000) -> n
     (N, 3) float32
         Eigenvector of the smallest eigenvalue of each neighbourhood's covariance.
     """
-    pts = np.ascontiguousarray(points, dtype=np.float64)
-    n = len(pts)
-    k = int(min(k, n))
-    tree = KDTree(pts)
-    out = np.empty((n, 3), np.float32)
-    for s in range(0, n, chunk):
-        e = min(n, s + chunk)
-        _, idx = tree.query(pts[s:e], k=k)
-        nb = pts[idx.reshape(e - s, k)]
-        nb -= nb.mean(axis=1, keepdims=True)
-        cov = np.einsum("nki,nkj->nij", nb, nb)
-        _, vecs = np.linalg.eigh(cov)
-        out[s:e] = vecs[:, :, 0]
+    out = np.empty((len(points), 3), np.float32)
+    for s, e, _, normals in plane_fits(points, k, chunk):
+        out[s:e] = normals
     return out
 
 
