@@ -21,7 +21,7 @@ import time
 import numpy as np
 from numba import njit, prange
 
-from benchmarks.common import REPO, append_jsonl, machine, require_shared
+from benchmarks.common import REPO, append_jsonl, machine, markdown_table, require_shared
 
 RESULTS = REPO / "benchmarks" / "results" / "floor.jsonl"
 STATE_BYTES_PER_VERTEX = 96  # the model of the state an iteration touches
@@ -104,13 +104,10 @@ def render(rows: list[dict]) -> str:
     runs = [r for r in rows if r.get("variant") != "machine"]
     if not runs:
         return ""
-    out = ["| date | variant | band vertices | bandwidth GB/s | floor ms/it | ms/it | queries ms | steps ms | "
-           "x floor |", "|---|---|---|---|---|---|---|---|---|"]
-    for r in runs:
-        out.append(f"| {r['date']} | {r['variant']} | {r['params']:,.0f} | {r['bandwidth_gbs']:.1f} | "
-                   f"{r['floor_ms']:.1f} | {r['iteration_ms']:.1f} | {r['queries_ms']:.1f} | {r['steps_ms']:.1f} | "
-                   f"{r['x_floor']:.2f} |")
-    return "\n".join(out)
+    return markdown_table(runs, [("date", "date", ""), ("variant", "variant", ""), ("params", "band vertices", ",.0f"),
+                                 ("bandwidth_gbs", "bandwidth GB/s", ".1f"), ("floor_ms", "floor ms/it", ".1f"),
+                                 ("iteration_ms", "ms/it", ".1f"), ("queries_ms", "queries ms", ".1f"),
+                                 ("steps_ms", "steps ms", ".1f"), ("x_floor", "x floor", ".2f")])
 
 
 if __name__ == "__main__":

@@ -27,7 +27,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from benchmarks.common import REPO, append_jsonl, machine
+from benchmarks.common import REPO, append_jsonl, machine, markdown_table
 
 RESULTS = REPO / "benchmarks" / "results" / "scenes.jsonl"
 CLI = [sys.executable, "-m", "tiled_gridpull"]
@@ -247,12 +247,13 @@ def render_tiles(rows: list[dict]) -> str:
     for r in runs:  # the latest run of each copy count
         series = [q for q in series if q["copies"] != r["copies"]] + [r]
     series.sort(key=lambda r: r["tiles"])
-    out = ["| date | copies | points | workers | tiles | wall s | wall s per tile | solve task-s per tile | "
-           "peak RSS MB |", "|---|---|---|---|---|---|---|---|---|"]
-    for r in series:
-        out.append(f"| {r['date']} | {r['copies']} | {r['points']} | {r['workers']} | "
-                   f"{r['tiles']}/{r['tiles_planned']} | {r['wall_s']:.1f} | {r['wall_s'] / r['tiles']:.1f} | "
-                   f"{r['stages_s']['solve_task_s'] / r['tiles']:.1f} | {r['peak_rss_mb']:.0f} |")
+    table = [{**r, "tiles_of": f"{r['tiles']}/{r['tiles_planned']}", "wall_per_tile": r["wall_s"] / r["tiles"],
+              "solve_per_tile": r["stages_s"]["solve_task_s"] / r["tiles"]} for r in series]
+    out = [markdown_table(table, [("date", "date", ""), ("copies", "copies", ""), ("points", "points", ""),
+                                  ("workers", "workers", ""), ("tiles_of", "tiles", ""), ("wall_s", "wall s", ".1f"),
+                                  ("wall_per_tile", "wall s per tile", ".1f"),
+                                  ("solve_per_tile", "solve task-s per tile", ".1f"),
+                                  ("peak_rss_mb", "peak RSS MB", ".0f")])]
     if len(series) >= 2:
         t = np.array([r["tiles"] for r in series], float)
         w = np.array([r["wall_s"] for r in series], float)
