@@ -57,11 +57,11 @@ def bandwidth_gbs(n: int = 64 * 2**20, repeats: int = 5) -> float:
 def one_level(points: np.ndarray, settings: dict, iterations: int) -> dict:
     """Solve one level at R = 256 and return per-iteration timings and the band size."""
     from tiled_gridpull.config import SolverConfig
-    from tiled_gridpull.lattice import Lattice
+    from tiled_gridpull.reconstruct import shape_lattice
     from tiled_gridpull.solver import solve
 
     cfg = SolverConfig(levels=1, iterations=iterations, lr_step=max(iterations // 4, 1), **settings)
-    fld = solve(points, Lattice.fit(points, cfg.resolution, cfg.margin), cfg)
+    fld = solve(points, shape_lattice(points, cfg), cfg)
     lv = fld.info["levels"][-1]
     return {"params": lv["band"]["params"], "iteration_ms": 1e3 * lv["time_solve_s"] / iterations,
             "queries_ms": 1e3 * lv["time_queries_s"] / iterations, "steps_ms": 1e3 * lv["time_steps_s"] / iterations,

@@ -6,7 +6,7 @@ shared ground truth (normalised so the bbox's longest side is 1). Results append
 
 Usage::
 
-    python -m benchmarks.paper_eval noise        # 0.5 % and 1 % noise: default, noisy preset, Poisson
+    python -m benchmarks.paper_eval noise        # 0.5 % and 1 % noise: default, both noisy presets, Poisson
     python -m benchmarks.paper_eval scans        # the 10 real bunny range scans merged: ours vs Poisson
     python -m benchmarks.paper_eval normals      # exact normals: normal_weight 0 vs 1
     python -m benchmarks.paper_eval open         # half-sphere, terrain: --mode udf vs sdf
@@ -30,10 +30,10 @@ SUITES = ("noise", "scans", "normals", "open", "resolution", "losses", "bandwidt
 NOISE_MESHES = ("bunny", "armadillo", "fandisk", "abc_00011084", "abc_00016513", "abc_00994122")
 
 
-def _noisy_config() -> dict:
+def _noisy_config(name: str = "noisy") -> dict:
     from tiled_gridpull.config import load_config_file
 
-    return load_config_file(REPO / "configs" / "noisy.yaml")
+    return load_config_file(REPO / "configs" / f"{name}.yaml")
 
 
 #: Only runs whose label contains this string (``--only``), e.g. "preset" to re-run one row kind.
@@ -60,12 +60,13 @@ def poisson(cloud_points: int) -> dict:
 
 
 def noise() -> None:
-    noisy = _noisy_config()
+    noisy, very = _noisy_config(), _noisy_config("very_noisy")
     for level in (0.005, 0.01):
         for mesh in MESHES or NOISE_MESHES:
             tag = f"{level * 100:g}%"
             run("noise", f"{tag} default", mesh=mesh, noise=level)
             run("noise", f"{tag} noisy preset", config=noisy, mesh=mesh, noise=level)
+            run("noise", f"{tag} very_noisy preset", config=very, mesh=mesh, noise=level)
             run("noise", f"{tag} poisson", "poisson", poisson(100_000), mesh=mesh, noise=level)
 
 

@@ -59,3 +59,25 @@ def test_bad_lattice_rejected(kwargs):
 def test_dict_roundtrip():
     lat = Lattice((1.0, 2.0, 3.0), 0.5, (4, 5, 6), (7, 8, 9))
     assert Lattice.from_dict(lat.to_dict()) == lat
+
+
+def test_shape_lattice_gives_the_coarsest_level_its_own_margin():
+    """Three levels coarsen by 4: the finest lattice is padded so the coarsest still has ``margin`` empty cells
+    beyond the cloud on every side, at the cell size ``resolution`` asks for."""
+    from tiled_gridpull.config import SolverConfig
+    from tiled_gridpull.reconstruct import shape_lattice
+
+    pts = np.random.default_rng(0).uniform([-1.0, -0.5, -0.25], [1.0, 0.5, 0.25], size=(5000, 3))
+    cfg = SolverConfig(resolution=128, margin=4, levels=3)
+    lat = shape_lattice(pts, cfg)
+    plain = Lattice.fit(pts, 128, 4)
+    assert lat.cell_size == pytest.approx(plain.cell_size)
+    assert lat.shape == tuple(s + 2 * 12 for s in plain.shape)
+    coarse = lat.coarsen(4)
+    idx = coarse.to_index(pts)
+    assert idx.min() >= 4 - 1e-9
+    assert np.all(idx.max(axis=0) <= np.asarray(coarse.n_cells) - 4 + 1e-9)
+    # one level: nothing to pad
+    assert shape_lattice(pts, SolverConfig(resolution=128, levels=1)) == plain
+    with pytest.raises(ConfigError, match="pad"):
+        Lattice.fit(pts, 128, 4, pad=-1)

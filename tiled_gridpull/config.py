@@ -94,13 +94,17 @@ class SolverConfig:
     noise_cells : float
         One-shape mode: 0 keeps ``resolution``; > 0 lowers it (never raises it) so that the finest cell is at
         least ``noise_cells`` x the cloud's estimated noise sigma (:func:`tiled_gridpull.noise.estimate_noise`).
-        A field whose cell is finer than the noise reproduces the noise; ``configs/noisy.yaml`` uses 1.2.
+        A field whose cell is finer than the noise reproduces the noise; ``configs/noisy.yaml`` uses 0.8 (after its
+        robust denoising), ``configs/very_noisy.yaml`` 1.2.
     denoise : int
         One-shape mode: passes of :func:`tiled_gridpull.noise.project_to_local_planes` (each point moved onto
         the plane of its ``denoise_neighbors`` nearest neighbours) before the noise estimate and the solve;
         0 (default) leaves the points as they are. ``configs/noisy.yaml`` uses 2.
     denoise_neighbors : int
         Neighbours per plane fit of ``denoise``.
+    denoise_bandwidth : float
+        0: ``denoise`` fits plain least-squares planes. > 0: robust (bilateral) planes whose range scale is this
+        many estimated noise sigmas, so thin walls and sharp edges keep their sheets apart.
     """
 
     resolution: int = 256
@@ -137,6 +141,7 @@ class SolverConfig:
     noise_cells: float = 0.0
     denoise: int = 0
     denoise_neighbors: int = 64
+    denoise_bandwidth: float = 0.0
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -163,7 +168,8 @@ class SolverConfig:
             if getattr(self, name) <= 0:
                 raise ConfigError(f"{name} must be positive, got {getattr(self, name)!r}")
         nonneg = ["margin", "m1", "m2", "alpha", "beta", "gamma", "query_sigma", "init_radius", "normal_weight",
-                  "seed", "refine_m2", "refine_gamma", "noise_cells", "udf_beta", "query_pool", "denoise"]
+                  "seed", "refine_m2", "refine_gamma", "noise_cells", "udf_beta", "query_pool", "denoise",
+                  "denoise_bandwidth"]
         for name in nonneg:
             if getattr(self, name) < 0:
                 raise ConfigError(f"{name} must be >= 0, got {getattr(self, name)!r}")

@@ -64,7 +64,7 @@ class Lattice:
 
     # ------------------------------------------------------------------ constructors
     @classmethod
-    def fit(cls, points: np.ndarray, resolution: int = 256, margin: int = 4) -> "Lattice":
+    def fit(cls, points: np.ndarray, resolution: int = 256, margin: int = 4, pad: int = 0) -> "Lattice":
         """Lattice for one shape: ``resolution`` cells across the padded longest side, centred on the bbox.
 
         Parameters
@@ -75,9 +75,14 @@ class Lattice:
             Cells across the longest side of the bounding box including ``margin`` cells on each side.
         margin : int
             Empty cells kept around the bounding box on every side (room for the pull band).
+        pad : int
+            Further empty cells on every side that do not count in ``resolution``: the cell size stays
+            ``extent / (resolution - 2 margin)`` and the block grows by ``2 pad`` cells per axis.
         """
         if resolution < 2 * margin + 4:
             raise ConfigError(f"resolution must be at least {2 * margin + 4} (got {resolution})")
+        if pad < 0:
+            raise ConfigError(f"lattice pad must be >= 0, got {pad!r}")
         pts = np.asarray(points, dtype=np.float64)
         lo, hi = pts.min(axis=0), pts.max(axis=0)
         extent = float((hi - lo).max())
@@ -85,7 +90,7 @@ class Lattice:
             raise ConfigError("cannot fit a lattice to a cloud with zero extent")
         cell = extent / (resolution - 2 * margin)
         centre = 0.5 * (lo + hi)
-        cells = np.ceil((hi - lo) / cell - 1e-9).astype(np.int64) + 2 * margin
+        cells = np.ceil((hi - lo) / cell - 1e-9).astype(np.int64) + 2 * (margin + int(pad))
         cells = np.maximum(cells, 1)
         origin = centre - 0.5 * cells * cell
         return cls(tuple(origin), cell, tuple(int(c) + 1 for c in cells))

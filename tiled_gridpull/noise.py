@@ -86,15 +86,21 @@ def estimate_noise(points: np.ndarray, k: int = 64, sample: int = 10_000, seed: 
     return NoiseEstimate(sigma, spacing)
 
 
-def project_to_local_planes(points: np.ndarray, k: int = 64, iterations: int = 2,
+def project_to_local_planes(points: np.ndarray, k: int = 64, iterations: int = 2, bandwidth: float = 0.0,
                             chunk: int = 50_000) -> np.ndarray:
-    """Denoise a cloud: move every point onto the least-squares plane of its ``k`` nearest neighbours, repeated.
+    """Denoise a cloud: move every point onto the plane of its ``k`` nearest neighbours, repeated.
 
     The classical point-set projection (:func:`tiled_gridpull.orient.plane_fits`, all points moved at once from
-    the previous pass's positions). It removes scatter across the surface and leaves the spacing along it, so the noise
-    estimate drops and the noisy preset can keep a finer grid: on abc_00016513 (a thin-walled tube, 100k
-    points, 1 % noise) the preset went from exact CD-L1 19.6e-3 / NC 0.81 to 3.3e-3 / 0.91 with k = 64 and two
-    passes (docs/solver.md). Sharp edges are rounded over about one neighbourhood radius.
+    the previous pass's positions). It removes scatter across the surface and leaves the spacing along it, so the
+    noise estimate drops and the noisy preset can keep a finer grid.
+
+    The plain least-squares plane (``bandwidth = 0``) averages whatever sheets share a neighbourhood: the two
+    walls of a part thinner than the neighbourhood merge into one, and sharp edges round over about one
+    neighbourhood radius. With ``bandwidth > 0`` the plane is fitted robustly (bilateral weights, see
+    :func:`~tiled_gridpull.orient.plane_fits`) with a range scale of ``bandwidth`` x the noise sigma
+    re-estimated before each pass, so each point moves toward the sheet it came from. Measured on
+    abc_00011084 (a bushing with a thin sleeve in its bore; 100k points, noise 0.5 % of the bbox diagonal)
+    by the noisy preset: docs/solver.md.
 
     Parameters
     ----------
@@ -104,8 +110,10 @@ def project_to_local_planes(points: np.ndarray, k: int = 64, iterations: int = 2
         Neighbours per plane fit (at most N).
     iterations : int
         Passes; 0 returns a copy.
+    bandwidth : float
+        Robust range scale in units of the estimated noise sigma; 0 gives the plain least-squares plane.
     chunk : int
-        Points whose neighbourhoods are fitted at once (bounds memory to about ``chunk * k * 24`` bytes).
+        Points whose neighbourhoods are fitted at once (bounds memory to about ``chunk * k * 48`` bytes).
 
     Returns
     -------
@@ -120,8 +128,9 @@ def project_to_local_planes(points: np.ndarray, k: int = 64, iterations: int = 2
     if k < 4 or iterations <= 0:
         return pts.copy()
     for _ in range(int(iterations)):
+        h = bandwidth * estimate_noise(cur).sigma if bandwidth > 0 else 0.0
         out = np.empty_like(cur)
-        for a, b, centroid, normal in plane_fits(cur, k, chunk):
+        for a, b, centroid, normal in plane_fits(cur, k, chunk, bandwidth=h):
             p = cur[a:b]
             out[a:b] = p - np.sum((p - centroid) * normal, axis=1)[:, None] * normal
         cur = out

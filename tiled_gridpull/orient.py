@@ -19,8 +19,15 @@ from .band import Band
 __all__ = ["plane_fits", "estimate_normals", "orient_normals", "plane_distance_init", "orientation_score", "flood_init"]
 
 
-def plane_fits(points: np.ndarray, k: int, chunk: int = 200_000):
+def plane_fits(points: np.ndarray, k: int, chunk: int = 200_000, bandwidth: float = 0.0, reweights: int = 3):
     """Least-squares plane (PCA) of every point's ``k`` nearest neighbours, ``chunk`` points at a time.
+
+    With ``bandwidth > 0`` the fit is robust: each neighbour is then weighted by
+    ``exp(-d^2 / (2 bandwidth^2))``, ``d`` its offset along the current normal from the centre point's
+    projection onto the current plane (first the point itself), and the weighted plane refitted ``reweights``
+    times (a bilateral filter's range weight, iterated as a mean shift along the normal). Where two sheets lie within one neighbourhood (the two walls of a thin part, the faces at a sharp
+    edge) the plain fit averages them into one plane between; the weighted fit settles on the sheet the centre
+    point belongs to.
 
     Parameters
     ----------
@@ -28,16 +35,21 @@ def plane_fits(points: np.ndarray, k: int, chunk: int = 200_000):
     k : int
         Neighbours per fit (at most N), the point itself included.
     chunk : int
-        Points whose neighbourhoods are fitted at once (memory about ``chunk * k * 24`` bytes).
+        Points whose neighbourhoods are fitted at once (memory about ``chunk * k * 24`` bytes, twice that when
+        robust).
+    bandwidth : float
+        Range scale of the robust weights, in the points' units; 0 gives the plain least-squares fit.
+    reweights : int
+        Weighted refits after the plain one (``bandwidth > 0`` only).
 
     Yields
     ------
     start, stop : int
         The rows of ``points`` this chunk covers.
     centroids : (stop - start, 3) float64
-        Mean of each neighbourhood.
+        (Weighted) mean of each neighbourhood.
     normals : (stop - start, 3) float64
-        Unit eigenvector of the smallest eigenvalue of each neighbourhood's covariance (unoriented).
+        Unit eigenvector of the smallest eigenvalue of each neighbourhood's (weighted) covariance (unoriented).
     """
     pts = np.ascontiguousarray(points, dtype=np.float64)
     n = len(pts)
@@ -46,11 +58,29 @@ def plane_fits(points: np.ndarray, k: int, chunk: int = 200_000):
     for s in range(0, n, chunk):
         e = min(n, s + chunk)
         _, idx = tree.query(pts[s:e], k=k)
-        nb = pts[idx.reshape(e - s, k)]
-        centroids = nb.mean(axis=1, keepdims=True)
-        nb -= centroids
-        _, vecs = np.linalg.eigh(np.einsum("nki,nkj->nij", nb, nb))
-        yield s, e, centroids[:, 0], vecs[:, :, 0]
+        nb = pts[idx.reshape(e - s, k).astype(np.int64)]
+        centroids, normals = _weighted_planes(nb, None)
+        if bandwidth > 0:
+            anchor = pts[s:e]
+            for _ in range(int(reweights)):
+                offset = np.einsum("nki,ni->nk", nb - anchor[:, None], normals)
+                centroids, normals = _weighted_planes(nb, np.exp(-0.5 * (offset / bandwidth) ** 2))
+                # follow the point's projection, so the weights climb to its sheet's densest level (mean shift)
+                anchor = pts[s:e] - np.einsum("ni,ni->n", pts[s:e] - centroids, normals)[:, None] * normals
+        yield s, e, centroids, normals
+
+
+def _weighted_planes(nb: np.ndarray, weights: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """Centroids (n, 3) and unit normals (n, 3) of neighbourhoods ``nb`` (n, k, 3), weights (n, k) or None."""
+    if weights is None:
+        centroids = nb.mean(axis=1)
+        d = nb - centroids[:, None]
+    else:
+        # the centre point itself has weight 1, so the sum never vanishes
+        centroids = np.einsum("nk,nki->ni", weights, nb) / weights.sum(axis=1)[:, None]
+        d = (nb - centroids[:, None]) * np.sqrt(weights)[:, :, None]
+    _, vecs = np.linalg.eigh(np.einsum("nki,nkj->nij", d, d))
+    return centroids, vecs[:, :, 0]
 
 
 def estimate_normals(points: np.ndarray, k: int = 16, chunk: int = 200_000) -> np.ndarray:
