@@ -141,6 +141,11 @@ def render(rows: list[dict]) -> str:
         sel = [r for (s, _, _), r in latest.items() if s == suite]
         if not sel:
             continue
+        if suite == "noise":
+            # noise level, then mesh, then run kind in the order the suite runs them
+            kinds = ("default", "noisy preset", "very_noisy preset", "poisson")
+            sel.sort(key=lambda r: (float(r["label"].split("%")[0]), NOISE_MESHES.index(r["mesh"]),
+                                    kinds.index(r["label"].split(" ", 1)[1])))
         out += [f"### {suite}", "", "| mesh | run | CD-L1 x1e3 | CD-L2 x1e5 | NC | F@0.01 | Hausdorff | pieces | "
                 "watertight | wall s | peak MB |", "|---|---|---|---|---|---|---|---|---|---|---|"]
         for r in sel:
