@@ -12,7 +12,7 @@ Usage::
     python -m benchmarks.paper_eval open         # half-sphere, terrain: --mode udf vs sdf
     python -m benchmarks.paper_eval resolution   # R = 32 .. 512 (bunny)
     python -m benchmarks.paper_eval losses       # pull; +grad; +TV; +surface (bunny)
-    python -m benchmarks.paper_eval bandwidth    # M2 = 2, 14, 30 (bunny)
+    python -m benchmarks.paper_eval bandwidth    # M2 = 3, 14, 30, all (bunny)
     python -m benchmarks.paper_eval points       # 10k, 100k, 1M points (bunny)
     python -m benchmarks.paper_eval all
 """
@@ -107,6 +107,9 @@ def bandwidth() -> None:
     # M2 is the TV band at the coarsest level, refine_m2 at the finer ones; both must hold M1 = 3
     for m2 in (3, 14, 30):
         run("bandwidth", f"M2={m2}", config={"m2": m2, "refine_m2": max(3, min(m2, 30))})
+    # TV over every vertex of every level: dilations wider than each level's padded lattice (R = 256:
+    # 70 coarse cells, 280 fine ones)
+    run("bandwidth", "M2=all", config={"m2": 64, "refine_m2": 256})
 
 
 def points() -> None:
