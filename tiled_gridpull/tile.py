@@ -132,6 +132,9 @@ def check_compatible(tiling: TilingConfig, solver: "SolverConfig") -> None:
     cells marching cubes may use) agree only if every point within ``M2 + 1`` cells of the face is in both
     blocks, i.e. ``overlap >= M2 + 1`` cells for the finest level's band.
     """
+    if solver.mode == "udf":
+        raise ConfigError("mode udf applies to one-shape mode (tiles orient estimated normals and trim "
+                          "faces farther than trim_distance from the points: open ground stays open)")
     if solver.noise_cells > 0:
         raise ConfigError("noise_cells applies to one-shape mode (tiled mode fixes the cell size with voxel_size)")
     if solver.denoise > 0:
