@@ -16,7 +16,8 @@ from .field import Field
 from .kernels import graph as kg
 from .kernels import mc as kmc
 
-__all__ = ["Mesh", "extract_mesh", "MeshTopology", "remove_small_components"]
+__all__ = ["Mesh", "extract_mesh", "MeshTopology", "remove_small_components", "boundary_edges",
+           "boundary_loops", "close_holes", "remove_pinched_fans"]
 
 T_CLAMP = 1e-3  # keep crossings off the lattice vertices so no triangle collapses to zero area
 
@@ -156,7 +157,7 @@ class Mesh:
 
 def extract_mesh(fld: Field, iso: float = 0.0, cell_lo: np.ndarray | None = None,
                  cell_hi: np.ndarray | None = None, key_offset: np.ndarray | None = None,
-                 with_keys: bool = False, unsigned: bool | None = None, tau: float = 1.0):
+                 with_keys: bool = False):
     """Marching cubes over the optimized cells of a field.
 
     Parameters
@@ -171,16 +172,14 @@ def extract_mesh(fld: Field, iso: float = 0.0, cell_lo: np.ndarray | None = None
         from different tiles agree.
     with_keys : bool
         Also return the edge key of every vertex (for welding tiles).
-    unsigned : bool, optional
-        Mesh an unsigned field with per-cell pseudo-signs from gradients (default: ``not fld.signed``); faces
-        are then oriented consistently per connected piece.
-    tau : float
-        Unsigned fields: only cells whose smallest value is below ``tau`` cells are meshed.
 
     Returns
     -------
     Mesh, or (Mesh, keys) with ``keys`` (V,) int64
     """
+    if not fld.signed:
+        raise ValueError("an unsigned field has no zero crossings to mesh: sign it first "
+                         "(tiled_gridpull.orient.sign_unsigned_field)")
     band = fld.band
     lat = band.lattice
     lo = np.zeros(3, np.int64) if cell_lo is None else np.asarray(cell_lo, np.int64)
@@ -193,26 +192,19 @@ def extract_mesh(fld: Field, iso: float = 0.0, cell_lo: np.ndarray | None = None
     values = fld.values.reshape(-1)
     flags = band.flags.reshape(-1)
     iso32 = np.float32(iso)
-    if unsigned is None:
-        unsigned = not fld.signed
-    shape = np.asarray(lat.shape, np.int64)
-    counts = kmc.count_triangles(values, flags, band.brick_table, band.brick_coords, lo, hi, iso32, unsigned,
-                                 np.float32(tau), shape)
+    counts = kmc.count_triangles(values, flags, band.brick_table, band.brick_coords, lo, hi, iso32)
     offsets = np.zeros((len(counts) + 1, 2), np.int64)
     np.cumsum(counts, axis=0, out=offsets[1:])
     tris = np.empty((int(offsets[-1, 0]), 3), np.int64)
     centres = np.empty((int(offsets[-1, 1]), 3), np.float64)
     kmc.emit_triangles(values, flags, band.brick_table, band.brick_coords, lo, hi, iso32, offsets, koff, tris,
-                       centres, unsigned, np.float32(tau), shape)
+                       centres)
     keys, inverse = np.unique(tris, return_inverse=True)
     faces = inverse.reshape(-1, 3)
     pts = np.empty((len(keys), 3), np.float64)
     is_centre = keys < 0
     pts[is_centre] = centres[-1 - keys[is_centre]]
-    pts[~is_centre] = kmc.edge_points(values, band.brick_table, keys[~is_centre], koff, float(iso), T_CLAMP,
-                                            unsigned)
-    if unsigned:
-        faces = orient_consistently(faces)
+    pts[~is_centre] = kmc.edge_points(values, band.brick_table, keys[~is_centre], koff, float(iso), T_CLAMP)
     mesh = Mesh(lat.to_world(pts), faces)
     return (mesh, keys) if with_keys else mesh
 
@@ -236,22 +228,6 @@ def _edge_groups(faces: np.ndarray, n_vertices: int) -> tuple[np.ndarray, np.nda
     starts = np.flatnonzero(np.r_[True, key_sorted[1:] != key_sorted[:-1]])
     counts = np.diff(np.r_[starts, len(key_sorted)])
     return directed, order, starts, counts
-
-
-def orient_consistently(faces: np.ndarray) -> np.ndarray:
-    """Faces (F, 3) int64 reordered so that every manifold edge is traversed in opposite directions by its two faces
-    (within each connected piece; the piece's lowest face keeps its orientation)."""
-    if len(faces) == 0:
-        return faces
-    directed, order, starts, counts = _edge_groups(faces, int(faces.max()) + 1)
-    owner = np.tile(np.arange(len(faces), dtype=np.int64), 3)  # face of each directed edge
-    pair = starts[counts == 2]
-    a, b = order[pair], order[pair + 1]
-    same = directed[a, 0] == directed[b, 0]
-    flip = kg.orient_faces(faces, np.stack([owner[a], owner[b]], axis=1), same)
-    out = faces.copy()
-    out[flip] = out[flip][:, ::-1]
-    return out
 
 
 def remove_small_components(mesh: Mesh, min_extent: float) -> tuple[Mesh, int]:
@@ -280,14 +256,56 @@ def remove_small_components(mesh: Mesh, min_extent: float) -> tuple[Mesh, int]:
     return mesh.submesh(~small[labels]), int(small.sum())
 
 
+def remove_pinched_fans(mesh: Mesh, max_rounds: int = 4) -> tuple[Mesh, int]:
+    """Make every vertex manifold: where the faces around a vertex form several fans joined only at that
+    vertex (a pinch: the boundary passes through it more than once), keep the fan with the most faces.
+
+    Trimming faces one by one leaves such pinches along a cut edge. Removing a fan can pinch another vertex,
+    so this repeats (at most ``max_rounds`` times).
+
+    Returns
+    -------
+    mesh : Mesh
+    removed : int
+        Faces dropped.
+    """
+    removed = 0
+    for _ in range(max_rounds):
+        edges = boundary_edges(mesh)
+        pinched = np.flatnonzero(np.bincount(edges[:, 0], minlength=mesh.n_vertices) > 1)
+        if len(pinched) == 0:
+            break
+        F = mesh.faces
+        drop = np.zeros(len(F), bool)
+        incident = np.argsort(F.reshape(-1), kind="stable")
+        first = np.searchsorted(F.reshape(-1)[incident], pinched)
+        last = np.searchsorted(F.reshape(-1)[incident], pinched, side="right")
+        for v, a, b in zip(pinched, first, last):
+            around = incident[a:b] // 3
+            # faces around v are joined when they share a spoke (an edge through v): fans = connected spokes
+            spokes = F[around][F[around] != v].reshape(-1, 2)
+            names, pair = np.unique(spokes, return_inverse=True)
+            pair = pair.reshape(-1, 2)
+            labels, _ = kg.vertex_components(len(names), np.c_[pair, pair[:, :1]])
+            fan = labels[pair[:, 0]]
+            drop[around[fan != np.bincount(fan).argmax()]] = True
+        removed += int(drop.sum())
+        mesh = mesh.submesh(~drop)
+    return mesh, removed
+
+
+def boundary_edges(mesh: Mesh) -> np.ndarray:
+    """Edges used by one face only, (B, 2) int64 vertex ids, each in its face's direction."""
+    if mesh.n_faces == 0:
+        return np.zeros((0, 2), np.int64)
+    directed, order, starts, counts = _edge_groups(mesh.faces, mesh.n_vertices)
+    return directed[order[starts[counts == 1]]]
+
+
 def boundary_loops(mesh: Mesh) -> list[np.ndarray]:
     """Closed boundary loops of a mesh, each an (n,) int64 array of vertex ids in the order of its faces'
     boundary edges. Loops through a vertex with more than one outgoing boundary edge (a pinch) are skipped."""
-    F = mesh.faces
-    if len(F) == 0:
-        return []
-    directed, order, starts, counts = _edge_groups(F, mesh.n_vertices)
-    edges = directed[order[starts[counts == 1]]]
+    edges = boundary_edges(mesh)
     if len(edges) == 0:
         return []
     out_deg = np.bincount(edges[:, 0], minlength=mesh.n_vertices)

@@ -23,7 +23,7 @@ import numpy as np
 from pykdtree.kdtree import KDTree
 
 from ._optional import require
-from .mesh import Mesh
+from .mesh import Mesh, boundary_loops
 from .nearest import distances_to_cloud
 
 __all__ = ["sample_surface", "point_to_mesh", "evaluate", "DEFAULT_THRESHOLDS"]
@@ -117,7 +117,8 @@ def evaluate(pred: Mesh, gt: Mesh, n_samples: int = 100_000, thresholds=DEFAULT_
     dict
         ``chamfer_l1``, ``chamfer_l2``, ``chamfer_l2_x100``, ``accuracy``, ``completeness``,
         ``normal_consistency``, ``hausdorff``, ``fscore@tau`` (+ precision/recall), the ``*_exact`` variants, and
-        the predicted mesh's topology (``watertight``, ``components``, ``boundary_edges``, ...).
+        the predicted mesh's topology (``watertight``, ``components``, ``boundary_edges``, ``boundary_loops``
+        (simple loops; a loop through a pinched vertex is not counted), ...).
     """
     if pred.n_faces == 0:
         raise ValueError("the reconstructed mesh has no faces")
@@ -167,6 +168,6 @@ def evaluate(pred: Mesh, gt: Mesh, n_samples: int = 100_000, thresholds=DEFAULT_
             out[f"fscore_exact@{tau:g}"] = f
     topo = pred.topology
     out.update({"watertight": topo.watertight, "components": topo.components,
-                "boundary_edges": topo.boundary_edges, "nonmanifold_edges": topo.nonmanifold_edges,
-                "vertices": topo.n_vertices, "faces": topo.n_faces})
+                "boundary_edges": topo.boundary_edges, "boundary_loops": len(boundary_loops(pred)),
+                "nonmanifold_edges": topo.nonmanifold_edges, "vertices": topo.n_vertices, "faces": topo.n_faces})
     return out

@@ -13,12 +13,15 @@ import warnings
 from typing import Any
 
 import numpy as np
+from pykdtree.kdtree import KDTree
 
 from ._version import __version__
 from .config import SolverConfig
 from .errors import ConfigError, InputError
+from .kernels.graph import vertex_components
 from .lattice import Lattice
-from .mesh import Mesh, boundary_loops, close_holes, extract_mesh, remove_small_components
+from .mesh import (Mesh, boundary_loops, close_holes, extract_mesh, remove_pinched_fans,
+                   remove_small_components)
 from .nearest import distances_to_cloud
 from .noise import estimate_noise, project_to_local_planes
 from .solver import ProgressFn, solve
@@ -29,6 +32,20 @@ __all__ = ["reconstruct", "prepare_points", "shape_lattice"]
 #: Lowest resolution ``noise_cells`` may pick: below 64 cells the schedule drops to a single level, which
 #: measured far worse (bunny, 1 % noise: R = 48, one level, NC 0.54; R = 64, two levels, NC 0.92).
 MIN_NOISY_RESOLUTION = 64
+
+
+#: UDF mode keeps faces within this many cells, or this many median sample spacings, of the data (whichever is
+#: farther). Half-sphere and terrain patch at R = 256 (exact CD-L1 x 1e3 / Hausdorff x 1e3): 100k samples
+#: (spacing 0.46 cells), 1.5 cells: 0.034 / 8.5 and 0.031 / 7.9; 1 cell: 0.028 / 5.1 and 0.019 / 4.0.
+#: 10k samples (1.46 cells), 1.5 cells: the gaps between samples joined up and the sheets fell into 1146
+#: and 85 pieces; 2 spacings: one piece each, 0.144 / 12.0 and 0.109 / 12.0; 2.5 spacings: 0.160 / 15.2 and
+#: 0.154 / 15.5.
+UDF_TRIM_CELLS = 1.0
+UDF_TRIM_SPACINGS = 2.0
+#: UDF mode drops pieces that are the nearest surface of fewer input points than a plane fit uses: the signs
+#: come from local planes, and a lone stray point (one in the merged bunny scans, 0.5 from the surface)
+#: otherwise came back as a closed bubble 4 cells across.
+UDF_MIN_SUPPORT = 16
 
 
 def shape_lattice(points: np.ndarray, config: SolverConfig) -> Lattice:
@@ -108,7 +125,7 @@ def reconstruct(points: Any, *, config: SolverConfig | None = None, normals: np.
         Solver settings (defaults: the paper's). Keyword ``options`` override single fields, e.g.
         ``resolution=128, iterations=800, seed=1``.
     normals : (N, 3) array_like, optional
-        Unit normals, used when ``normal_weight > 0``.
+        Unit normals, used when ``normal_weight > 0``; in UDF mode they also orient the sign estimate.
     lattice : Lattice, optional
         Use this lattice instead of fitting one to the cloud.
     progress : callable, optional
@@ -159,10 +176,10 @@ def reconstruct(points: Any, *, config: SolverConfig | None = None, normals: np.
     fld = solve(xyz, lattice, cfg, normals=nrm, progress=progress)
     t_solve = time.perf_counter()
     mesh = extract_mesh(fld)
+    sheet: dict = {}
     if cfg.mode == "udf" and mesh.n_faces:
-        # an unsigned field's pseudo-signs extend the sheet up to ``tau`` past the last samples: cut it back to
-        # within a cell and a half of the data so the sheet ends where the data ends
-        mesh, _ = trim_faces(mesh, None, xyz, 1.5 * lattice.cell_size)
+        mesh, sheet = _end_sheet_at_data(mesh, xyz, max(UDF_TRIM_CELLS * lattice.cell_size,
+                                                        UDF_TRIM_SPACINGS * noise.spacing))
     closed = 0
     if cfg.mode == "sdf" and close_band_holes and mesh.n_faces:
         mesh, closed = _close_band_edge_holes(mesh, xyz, cfg.m1 * lattice.cell_size)
@@ -188,6 +205,7 @@ def reconstruct(points: Any, *, config: SolverConfig | None = None, normals: np.
         "loss_history": fld.info.get("history", []),
         "noise_estimate": {**noise.to_dict(), "cells": noise.sigma / lattice.cell_size},
         "small_components_removed": int(removed),
+        **({"udf_trim": sheet} if sheet else {}),
         "orientation_flipped": flipped,
         "band_edge_holes_closed": int(closed),
         "timings_s": {"prepare": t_prep - t0, "solve": t_solve - t_prep, "mesh": t_mesh - t_solve,
@@ -205,3 +223,32 @@ def _close_band_edge_holes(mesh: Mesh, points: np.ndarray, min_distance: float) 
     nearest = np.minimum.reduceat(d, np.cumsum([0] + [len(loop) for loop in loops[:-1]]))
     far = [loop for loop, dmin in zip(loops, nearest) if dmin >= min_distance]
     return close_holes(mesh, far), len(far)
+
+
+def _end_sheet_at_data(mesh: Mesh, points: np.ndarray, reach: float) -> tuple[Mesh, dict]:
+    """UDF mode: cut an open sheet back to the data.
+
+    Past the data's edge the signed field's zero level runs on along the last tangent planes to the band's
+    edge. Faces farther than ``reach`` from the points are dropped where they reach that edge (gaps between
+    samples stay filled), then pinches left along the cut and pieces without data of their own."""
+    mesh, _ = trim_faces(mesh, None, points, reach, keep_gaps=True)
+    mesh, pinched = remove_pinched_fans(mesh)
+    mesh, unsupported = _drop_unsupported_pieces(mesh, points, UDF_MIN_SUPPORT)
+    return mesh, {"reach": reach, "pinched_faces_removed": pinched, "unsupported_pieces_removed": unsupported}
+
+
+def _drop_unsupported_pieces(mesh: Mesh, points: np.ndarray, min_points: int) -> tuple[Mesh, int]:
+    """Drop the connected pieces that are the nearest piece of fewer than ``min_points`` points."""
+    if mesh.n_faces == 0:
+        return mesh, 0
+    labels, count = vertex_components(mesh.n_vertices, mesh.faces)
+    if count == 1:
+        return mesh, 0
+    # from a local origin: georeferenced coordinates would cost the tree its precision
+    origin = mesh.vertices.mean(axis=0)
+    _, nearest = KDTree(mesh.vertices - origin).query(np.asarray(points, dtype=np.float64) - origin, k=1)
+    support = np.bincount(labels[nearest.astype(np.int64)], minlength=count)
+    keep = support[labels[mesh.faces[:, 0]]] >= min_points
+    used = np.unique(labels[mesh.faces[:, 0]])
+    dropped = int(np.count_nonzero(support[used] < min_points))
+    return (mesh.submesh(keep), dropped) if dropped else (mesh, 0)

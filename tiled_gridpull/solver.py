@@ -165,8 +165,11 @@ def solve(points: np.ndarray, lattice: Lattice, config: SolverConfig, *,
     N = None
     if normals is not None and config.normal_weight > 0:
         N = np.ascontiguousarray(np.asarray(normals, dtype=np.float32)[inside])
+    udf = config.mode == "udf"
     levels = config.levels_for(max(lattice.n_cells))
     total = sum(config.level_settings(level, levels)["iterations"] for level in range(levels))
+    if udf:
+        total += config.udf_polish
     fld: Field | None = None
     done = 0
     per_level = []
@@ -175,10 +178,11 @@ def solve(points: np.ndarray, lattice: Lattice, config: SolverConfig, *,
         factor = 2 ** (levels - 1 - level)
         lat = lattice.coarsen(factor)
         P = np.ascontiguousarray(idx / factor, dtype=np.float32)
-        Nl = N
+        # an unsigned field has no direction to compare with a normal: UDF levels skip the normal loss
+        Nl = None if udf else N
         if factor > 1:
             P, keep = _thin(P, config.seed + level)
-            Nl = N[keep] if N is not None else None
+            Nl = Nl[keep] if Nl is not None else None
         st = config.level_settings(level, levels)
         tb = time.perf_counter()
         band = build_band(P, lat, config.m1, st["m2"])
@@ -202,6 +206,13 @@ def solve(points: np.ndarray, lattice: Lattice, config: SolverConfig, *,
         per_level.append({"level": level, "cell_size": lat.cell_size, "shape": list(lat.shape), "band": band.stats,
                           "time_band_s": t_band, **{k: v for k, v in fld.info.items() if k != "history"}})
     assert fld is not None
+    udf_info = None
+    if udf:
+        # P: the finest level's points, all of them
+        fld, udf_info = _sign_and_polish(fld, P, N, normals, inside, config, levels, progress, history_every,
+                                         done, total, history)
+        polish = {k: v for k, v in fld.info.items() if k != "history"}
+        per_level.append({"level": levels, "polish": True, **polish})
     fld.info = {
         "points_used": int(len(idx)),
         "band": fld.band.stats,
@@ -209,7 +220,28 @@ def solve(points: np.ndarray, lattice: Lattice, config: SolverConfig, *,
         "history": history,
         "time_total_s": time.perf_counter() - t0,
     }
+    if udf_info is not None:
+        fld.info["udf"] = udf_info
     return fld
+
+
+def _sign_and_polish(fld: Field, P: np.ndarray, N: np.ndarray | None, normals: np.ndarray | None,
+                     inside: np.ndarray, config: SolverConfig, levels: int, progress: ProgressFn | None,
+                     history_every: int, done: int, total: int, history: list) -> tuple[Field, dict]:
+    """End of a UDF solve: sign the unsigned field, then refine it as a signed one (``config.udf_polish``).
+
+    Input normals, when given, orient the sign estimate even if the normal loss is off."""
+    from .orient import sign_unsigned_field
+
+    given = None if normals is None else np.asarray(normals, dtype=np.float64)[inside]
+    values, info = sign_unsigned_field(fld.band, fld.values, P, given)
+    info["polish_iterations"] = config.udf_polish
+    if config.udf_polish == 0:
+        return Field(fld.band, values, signed=True, info=fld.info), info
+    signed = config.replace(mode="sdf")
+    out = _optimize(P, N, fld.band, values, signed, signed.polish_settings(levels), progress, history_every,
+                    done, total, levels, history)
+    return out, info
 
 
 def _optimize(P: np.ndarray, N: np.ndarray | None, band: Band, values: np.ndarray, cfg: SolverConfig,

@@ -1,4 +1,4 @@
-"""Connectivity of triangle meshes (union-find over vertices)."""
+"""Graphs: connected pieces of triangle meshes (union-find over vertices), orientation along trees."""
 
 from __future__ import annotations
 
@@ -51,62 +51,31 @@ def vertex_components(n_vertices, faces):
 
 
 @njit(cache=True)
-def orient_faces(faces, edge_faces, edge_same):
-    """Flip flags that make face orientation consistent across manifold edges, component by component.
+def propagate_flips(order, parent, normals, root):
+    """Flip flags that orient every normal like its parent in a spanning forest.
 
     Parameters
     ----------
-    faces : (F, 3) int64
-    edge_faces : (E, 2) int64
-        The two faces of every manifold edge.
-    edge_same : (E,) bool
-        True when both faces traverse the edge in the same direction (they disagree unless one is flipped).
+    order : (M,) int64
+        Nodes in breadth-first order (every parent before its children), starting with ``root``.
+    parent : (N + 1,) int64
+        Parent of each node; children of ``root`` (a virtual node holding the forest's roots) keep their sign.
+    normals : (N, 3) float64
+    root : int
 
     Returns
     -------
-    flip : (F,) bool
-        Breadth-first from the lowest face of each component, which keeps its orientation. Where the faces around
-        a loop cannot be oriented (a Moebius-like patch), the first assignment wins.
+    flip : (N,) bool
+        Nodes not in ``order`` stay unflipped.
     """
-    nf = faces.shape[0]
-    ne = edge_faces.shape[0]
-    deg = np.zeros(nf + 1, np.int64)
-    for e in range(ne):
-        deg[edge_faces[e, 0] + 1] += 1
-        deg[edge_faces[e, 1] + 1] += 1
-    for f in range(nf):
-        deg[f + 1] += deg[f]
-    fill = deg[:-1].copy()
-    adj = np.empty(deg[nf], np.int64)
-    adj_same = np.empty(deg[nf], np.bool_)
-    for e in range(ne):
-        a = edge_faces[e, 0]
-        b = edge_faces[e, 1]
-        adj[fill[a]] = b
-        adj_same[fill[a]] = edge_same[e]
-        fill[a] += 1
-        adj[fill[b]] = a
-        adj_same[fill[b]] = edge_same[e]
-        fill[b] += 1
-    flip = np.zeros(nf, np.bool_)
-    seen = np.zeros(nf, np.bool_)
-    queue = np.empty(nf, np.int64)
-    for start in range(nf):
-        if seen[start]:
+    n = normals.shape[0]
+    flip = np.zeros(n + 1, np.bool_)
+    for t in range(1, order.shape[0]):
+        i = order[t]
+        p = parent[i]
+        if p == root or p < 0:
             continue
-        seen[start] = True
-        head = 0
-        tail = 1
-        queue[0] = start
-        while head < tail:
-            f = queue[head]
-            head += 1
-            for t in range(deg[f], deg[f + 1]):
-                g = adj[t]
-                if seen[g]:
-                    continue
-                seen[g] = True
-                flip[g] = flip[f] ^ adj_same[t]
-                queue[tail] = g
-                tail += 1
-    return flip
+        dot = normals[i, 0] * normals[p, 0] + normals[i, 1] * normals[p, 1] + normals[i, 2] * normals[p, 2]
+        # the raw normals: a child ends flipped when its parent does, or (exclusively) when the two disagree
+        flip[i] = flip[p] ^ (dot < 0.0)
+    return flip[:n]

@@ -5,13 +5,6 @@ by identity, not by position: the same edge in two cells (or two tiles) is the s
 along ``axis`` whose low end is global vertex ``(x, y, z)`` (relative to a reference offset):
 ``((x << 40) | (y << 19) | z) << 2 | axis`` with 21 bits for x and y and 19 for z.
 
-Unsigned fields (``unsigned=True``) are meshed cell by cell with pseudo-signs (as in MeshUDF): within a cell whose
-smallest value is below ``tau``, the corner farthest from the surface is the reference and every other corner
-takes the sign of the dot product of its gradient (central differences of the field) with the reference's
-gradient, so corners on opposite sides of the sheet get opposite signs. A crossing then lies where
-``u0 / (u0 + u1)`` puts it on the edge, which depends on the edge alone: neighbouring cells that agree on a
-crossing share its vertex. Orientation is per cell and is made consistent afterwards (``graph.orient_faces``).
-
 Loops of more than three vertices in a cell with an ambiguous face are triangulated around an extra vertex at
 their centre (key ``-1 - id``, never shared): a fan there could draw a chord along the ambiguous face that the
 neighbouring cell draws too, giving an edge with four triangles. Every other loop is a fan.
@@ -22,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from . import CELL_OPT, PARAM
+from . import CELL_OPT
 from .interp import slot_of
 from .mc_tables import EDGE_CORNERS, FACE_CORNERS, FACE_NSEG, FACE_SEGMENTS
 
@@ -99,63 +92,8 @@ def _gather(values, table, gx, gy, gz, vals):
         vals[c] = values[s]
 
 
-@njit(cache=True)
-def _value_at(values, flags, table, shape, i, j, k):
-    """Value of vertex (i, j, k) when it is a band parameter, else NaN."""
-    if i < 0 or j < 0 or k < 0 or i >= shape[0] or j >= shape[1] or k >= shape[2]:
-        return np.nan
-    s = slot_of(table, i, j, k)
-    if s < 0 or (flags[s] & PARAM) == 0:
-        return np.nan
-    return values[s]
-
-
-@njit(cache=True)
-def _axis_slope(values, flags, table, shape, i, j, k, axis, centre):
-    """Central difference along ``axis`` at a vertex, one-sided where a neighbour is missing (0 if both are)."""
-    di = 1 if axis == 0 else 0
-    dj = 1 if axis == 1 else 0
-    dk = 1 if axis == 2 else 0
-    up = _value_at(values, flags, table, shape, i + di, j + dj, k + dk)
-    dn = _value_at(values, flags, table, shape, i - di, j - dj, k - dk)
-    if np.isfinite(up) and np.isfinite(dn):
-        return 0.5 * (up - dn)
-    if np.isfinite(up):
-        return up - centre
-    if np.isfinite(dn):
-        return centre - dn
-    return 0.0
-
-
-@njit(cache=True)
-def _pseudo_sign(values, flags, table, shape, gx, gy, gz, vals, tau, g):
-    """Turn the 8 unsigned corner values of a cell into pseudo-signed ones; False when the cell is skipped."""
-    lo = vals[0]
-    ref = 0
-    for c in range(1, 8):
-        if vals[c] < lo:
-            lo = vals[c]
-        if vals[c] > vals[ref]:
-            ref = c
-    if lo >= tau:
-        return False
-    for c in range(8):
-        i = gx + (c >> 2)
-        j = gy + ((c >> 1) & 1)
-        k = gz + (c & 1)
-        for a in range(3):
-            g[c, a] = _axis_slope(values, flags, table, shape, i, j, k, a, vals[c])
-    for c in range(8):
-        if c == ref:
-            continue
-        dot = g[c, 0] * g[ref, 0] + g[c, 1] * g[ref, 1] + g[c, 2] * g[ref, 2]
-        if dot < 0.0:
-            vals[c] = -vals[c]
-    return True
-
-
 @njit(cache=True, parallel=True)
-def count_triangles(values, flags, table, brick_coords, lo, hi, iso, unsigned, tau, shape):
+def count_triangles(values, flags, table, brick_coords, lo, hi, iso):
     """Triangles and centre vertices each brick will emit (cells with CELL_OPT inside the cell box [lo, hi)).
 
     Returns
@@ -166,7 +104,6 @@ def count_triangles(values, flags, table, brick_coords, lo, hi, iso, unsigned, t
     counts = np.zeros((nb, 2), np.int64)
     for b in prange(nb):
         vals = np.empty(8, np.float32)
-        g = np.empty((8, 3), np.float64)
         next_edge = np.empty(12, np.int64)
         loop_buf = np.empty((4, 12), np.int64)
         loop_len = np.empty(4, np.int64)
@@ -184,8 +121,6 @@ def count_triangles(values, flags, table, brick_coords, lo, hi, iso, unsigned, t
                     if gx < lo[0] or gy < lo[1] or gz < lo[2] or gx >= hi[0] or gy >= hi[1] or gz >= hi[2]:
                         continue
                     _gather(values, table, gx, gy, gz, vals)
-                    if unsigned and not _pseudo_sign(values, flags, table, shape, gx, gy, gz, vals, tau, g):
-                        continue
                     ninside = 0
                     for c in range(8):
                         if vals[c] < iso:
@@ -206,8 +141,7 @@ def count_triangles(values, flags, table, brick_coords, lo, hi, iso, unsigned, t
 
 
 @njit(cache=True, parallel=True)
-def emit_triangles(values, flags, table, brick_coords, lo, hi, iso, offsets, key_offset, tris, centres,
-                   unsigned, tau, shape):
+def emit_triangles(values, flags, table, brick_coords, lo, hi, iso, offsets, key_offset, tris, centres):
     """Write triangles as edge keys into ``tris[offsets[b, 0]:]`` (same traversal as counting).
 
     Centre vertices get keys ``-1 - i`` with ``i`` counted from ``offsets[b, 1]``; their positions (block
@@ -215,7 +149,6 @@ def emit_triangles(values, flags, table, brick_coords, lo, hi, iso, offsets, key
     nb = brick_coords.shape[0]
     for b in prange(nb):
         vals = np.empty(8, np.float32)
-        g = np.empty((8, 3), np.float64)
         next_edge = np.empty(12, np.int64)
         loop_buf = np.empty((4, 12), np.int64)
         loop_len = np.empty(4, np.int64)
@@ -235,8 +168,6 @@ def emit_triangles(values, flags, table, brick_coords, lo, hi, iso, offsets, key
                     if gx < lo[0] or gy < lo[1] or gz < lo[2] or gx >= hi[0] or gy >= hi[1] or gz >= hi[2]:
                         continue
                     _gather(values, table, gx, gy, gz, vals)
-                    if unsigned and not _pseudo_sign(values, flags, table, shape, gx, gy, gz, vals, tau, g):
-                        continue
                     ninside = 0
                     for c in range(8):
                         if vals[c] < iso:
@@ -288,10 +219,8 @@ def emit_triangles(values, flags, table, brick_coords, lo, hi, iso, offsets, key
 
 
 @njit(cache=True, parallel=True)
-def edge_points(values, table, keys, key_offset, iso, t_clamp, unsigned):
-    """Crossing point (index coordinates of this block, float64) of each edge key.
-
-    Unsigned fields: the crossing of a V-shaped profile, ``t = u0 / (u0 + u1)``."""
+def edge_points(values, table, keys, key_offset, iso, t_clamp):
+    """Crossing point (index coordinates of this block, float64) of each edge key."""
     n = keys.shape[0]
     out = np.empty((n, 3), np.float64)
     for i in prange(n):
@@ -308,12 +237,8 @@ def edge_points(values, table, keys, key_offset, iso, t_clamp, unsigned):
             d1 = values[slot_of(table, x, y + 1, z)]
         else:
             d1 = values[slot_of(table, x, y, z + 1)]
-        if unsigned:
-            a = abs(np.float64(d0))
-            b = -abs(np.float64(d1))
-        else:
-            a = np.float64(d0) - iso
-            b = np.float64(d1) - iso
+        a = np.float64(d0) - iso
+        b = np.float64(d1) - iso
         t = a / (a - b) if a != b else 0.5
         t = min(max(t, t_clamp), 1.0 - t_clamp)
         out[i, 0] = x
