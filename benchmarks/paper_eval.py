@@ -9,7 +9,7 @@ Usage::
     python -m benchmarks.paper_eval noise        # 0.5 % and 1 % noise: default, both noisy presets, Poisson
     python -m benchmarks.paper_eval scans        # the 10 real bunny range scans merged: ours vs Poisson
     python -m benchmarks.paper_eval normals      # exact normals: normal_weight 0 vs 1
-    python -m benchmarks.paper_eval open         # half-sphere, terrain: --mode udf vs sdf
+    python -m benchmarks.paper_eval open         # half-sphere, terrain, bunny: --mode udf vs sdf
     python -m benchmarks.paper_eval resolution   # R = 32 .. 512 (bunny)
     python -m benchmarks.paper_eval losses       # pull; +grad; +TV; +surface (bunny)
     python -m benchmarks.paper_eval bandwidth    # M2 = 3, 14, 30, all (bunny)
@@ -83,10 +83,16 @@ def normals() -> None:
 
 
 def open_surfaces() -> None:
-    """Open surfaces: the unsigned mode beside the signed one on the same clouds."""
+    """Open surfaces: the unsigned mode (with and without its signed polish, dense and sparse) beside the signed
+    one on the same clouds; the bunny, whose scanned mesh is open at the base, in both modes."""
+    udf = {"mode": "udf"}
     for mesh in ("half_sphere", "terrain"):
-        run("open", "udf", config={"mode": "udf"}, mesh=mesh)
+        run("open", "udf", config=udf, mesh=mesh)
+        run("open", "udf, no polish", config={**udf, "udf_polish": 0}, mesh=mesh)
+        run("open", "udf, 10k points", config=udf, mesh=mesh, points=10_000)
         run("open", "sdf", mesh=mesh)
+    run("open", "udf", config=udf, mesh="bunny")
+    run("open", "sdf", mesh="bunny")
 
 
 def resolution() -> None:
@@ -149,14 +155,18 @@ def render(rows: list[dict]) -> str:
             kinds = ("default", "noisy preset", "very_noisy preset", "poisson")
             sel.sort(key=lambda r: (float(r["label"].split("%")[0]), NOISE_MESHES.index(r["mesh"]),
                                     kinds.index(r["label"].split(" ", 1)[1])))
+        # open surfaces: how many boundary loops (ground truth: half-sphere and terrain 1, bunny 5)
+        loops = suite == "open"
         out += [f"### {suite}", "", "| mesh | run | CD-L1 x1e3 | CD-L2 x1e5 | NC | F@0.01 | Hausdorff | pieces | "
-                "watertight | wall s | peak MB |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+                f"{'boundary loops | ' if loops else ''}watertight | wall s | peak MB |",
+                "|---|---|---|---|---|---|---|---|" + ("---|" if loops else "") + "---|---|---|"]
         for r in sel:
             out.append(f"| {r['mesh']}{' (scans)' if r.get('scans') else ''} | {r['label']} | "
                        f"{r['chamfer_l1_exact'] * 1e3:.3f} | {r['chamfer_l2_exact'] * 1e5:.3f} | "
                        f"{r['normal_consistency_exact']:.4f} | {r['fscore_exact@0.01']:.3f} | "
-                       f"{r['hausdorff_exact']:.4f} | {r['components']} | {'yes' if r['watertight'] else 'no'} | "
-                       f"{r['wall_s']:.1f} | {r['peak_rss_mb']:.0f} |")
+                       f"{r['hausdorff_exact']:.4f} | {r['components']} | "
+                       + (f"{r.get('boundary_loops', '-')} | " if loops else "")
+                       + f"{'yes' if r['watertight'] else 'no'} | {r['wall_s']:.1f} | {r['peak_rss_mb']:.0f} |")
         out.append("")
     return "\n".join(out)
 

@@ -132,7 +132,7 @@ def main(args: dict) -> dict:
     keep = ("chamfer_l1", "chamfer_l2", "chamfer_l2_x100", "normal_consistency", "fscore@0.002", "fscore@0.004",
             "fscore@0.01", "hausdorff", "chamfer_l1_exact", "chamfer_l2_exact", "normal_consistency_exact",
             "hausdorff_exact", "fscore_exact@0.002", "fscore_exact@0.01", "watertight", "components",
-            "boundary_edges", "faces")
+            "boundary_edges", "boundary_loops", "faces")
     out.update({k: res[k] for k in keep})
     return out
 
