@@ -74,6 +74,8 @@ def scans() -> None:
     run("scans", "default", scans=True)
     run("scans", "noisy preset", config=_noisy_config(), scans=True)
     run("scans", "poisson", "poisson", {"depth": 9, "normal_radius": 0.05}, scans=True)
+    # the scans leave the bunny's base open: the unsigned mode keeps it open
+    run("scans", "udf", config={"mode": "udf"}, scans=True)
 
 
 def normals() -> None:
@@ -142,12 +144,13 @@ def main() -> None:
 def render(rows: list[dict]) -> str:
     """Markdown tables of the latest row per (suite, mesh, label)."""
     latest: dict = {}
-    for r in rows:
+    for i, r in enumerate(rows):
         if r.get("suite") in SUITES:
-            latest[(r["suite"], r.get("mesh"), r["label"])] = r
+            latest[(r["suite"], r.get("mesh"), r["label"])] = (i, r)
     out = []
     for suite in SUITES:
-        sel = [r for (s, _, _), r in latest.items() if s == suite]
+        # in the order of their latest runs: a suite run in full comes out in the order it runs
+        sel = [r for (s, _, _), (_, r) in sorted(latest.items(), key=lambda kv: kv[1][0]) if s == suite]
         if not sel:
             continue
         if suite == "noise":

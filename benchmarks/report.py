@@ -32,13 +32,23 @@ def median(rows: list[dict], key: str):
 
 
 def machine_section(rows: list[dict]) -> str:
-    m = [r for r in rows if r.get("method") == "machine"]
+    """One line per machine the rows were measured on (the session's machine can change between sessions)."""
+    m = [r for r in rows if "machine" in (r.get("method"), r.get("suite"))]
     if not m:
         return ""
-    r = m[-1]
-    return (f"Machine: {r.get('cpu', '?')}, {r.get('cpus')} cores, {r.get('memory_gib')} GiB; Python "
-            f"{r.get('python')}, numba {r.get('numba')}, numpy {r.get('numpy')}; load average at start "
-            f"{r.get('load', 0):.1f} (the machine is shared: read ratios measured in the same run, not absolute times).")
+    seen: dict = {}
+    for r in m:
+        seen.setdefault(r.get("cpu", "?"), []).append(r)
+    lines = []
+    for cpu, rs in seen.items():
+        r = rs[-1]
+        days = sorted({x.get("date", "")[:10] for x in rs})
+        lines.append(f"Machine: {cpu}, {r.get('cpus')} cores, {r.get('memory_gib')} GiB; Python {r.get('python')}, "
+                     f"numba {r.get('numba')}, numpy {r.get('numpy')}; runs started {', '.join(days)}, load "
+                     f"average at their starts {min(x.get('load', 0) for x in rs):.1f}-"
+                     f"{max(x.get('load', 0) for x in rs):.1f}.")
+    return "\n\n".join(lines) + ("\n\nThe machines are shared: read ratios measured in the same run, not "
+                                  "absolute times, and compare times only within one machine.")
 
 
 @functools.lru_cache(maxsize=None)
@@ -224,10 +234,12 @@ def main() -> None:
                   "noise of 0.5 % of the bounding-box diagonal. Poisson's normals are estimated and oriented by "
                   "Open3D. Ratio = GridPull / Poisson (below 1: GridPull more accurate). The noisy rows use the "
                   "defaults, which follow the noise; with `configs/noisy.yaml` GridPull beats Poisson on all six "
-                  "meshes at 0.5 % noise (noise table below). GridPull rows re-run 2026-11-22 after one-shape "
-                  "lattices were padded (docs/solver.md, Variants: noise). The times in this table were taken "
-                  "while other jobs shared the machine (load 3-7 on 2 cores); the speed table below was measured "
-                  "on a quiet machine.", "",
+                  "meshes at 0.5 % noise (noise table below). The 100k and noisy GridPull rows were re-run "
+                  "2026-11-22 on the AMD machine after one-shape lattices were padded (docs/solver.md, Variants: "
+                  "noise), their Poisson rows earlier on the same cloud; the 10k rows, both methods, were re-run "
+                  "together on 2026-11-23 on the Intel machine (slower: its GridPull times for the 10k clouds are 1.8-2.4x the AMD machine's). The "
+                  "times in this table were taken while other jobs shared the machine; the speed table below was "
+                  "measured on a quiet machine.", "",
                   shapes_accuracy(shapes), ""]
         if paper_md.count("\n") > 1:
             parts += ["## The paper's literal recipe beside ours", "", paper_md, ""]
@@ -278,11 +290,13 @@ def main() -> None:
     if paper_tables:
         parts += ["## The paper's evaluation, re-run (`benchmarks/paper_eval.py`)", "",
                   "Bunny unless a mesh is named; 100k area-uniform samples; exact metrics against the unit-scaled "
-                  "ground truth; `scans` is the 10 real Stanford range scans merged by `bun.conf`. Times were taken "
-                  "while other jobs shared the machine. On 2026-11-22 one-shape lattices were padded so the coarsest "
-                  "level keeps its own margin (docs/solver.md, Variants: noise); the noise table's preset rows "
-                  "(`noisy` and `very_noisy`) and the scans table were re-run after it, the other tables and the "
-                  "noise table's `default` rows predate it.", "", paper_tables, ""]
+                  "ground truth; `scans` is the 10 real Stanford range scans merged by `bun.conf`. Every table was "
+                  "re-run on 2026-11-23 on the Intel machine (`python -m benchmarks.paper_eval all`), after "
+                  "one-shape lattices were padded (2026-11-22) and UDF mode got its per-vertex signs, polish and "
+                  "trim (docs/solver.md, Variants); the open table and the scans table's `udf` row once more after "
+                  "the trim learned to open holes in the data. Compare times within a table.", "",
+                  machine_section([r for r in load("paper_eval") if r.get("suite") == "machine"][-1:]), "",
+                  paper_tables, ""]
     (REPO / "BENCHMARKS.md").write_text("\n".join(parts).rstrip() + "\n")
     print((REPO / "BENCHMARKS.md").read_text())
 

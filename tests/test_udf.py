@@ -69,8 +69,9 @@ def test_orientation_propagates_over_a_cloud():
     assert np.all(up[:, 2] > 0)
 
 
-def test_trim_keeps_gaps_and_cuts_run_off():
-    # a 40 x 40 grid of unit squares; data over x < 30 except a hole of radius 2.5 at (10, 20)
+def test_trim_keeps_gaps_opens_holes_and_cuts_run_off():
+    # a 40 x 40 grid of unit squares; data over x < 30 but for a gap of radius 2.5 at (10, 12) and a hole of
+    # radius 7 at (18, 28)
     n = 41
     x, y = np.meshgrid(np.arange(n, dtype=float), np.arange(n, dtype=float), indexing="ij")
     v = np.column_stack([x.ravel(), y.ravel(), np.zeros(n * n)])
@@ -78,15 +79,20 @@ def test_trim_keeps_gaps_and_cuts_run_off():
     f = np.concatenate([np.stack([i, i + n, i + 1], 1), np.stack([i + 1, i + n, i + n + 1], 1)])
     mesh = Mesh(v, f)
     g = np.mgrid[0:30:0.5, 0:40:0.5].reshape(2, -1).T
-    g = g[np.hypot(g[:, 0] - 10, g[:, 1] - 20) > 2.5]
+    g = g[(np.hypot(g[:, 0] - 10, g[:, 1] - 12) > 2.5) & (np.hypot(g[:, 0] - 18, g[:, 1] - 28) > 7)]
     pts = np.column_stack([g, np.zeros(len(g))])
     plain, _ = trim_faces(mesh, None, pts, 1.0)
-    kept, _ = trim_faces(mesh, None, pts, 1.0, keep_gaps=True)
-    assert len(boundary_loops(plain)) == 2                            # the hole punched through, the cut edge
-    assert _one_clean_loop(kept)                                      # the gap filled, the run-off gone
+    kept, _ = trim_faces(mesh, None, pts, 1.0, keep_gaps=4.0)
+    assert len(boundary_loops(plain)) == 3                            # gap, hole and the cut edge
+    loops = boundary_loops(kept)
+    assert len(loops) == 2 and sum(map(len, loops)) == len(boundary_edges(kept))  # the gap filled
+    hole = min(loops, key=len)
+    r = np.hypot(kept.vertices[hole, 0] - 18, kept.vertices[hole, 1] - 28)
+    assert np.all((r > 7 - 2.5) & (r < 7))                            # the hole opened, up to the reach
     rim = kept.vertices[np.unique(boundary_edges(kept))]
+    outer = np.hypot(rim[:, 0] - 18, rim[:, 1] - 28) > 7
     on_grid_border = (rim[:, 0] == 0) | (rim[:, 1] == 0) | (rim[:, 1] == 40)
-    assert np.all(on_grid_border | ((rim[:, 0] >= 29.5) & (rim[:, 0] <= 31.0)))
+    assert np.all((on_grid_border | ((rim[:, 0] >= 29.5) & (rim[:, 0] <= 31.0)))[outer])  # run-off cut
 
 
 def test_pinched_fans_keep_the_larger_fan():
@@ -148,6 +154,21 @@ def test_udf_sparse_cloud_and_stray_point_stay_one_sheet():
     assert mesh.metadata["udf_trim"]["unsupported_pieces_removed"] >= 1
     reach = mesh.metadata["udf_trim"]["reach"]
     assert point_to_mesh(mesh.vertices, gt)[0].max() < reach + cell  # no bubble
+
+
+def test_udf_signs_follow_input_normals():
+    """Oriented input normals orient the sheet (here inward, against what propagation would pick)."""
+    from tiled_gridpull import reconstruct
+
+    gt = half_sphere()
+    pts, nrm = sample_shape(gt, 20_000, seed=5)
+    inward = -np.sign(np.einsum("ij,ij->i", nrm, pts))[:, None] * nrm
+    mesh = reconstruct(pts, normals=inward, mode="udf", resolution=64, iterations=300, coarse_iterations=300)
+    assert mesh.metadata["solve"]["udf"]["orientation"] == "input normals"
+    fn, area = mesh.face_normals()
+    centres = mesh.vertices[mesh.faces].mean(axis=1)
+    assert np.sum(area * np.sign(np.einsum("ij,ij->i", fn, centres))) < -0.99 * area.sum()
+    assert mesh.topology.components == 1 and _one_clean_loop(mesh)
 
 
 def test_tiled_mode_refuses_udf():

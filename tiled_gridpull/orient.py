@@ -11,6 +11,8 @@ same orientation and only refines it.
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 from pykdtree.kdtree import KDTree
 
@@ -275,8 +277,6 @@ def sign_unsigned_field(band: Band, values: np.ndarray, index_points: np.ndarray
         ``orientation`` (``"input normals"`` or ``"propagated"``), ``pieces`` (oriented independently) and
         ``time_s``.
     """
-    import time
-
     t0 = time.perf_counter()
     pts = np.ascontiguousarray(index_points, dtype=np.float64)
     centroids, planes = local_planes(pts, k)

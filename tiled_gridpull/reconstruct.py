@@ -38,10 +38,15 @@ MIN_NOISY_RESOLUTION = 64
 #: farther). Half-sphere and terrain patch at R = 256 (exact CD-L1 x 1e3 / Hausdorff x 1e3): 100k samples
 #: (spacing 0.46 cells), 1.5 cells: 0.034 / 8.5 and 0.031 / 7.9; 1 cell: 0.028 / 5.1 and 0.019 / 4.0.
 #: 10k samples (1.46 cells), 1.5 cells: the gaps between samples joined up and the sheets fell into 1146
-#: and 85 pieces; 2 spacings: one piece each, 0.144 / 12.0 and 0.109 / 12.0; 2.5 spacings: 0.160 / 15.2 and
+#: and 85 pieces; 2 spacings: one piece each, 0.145 / 12.0 and 0.091 / 10.3; 2.5 spacings: 0.160 / 15.2 and
 #: 0.154 / 15.5.
 UDF_TRIM_CELLS = 1.0
 UDF_TRIM_SPACINGS = 2.0
+#: Far faces enclosed by kept ones stay when none is farther than this many trim reaches from the data: gaps
+#: between random samples (the true surface lay up to 2.2 reaches from the samples on the half-sphere at
+#: 100k points); deeper regions are holes in the data and open (the bunny's scanned base: five holes of 21-73
+#: cells, whose centres lie 10-36 cells from the samples).
+UDF_GAP_REACHES = 4.0
 #: UDF mode drops pieces that are the nearest surface of fewer input points than a plane fit uses: the signs
 #: come from local planes, and a lone stray point (one in the merged bunny scans, 0.5 from the surface)
 #: otherwise came back as a closed bubble 4 cells across.
@@ -229,9 +234,10 @@ def _end_sheet_at_data(mesh: Mesh, points: np.ndarray, reach: float) -> tuple[Me
     """UDF mode: cut an open sheet back to the data.
 
     Past the data's edge the signed field's zero level runs on along the last tangent planes to the band's
-    edge. Faces farther than ``reach`` from the points are dropped where they reach that edge (gaps between
-    samples stay filled), then pinches left along the cut and pieces without data of their own."""
-    mesh, _ = trim_faces(mesh, None, points, reach, keep_gaps=True)
+    edge. Faces farther than ``reach`` from the points are dropped where they reach that edge or where they lie
+    deeper than a gap between samples (a hole in the data), then pinches left along the cut and pieces without
+    data of their own."""
+    mesh, _ = trim_faces(mesh, None, points, reach, keep_gaps=UDF_GAP_REACHES * reach)
     mesh, pinched = remove_pinched_fans(mesh)
     mesh, unsupported = _drop_unsupported_pieces(mesh, points, UDF_MIN_SUPPORT)
     return mesh, {"reach": reach, "pinched_faces_removed": pinched, "unsupported_pieces_removed": unsupported}

@@ -211,8 +211,9 @@ def solve(points: np.ndarray, lattice: Lattice, config: SolverConfig, *,
         # P: the finest level's points, all of them
         fld, udf_info = _sign_and_polish(fld, P, N, normals, inside, config, levels, progress, history_every,
                                          done, total, history)
-        polish = {k: v for k, v in fld.info.items() if k != "history"}
-        per_level.append({"level": levels, "polish": True, **polish})
+        if config.udf_polish:
+            per_level.append({"level": levels, "polish": True,
+                              **{k: v for k, v in fld.info.items() if k != "history"}})
     fld.info = {
         "points_used": int(len(idx)),
         "band": fld.band.stats,
