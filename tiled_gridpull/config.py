@@ -71,7 +71,7 @@ class SolverConfig:
         UDF mode: once the unsigned field is solved, its vertices get signs (the side of the oriented local
         plane of the nearest point, :func:`tiled_gridpull.orient.sign_unsigned_field`) and the signed field is
         refined for this many iterations at the finest level with the signed losses (the refinement levels'
-        settings, ``refine_lr`` decaying four times over the run). A trilinear field cannot bend sharply at
+        settings, ``refine_lr`` in four stages over the run, decaying by ``lr_decay`` between them). A trilinear field cannot bend sharply at
         the sheet, so the unsigned field alone places it coarsely (half-sphere, R = 256: exact CD-L1 0.38e-3,
         NC 0.958); 200 iterations: 0.034e-3, 0.9997. 0 meshes the unsigned field, signed, as it is.
     normal_weight : float
@@ -224,12 +224,13 @@ class SolverConfig:
         return {**common, "lr": self.refine_lr, "lr_step": self.refine_lr_step, "m2": self.refine_m2,
                 "gamma": self.refine_gamma, "sigma": self.refine_sigma, "tv_form": self.refine_tv_form}
 
-    def polish_settings(self, n_levels: int) -> dict:
-        """Settings of the signed refinement that ends a UDF solve: the finest level's, for ``udf_polish``
-        iterations, its learning rate decaying four times over them (as over the refinement levels' 800)."""
+    def polish_settings(self) -> dict:
+        """Settings of the signed refinement that ends a UDF solve: a refinement level's (even after a one-level
+        solve: the polish refines a field that has settled), for ``udf_polish`` iterations, the learning rate
+        in four stages over them (as over a refinement level's 800 at 200 each)."""
         its = self.udf_polish
-        return {**self.level_settings(n_levels - 1, n_levels), "iterations": its,
-                "query_pool": min(self.query_pool, its), "lr_step": max(1, its // 4)}
+        return {**self.level_settings(1, 2), "iterations": its, "query_pool": min(self.query_pool, its),
+                "lr_step": max(1, its // 4)}
 
 
 def finite_number(name: str, value: Any) -> float:

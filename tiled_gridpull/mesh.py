@@ -257,11 +257,12 @@ def remove_small_components(mesh: Mesh, min_extent: float) -> tuple[Mesh, int]:
 
 
 def remove_pinched_fans(mesh: Mesh, max_rounds: int = 4) -> tuple[Mesh, int]:
-    """Make every vertex manifold: where the faces around a vertex form several fans joined only at that
-    vertex (a pinch: the boundary passes through it more than once), keep the fan with the most faces.
+    """Unpinch the boundary: where the boundary passes through a vertex more than once (the faces around it form
+    several fans joined only at that vertex), keep the fan with the most faces.
 
     Trimming faces one by one leaves such pinches along a cut edge. Removing a fan can pinch another vertex,
-    so this repeats (at most ``max_rounds`` times).
+    so this repeats, at most ``max_rounds`` times (pinches left after that stay). Vertices where closed fans
+    touch (no boundary through them) are not looked at: trimming does not make them.
 
     Returns
     -------

@@ -151,15 +151,24 @@ def orient_normals(normals: np.ndarray, points: np.ndarray, sensor: np.ndarray |
     return n
 
 
-def orient_by_propagation(points: np.ndarray, normals: np.ndarray, k: int = 8) -> tuple[np.ndarray, int]:
+#: Bridging pieces of the neighbour graph: query points per round, and the neighbour counts tried.
+BRIDGE_QUERIES = 200_000
+BRIDGE_K = (32, 256)
+
+
+def orient_by_propagation(points: np.ndarray, normals: np.ndarray, k: int = 8) -> tuple[np.ndarray, np.ndarray]:
     """Consistently oriented normals for a cloud with no sensor and no inside: orientation propagated along a
     minimum spanning tree (Hoppe et al., SIGGRAPH 1992).
 
     The ``k``-nearest-neighbour graph is weighted by ``1 - |n_i . n_j|``, so the spanning tree crosses between
     nearly parallel planes first and reaches creases and thin parts last, where a flip is most likely to be
-    wrong; each normal then takes the orientation that agrees with its parent's. Pieces of the graph that are
-    not connected are oriented on their own, each finally facing away from its own centroid (outward on a
-    closed or dome-like piece) or, for a flat piece where that is undecided, up (+z).
+    wrong; each normal then takes the orientation that agrees with its parent's. Where the graph falls apart
+    (a strip the scan missed cuts one surface in two), each piece is joined to its nearest other piece by the
+    closest pair of points found among their ``BRIDGE_K`` nearest neighbours, round after round, with weights
+    above any inside a piece so that the tree crosses a bridge only where it must: pieces oriented on their
+    own would meet with opposite signs and fold the surface along the strip. Each piece left (farther apart
+    than that) finally faces up (+z) when its normals are mostly vertical (terrain, a valley), else away from
+    its centroid (outward on a closed or dome-like piece), else up.
 
     Parameters
     ----------
@@ -173,8 +182,8 @@ def orient_by_propagation(points: np.ndarray, normals: np.ndarray, k: int = 8) -
     -------
     normals : (N, 3) float64
         Oriented.
-    pieces : int
-        Connected pieces of the neighbour graph (each oriented independently).
+    pieces : (N,) int64
+        Piece of the (bridged) graph each point belongs to, 0..P-1; each piece is oriented independently.
     """
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import breadth_first_order, connected_components, minimum_spanning_tree
@@ -185,37 +194,83 @@ def orient_by_propagation(points: np.ndarray, normals: np.ndarray, k: int = 8) -
     nrm = np.array(normals, dtype=np.float64)
     n = len(pts)
     if n < 2:
-        return nrm, n
+        return nrm, np.zeros(n, np.int64)
     k = int(min(k, n - 1))
-    _, idx = KDTree(pts).query(pts, k=k + 1)
+    tree = KDTree(pts)
+    _, idx = tree.query(pts, k=k + 1)
     rows = np.repeat(np.arange(n, dtype=np.int64), k + 1)
     cols = idx.reshape(-1).astype(np.int64)
     off = rows != cols
     rows, cols = rows[off], cols[off]
     # scipy drops explicit zeros from sparse graphs, so no weight may be 0
     weight = 1.0 - np.abs(np.einsum("ij,ij->i", nrm[rows], nrm[cols])) + 1e-6
+
+    def pieces_of(r, c):
+        return connected_components(coo_matrix((np.ones(len(r)), (r, c)), shape=(n, n)), directed=False)
+
+    count, labels = pieces_of(rows, cols)
+    while count > 1:
+        br, bc = _bridges(tree, pts, labels)
+        if len(br) == 0:
+            break
+        rows, cols = np.r_[rows, br], np.r_[cols, bc]
+        weight = np.r_[weight, 2.0 - np.abs(np.einsum("ij,ij->i", nrm[br], nrm[bc]))]
+        count, labels = pieces_of(rows, cols)
     graph = coo_matrix((weight, (rows, cols)), shape=(n, n)).tocsr()
-    tree = minimum_spanning_tree(graph.maximum(graph.T))
-    pieces, labels = connected_components(tree, directed=False)
+    tree_graph = minimum_spanning_tree(graph.maximum(graph.T)).tocoo()
     # one breadth-first pass over the whole forest: a virtual root (node n) holds the first node of each piece
     firsts = np.unique(labels, return_index=True)[1]
-    tree = tree.tocoo()
-    rows = np.r_[tree.row, np.full(len(firsts), n)]
-    cols = np.r_[tree.col, firsts]
-    forest = coo_matrix((np.r_[tree.data, np.ones(len(firsts))], (rows, cols)), shape=(n + 1, n + 1))
+    r = np.r_[tree_graph.row, np.full(len(firsts), n)]
+    c = np.r_[tree_graph.col, firsts]
+    forest = coo_matrix((np.r_[tree_graph.data, np.ones(len(firsts))], (r, c)), shape=(n + 1, n + 1))
     order, parent = breadth_first_order(forest.tocsr(), n, directed=False, return_predecessors=True)
     flip = propagate_flips(order.astype(np.int64), parent.astype(np.int64), nrm, n)
     nrm[flip] *= -1.0
-    # each piece faces away from its centroid, or up when that is undecided
-    centroid = np.stack([np.bincount(labels, pts[:, a], pieces) for a in range(3)], axis=1)
-    centroid /= np.bincount(labels, minlength=pieces)[:, None]
+    # each piece faces up when mostly vertical, else away from its centroid, else up
+    size = np.bincount(labels, minlength=count)
+    centroid = np.stack([np.bincount(labels, pts[:, a], count) for a in range(3)], axis=1) / size[:, None]
     out = pts - centroid[labels]
-    outward = np.bincount(labels, np.einsum("ij,ij->i", nrm, out), pieces)
-    spread = np.bincount(labels, np.linalg.norm(out, axis=1), pieces)
-    up = np.bincount(labels, nrm[:, 2], pieces)
-    score = np.where(np.abs(outward) > 0.1 * spread, outward, up)
+    outward = np.bincount(labels, np.einsum("ij,ij->i", nrm, out), count)
+    spread = np.bincount(labels, np.linalg.norm(out, axis=1), count)
+    up = np.bincount(labels, nrm[:, 2], count)
+    score = np.where((np.abs(up) < 0.5 * size) & (np.abs(outward) > 0.1 * spread), outward, up)
     nrm[score[labels] < 0] *= -1.0
-    return nrm, int(pieces)
+    return nrm, labels.astype(np.int64)
+
+
+def _bridges(tree: KDTree, pts: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """One Boruvka round: for every piece but the largest, the closest pair of points joining it to another
+    piece, among its points' ``BRIDGE_K`` nearest neighbours (at most ``BRIDGE_QUERIES`` points queried)."""
+    largest = np.bincount(labels).argmax()
+    query = np.flatnonzero(labels != largest)
+    if len(query) > BRIDGE_QUERIES:
+        query = np.sort(np.random.default_rng(0).choice(query, BRIDGE_QUERIES, replace=False))
+    found_from, found_to, found_d = [], [], []
+    for kk in BRIDGE_K:
+        if len(query) == 0:
+            break
+        kk = int(min(kk, len(pts)))
+        dist, idx = tree.query(pts[query], k=kk)
+        idx = idx.reshape(len(query), kk).astype(np.int64)
+        other = labels[idx] != labels[query][:, None]
+        hit = other.any(axis=1)
+        first = other.argmax(axis=1)            # neighbours come nearest first
+        found_from.append(query[hit])
+        found_to.append(idx[hit, first[hit]])
+        found_d.append(dist.reshape(len(query), kk)[hit, first[hit]])
+        # the next, wider query only for the points of pieces that found no bridge at all
+        linked = np.unique(labels[query[hit]])
+        query = query[~np.isin(labels[query], linked)]
+        if len(query) > BRIDGE_QUERIES // 10:   # the wide query costs 8x more per point
+            query = np.sort(np.random.default_rng(1).choice(query, BRIDGE_QUERIES // 10, replace=False))
+    a = np.concatenate(found_from) if found_from else np.zeros(0, np.int64)
+    if len(a) == 0:
+        return a, a
+    b, d = np.concatenate(found_to), np.concatenate(found_d)
+    # the shortest bridge of each piece
+    order = np.lexsort((d, labels[a]))
+    keep = order[np.r_[True, labels[a][order][1:] != labels[a][order][:-1]]]
+    return a[keep], b[keep]
 
 
 def plane_distance_init(band: Band, index_points: np.ndarray, normals: np.ndarray,
@@ -264,8 +319,9 @@ def sign_unsigned_field(band: Band, values: np.ndarray, index_points: np.ndarray
     index_points : (N, 3) float
         The cloud in the band's lattice index coordinates.
     normals : (N, 3) float, optional
-        Oriented input normals; they orient the planes. Without them the orientation is propagated over the
-        cloud (:func:`orient_by_propagation`).
+        Oriented input normals. The orientation is always propagated over the cloud
+        (:func:`orient_by_propagation`); given normals then turn each piece of it to agree with most of them,
+        and each plane to agree with its own point's normal. Zero rows (no normal in the file) are ignored.
     k : int
         Neighbours per plane fit.
 
@@ -274,22 +330,26 @@ def sign_unsigned_field(band: Band, values: np.ndarray, index_points: np.ndarray
     signed : (n_bricks, 512) float32
         ``values`` with the sign of the side each vertex lies on (positive on the normals' side).
     info : dict
-        ``orientation`` (``"input normals"`` or ``"propagated"``), ``pieces`` (oriented independently) and
-        ``time_s``.
+        ``orientation`` (``"input normals"`` or ``"propagated"``), ``pieces`` (of the bridged neighbour graph,
+        oriented independently) and ``time_s``.
     """
     t0 = time.perf_counter()
     pts = np.ascontiguousarray(index_points, dtype=np.float64)
     centroids, planes = local_planes(pts, k)
+    planes, pieces = orient_by_propagation(pts, planes)
+    how = "propagated"
     if normals is not None:
-        agree = np.einsum("ij,ij->i", planes, np.asarray(normals, dtype=np.float64)) >= 0
-        planes[~agree] *= -1.0
-        how, pieces = "input normals", 0
-    else:
-        planes, pieces = orient_by_propagation(pts, planes)
-        how = "propagated"
+        given = np.asarray(normals, dtype=np.float64)
+        valid = np.einsum("ij,ij->i", given, given) > 0.25      # zero rows: the file had no normal there
+        dots = np.einsum("ij,ij->i", planes, given)
+        # each piece as most of its given normals say, then every given normal for its own point
+        vote = np.bincount(pieces[valid], np.sign(dots[valid]), minlength=int(pieces.max()) + 1)
+        planes[vote[pieces] < 0] *= -1.0
+        planes[valid & (np.einsum("ij,ij->i", planes, given) < 0)] *= -1.0
+        how = "input normals"
     side = plane_distance_init(band, pts, planes, origins=centroids)
     signed = np.where(side < 0, -np.abs(values), np.abs(values)).astype(np.float32)
-    return signed, {"orientation": how, "pieces": int(pieces), "time_s": time.perf_counter() - t0}
+    return signed, {"orientation": how, "pieces": int(pieces.max()) + 1, "time_s": time.perf_counter() - t0}
 
 
 def orientation_score(gradients: np.ndarray, normals: np.ndarray) -> float:

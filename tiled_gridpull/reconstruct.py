@@ -130,7 +130,7 @@ def reconstruct(points: Any, *, config: SolverConfig | None = None, normals: np.
         Solver settings (defaults: the paper's). Keyword ``options`` override single fields, e.g.
         ``resolution=128, iterations=800, seed=1``.
     normals : (N, 3) array_like, optional
-        Unit normals, used when ``normal_weight > 0``; in UDF mode they also orient the sign estimate.
+        Unit normals, used when ``normal_weight > 0`` (in UDF mode they then also orient the signs).
     lattice : Lattice, optional
         Use this lattice instead of fitting one to the cloud.
     progress : callable, optional
@@ -244,7 +244,8 @@ def _end_sheet_at_data(mesh: Mesh, points: np.ndarray, reach: float) -> tuple[Me
 
 
 def _drop_unsupported_pieces(mesh: Mesh, points: np.ndarray, min_points: int) -> tuple[Mesh, int]:
-    """Drop the connected pieces that are the nearest piece of fewer than ``min_points`` points."""
+    """Drop the connected pieces that are the nearest piece of fewer than ``min_points`` points (never the
+    best-supported piece: a sparse cloud keeps its surface)."""
     if mesh.n_faces == 0:
         return mesh, 0
     labels, count = vertex_components(mesh.n_vertices, mesh.faces)
@@ -254,6 +255,7 @@ def _drop_unsupported_pieces(mesh: Mesh, points: np.ndarray, min_points: int) ->
     origin = mesh.vertices.mean(axis=0)
     _, nearest = KDTree(mesh.vertices - origin).query(np.asarray(points, dtype=np.float64) - origin, k=1)
     support = np.bincount(labels[nearest.astype(np.int64)], minlength=count)
+    support[support.argmax()] = max(support.max(), min_points)
     keep = support[labels[mesh.faces[:, 0]]] >= min_points
     used = np.unique(labels[mesh.faces[:, 0]])
     dropped = int(np.count_nonzero(support[used] < min_points))

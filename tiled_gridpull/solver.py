@@ -143,7 +143,8 @@ def solve(points: np.ndarray, lattice: Lattice, config: SolverConfig, *,
         The finest lattice; coarser levels (``config.levels > 1``) coarsen it by powers of 2.
     config : SolverConfig
     normals : (N, 3) float, optional
-        Unit normals of the points (used when ``config.normal_weight > 0``).
+        Unit normals of the points, used when ``config.normal_weight > 0`` (in UDF mode they then also orient
+        the signs).
     init : callable, optional
         ``init(band) -> (n_bricks, 512) float32`` initial field (cells) on the coarsest band; default: the
         paper's sphere of ``config.init_radius`` cells at the lattice centre.
@@ -209,8 +210,8 @@ def solve(points: np.ndarray, lattice: Lattice, config: SolverConfig, *,
     udf_info = None
     if udf:
         # P: the finest level's points, all of them
-        fld, udf_info = _sign_and_polish(fld, P, N, normals, inside, config, levels, progress, history_every,
-                                         done, total, history)
+        fld, udf_info = _sign_and_polish(fld, P, N, config, levels, progress, history_every, done, total,
+                                         history)
         if config.udf_polish:
             per_level.append({"level": levels, "polish": True,
                               **{k: v for k, v in fld.info.items() if k != "history"}})
@@ -226,21 +227,21 @@ def solve(points: np.ndarray, lattice: Lattice, config: SolverConfig, *,
     return fld
 
 
-def _sign_and_polish(fld: Field, P: np.ndarray, N: np.ndarray | None, normals: np.ndarray | None,
-                     inside: np.ndarray, config: SolverConfig, levels: int, progress: ProgressFn | None,
-                     history_every: int, done: int, total: int, history: list) -> tuple[Field, dict]:
+def _sign_and_polish(fld: Field, P: np.ndarray, N: np.ndarray | None, config: SolverConfig, levels: int,
+                     progress: ProgressFn | None, history_every: int, done: int, total: int,
+                     history: list) -> tuple[Field, dict]:
     """End of a UDF solve: sign the unsigned field, then refine it as a signed one (``config.udf_polish``).
 
-    Input normals, when given, orient the sign estimate even if the normal loss is off."""
+    ``N``: the input normals, present when the normal loss is on (``--normals``): they then orient the signs
+    too; a file's normals are not trusted otherwise."""
     from .orient import sign_unsigned_field
 
-    given = None if normals is None else np.asarray(normals, dtype=np.float64)[inside]
-    values, info = sign_unsigned_field(fld.band, fld.values, P, given)
+    values, info = sign_unsigned_field(fld.band, fld.values, P, N)
     info["polish_iterations"] = config.udf_polish
     if config.udf_polish == 0:
         return Field(fld.band, values, signed=True, info=fld.info), info
     signed = config.replace(mode="sdf")
-    out = _optimize(P, N, fld.band, values, signed, signed.polish_settings(levels), progress, history_every,
+    out = _optimize(P, N, fld.band, values, signed, signed.polish_settings(), progress, history_every,
                     done, total, levels, history)
     return out, info
 
