@@ -75,3 +75,24 @@ def test_lists_are_skipped_where_they_would_rarely_answer():
     assert np.array_equal(idx, ref) and nn.fallbacks == len(q)
     close = NearestPoints(pts, 8, sigma=0.02)  # queries close to their centres: the lists answer them
     assert close.fast_share > 0.9 and close.knn is not None
+
+
+def test_nearest_in_cloud_is_exact_for_georeferenced_coordinates():
+    """Indices and distances match a brute-force search on the cloud at the origin; a bound marks far queries."""
+    from tiled_gridpull.nearest import distances_to_cloud, nearest_in_cloud
+
+    rng = np.random.default_rng(4)
+    pts = rng.uniform(0.0, 10.0, (3000, 3))
+    q = rng.uniform(-1.0, 11.0, (500, 3))
+    brute = np.linalg.norm(q[:, None] - pts[None], axis=2)
+    shift = np.array([500000.0, 4000000.0, 100.0])
+    d, i = nearest_in_cloud(q + shift, pts + shift)
+    assert i.dtype == np.int64
+    np.testing.assert_array_equal(i, brute.argmin(axis=1))
+    np.testing.assert_allclose(d, brute.min(axis=1), atol=1e-9)
+    bound = float(np.median(d))
+    d_b, i_b = nearest_in_cloud(q + shift, pts + shift, bound)
+    far = brute.min(axis=1) > bound * 1.0001
+    assert np.all(np.isinf(d_b[far])) and np.all(i_b[far] == len(pts))
+    np.testing.assert_array_equal(i_b[~far], i[~far])
+    np.testing.assert_array_equal(distances_to_cloud(q + shift, pts + shift, bound), d_b)

@@ -14,11 +14,17 @@ from pykdtree.kdtree import KDTree
 
 from .kernels import nn as knn_kernels
 
-__all__ = ["NearestPoints", "distances_to_cloud"]
+__all__ = ["NearestPoints", "distances_to_cloud", "nearest_in_cloud"]
 
 
 def distances_to_cloud(queries: np.ndarray, points: np.ndarray, upper_bound: float = np.inf) -> np.ndarray:
-    """Distance from each query to its nearest point, measured from the cloud's mean in float64.
+    """Distance from each query to its nearest point (:func:`nearest_in_cloud`), (M,) float64."""
+    return nearest_in_cloud(queries, points, upper_bound)[0]
+
+
+def nearest_in_cloud(queries: np.ndarray, points: np.ndarray,
+                     upper_bound: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
+    """Nearest point of each query, measured from the cloud's mean in float64.
 
     Subtracting a local origin first keeps georeferenced coordinates (y ~ 4e6) exact.
 
@@ -33,17 +39,19 @@ def distances_to_cloud(queries: np.ndarray, points: np.ndarray, upper_bound: flo
 
     Returns
     -------
-    (M,) float64
+    distances : (M,) float64
+    indices : (M,) int64
+        Row of ``points``; ``N`` where the distance is ``inf``.
     """
     pts = np.asarray(points, dtype=np.float64)
     ref = pts.mean(axis=0)
     tree = KDTree(np.ascontiguousarray(pts - ref))
     q = np.ascontiguousarray(np.asarray(queries, dtype=np.float64) - ref)
     if np.isfinite(upper_bound):
-        d, _ = tree.query(q, k=1, distance_upper_bound=upper_bound * 1.0001)
+        d, i = tree.query(q, k=1, distance_upper_bound=upper_bound * 1.0001)
     else:
-        d, _ = tree.query(q, k=1)
-    return d
+        d, i = tree.query(q, k=1)
+    return d, i.astype(np.int64)
 
 
 class NearestPoints:

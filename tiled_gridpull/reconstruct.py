@@ -13,7 +13,6 @@ import warnings
 from typing import Any
 
 import numpy as np
-from pykdtree.kdtree import KDTree
 
 from ._version import __version__
 from .config import SolverConfig
@@ -22,7 +21,7 @@ from .kernels.graph import vertex_components
 from .lattice import Lattice
 from .mesh import (Mesh, boundary_loops, close_holes, extract_mesh, remove_pinched_fans,
                    remove_small_components)
-from .nearest import distances_to_cloud
+from .nearest import distances_to_cloud, nearest_in_cloud
 from .noise import estimate_noise, project_to_local_planes
 from .solver import ProgressFn, solve
 from .stitch import trim_faces
@@ -251,10 +250,8 @@ def _drop_unsupported_pieces(mesh: Mesh, points: np.ndarray, min_points: int) ->
     labels, count = vertex_components(mesh.n_vertices, mesh.faces)
     if count == 1:
         return mesh, 0
-    # from a local origin: georeferenced coordinates would cost the tree its precision
-    origin = mesh.vertices.mean(axis=0)
-    _, nearest = KDTree(mesh.vertices - origin).query(np.asarray(points, dtype=np.float64) - origin, k=1)
-    support = np.bincount(labels[nearest.astype(np.int64)], minlength=count)
+    _, nearest = nearest_in_cloud(points, mesh.vertices)
+    support = np.bincount(labels[nearest], minlength=count)
     support[support.argmax()] = max(support.max(), min_points)
     keep = support[labels[mesh.faces[:, 0]]] >= min_points
     used = np.unique(labels[mesh.faces[:, 0]])
