@@ -94,6 +94,9 @@ def build_parser() -> argparse.ArgumentParser:
     sm.add_argument("out_dir")
     sm.add_argument("--points", type=int, default=300_000, help="approximate number of points")
     sm.add_argument("--kitti", action="store_true", help="street: also write a KITTI-format sequence")
+    sm.add_argument("--layout", choices=("street", "grid"), default="street",
+                    help="street: one straight street ('street'), or a ~200 m x 200 m grid of 3 x 3 streets "
+                         "scanned by one pass per street ('grid')")
     sm.add_argument("--origin", type=float, nargs=3, default=(0.0, 0.0, 0.0), metavar=("X", "Y", "Z"),
                     help="street: offset added to every coordinate (e.g. UTM-like 500000 4000000 100)")
     sm.add_argument("--seed", type=int, default=0)
@@ -315,10 +318,12 @@ def cmd_sample(args) -> int:
 
         formats = ("laz", "kitti") if args.kitti else ("laz",)
         info = make_street_sample(out, n_points=args.points, seed=args.seed, origin=tuple(args.origin),
-                                  formats=formats)
-        log.info("wrote %s (%d points, %d frames) and ground truth %s", info["points"], info["n_points"],
-                 info["n_frames"], info["gt_mesh"])
+                                  formats=formats, layout=args.layout)
+        log.info("wrote %s (%s layout, %d points, %d frames in %d passes) and ground truth %s", info["points"],
+                 info["layout"], info["n_points"], info["n_frames"], info["n_passes"], info["gt_mesh"])
         return 0
+    if args.layout != "street":
+        raise ConfigError(f"--layout {args.layout} applies to 'sample street' only, not '{args.kind}'")
     from tiled_gridpull import synthetic
     from tiled_gridpull.io import write_mesh
     from tiled_gridpull.io.atomic import atomic_path

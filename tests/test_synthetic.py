@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
@@ -23,6 +25,7 @@ from tiled_gridpull.synthetic import (
     write_kitti_sequence,
     write_las,
 )
+from tiled_gridpull.synthetic.street import grid_frames_for_points, grid_passes, grid_street_lines
 
 UTM = (500000.0, 4000000.0, 100.0)
 
@@ -248,6 +251,30 @@ def test_make_street_sample(tmp_path):
     pts = np.column_stack([las.x, las.y, las.z])[:300]
     dist, _ = point_to_mesh(pts, gt)
     assert dist.max() < 1e-3  # millimetre quantisation of LAS
+    # regression pin: the values at 4e12053, before the grid layout (benchmarks depend on this street)
+    assert (out["n_points"], out["n_faces"], out["n_frames"], out["azimuth_steps"]) == (30105, 23330, 4, 120)
+    assert out["layout"] == "street" and out["n_passes"] == 1
+    assert json.loads(out["meta"].read_text())["scene"]["layout"] == "street"
+
+
+def test_street_layout_pinned(street):
+    """The single street is unchanged by the grid layout: mesh and scan as computed at 4e12053."""
+    scene, mesh, scan = street
+    assert scene.layout == "street"
+    assert (mesh.n_faces, mesh.n_vertices) == (12550, 6723)
+    assert mesh.metadata["face_classes"] == {"terrain": [0, 10534], "building": [10534, 10642],
+                                             "pole": [10642, 10898], "tree": [10898, 12370],
+                                             "car": [12370, 12550]}
+    assert int(mesh.faces.sum()) == 126666682
+    assert (mesh.vertices - scene.origin).sum(axis=0) == pytest.approx(
+        [163987.59894152364, -6129.87377809966, 5180.252892455051], rel=1e-12)
+    assert scan.n_points == 31647
+    assert int(scan.face.astype(np.int64).sum()) == 243326135
+    assert (scan.xyz - scene.origin).sum(axis=0) == pytest.approx(
+        [773879.480498116, 8443.474363290705, 25588.99973672412], rel=1e-12)
+    assert (scan.poses[:, :3, 3] - scene.origin) == pytest.approx(np.array(
+        [[23.0, 0.19791537756100297, 2.0623828928402475], [25.0, 0.1932337647303939, 2.1621281741616656],
+         [27.0, 0.1572319776751101, 2.3231765524466823]]), abs=1e-12)
 
 
 def _brute_force_hits(tri, origin, dirs, t_min, t_max):
@@ -284,3 +311,202 @@ def test_grid_traversal_matches_brute_force():
     assert hit.sum() == scan.n_points
     expect = pose[:3, 3] + t[hit, None] * dirs[hit]
     assert np.abs(expect - scan.xyz).max() < 1e-6
+
+
+# ---------------------------------------------------------------------- grid of streets
+@pytest.fixture(scope="module")
+def grid():
+    scene = StreetScene(seed=5, origin=UTM, layout="grid")
+    mesh = build_street(scene)
+    # two frames per pass (12 in all), spread over each 200 m street; coarse azimuths keep it fast
+    scan = scan_street(scene, mesh, 12, azimuth_steps=60)
+    return scene, mesh, scan
+
+
+def _piece_volumes(mesh):
+    """Signed volume of every connected piece of a mesh, (P,) float64 (positive: outward)."""
+    labels = mesh.components()
+    tri = mesh.triangles() - mesh.vertices.mean(axis=0)
+    vol = np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])) / 6.0
+    _, idx = np.unique(labels, return_inverse=True)
+    return np.bincount(idx, weights=vol)
+
+
+def test_grid_mesh_spans_area_and_is_well_formed(grid):
+    scene, mesh, _ = grid
+    ranges = mesh.metadata["face_classes"]
+    assert list(ranges) == list(FACE_CLASSES) and ranges["car"][1] == mesh.n_faces
+    for cls in FACE_CLASSES:
+        assert ranges[cls][1] - ranges[cls][0] > 100, cls
+    local = mesh.vertices - scene.origin
+    cls_of = np.searchsorted([ranges[c][1] for c in FACE_CLASSES], np.arange(mesh.n_faces), side="right")
+    terrain = mesh.submesh(cls_of == 0)
+    tl = terrain.vertices - scene.origin
+    # the terrain sheet covers the whole 200 m square, and nothing sticks out of it
+    assert np.allclose(tl[:, :2].min(axis=0), 0.0) and np.allclose(tl[:, :2].max(axis=0), 200.0)
+    assert local[:, :2].min() >= -1e-9 and local[:, :2].max() <= 200.0 + 1e-9
+    normals, _ = terrain.face_normals()
+    assert normals[:, 2].min() > 0.9
+    assert terrain.topology.boundary_edges > 0  # an open sheet
+    # every object is closed, and each of its pieces faces outward
+    objects = mesh.submesh(cls_of > 0)
+    assert objects.topology.watertight
+    vols = _piece_volumes(objects)
+    assert len(vols) > 100 and vols.min() > 0
+
+
+def test_grid_buildings_clear_of_roads_and_each_other(grid):
+    scene, mesh, _ = grid
+    lines = grid_street_lines(scene)
+    assert np.allclose(lines, [12.0, 100.0, 188.0])
+    ranges = mesh.metadata["face_classes"]
+    b = mesh.submesh(np.arange(mesh.n_faces) < ranges["building"][1])
+    b = b.submesh(np.arange(b.n_faces) >= ranges["building"][0])
+    labels = b.components()
+    boxes = []
+    for lab in np.unique(labels):
+        v = b.vertices[np.unique(b.faces[labels == lab])] - scene.origin
+        boxes.append(np.concatenate([v.min(axis=0), v.max(axis=0)]))
+    boxes = np.array(boxes)  # (P, 6): xmin ymin zmin xmax ymax zmax
+    assert len(boxes) >= 30
+    # >= 10 m from every centre line across both axes: off the 12 m roads and their sidewalks
+    for a in (0, 1):
+        lo, hi = boxes[:, a], boxes[:, 3 + a]
+        for c in lines:
+            assert np.all((hi <= c - 10.0 + 1e-9) | (lo >= c + 10.0 - 1e-9)), (a, c)
+    # two pieces overlap in plan only when one is a rooftop box standing inside its building
+    for i in range(len(boxes)):
+        for j in range(i + 1, len(boxes)):
+            p, q = boxes[i], boxes[j]
+            if np.all(p[:2] < q[3:5] - 1e-9) and np.all(q[:2] < p[3:5] - 1e-9):
+                inner, outer = (p, q) if p[5] > q[5] else (q, p)  # the rooftop box is the higher one
+                assert np.all(inner[:2] >= outer[:2]) and np.all(inner[3:5] <= outer[3:5])
+                assert inner[2] < outer[5]  # sunk into the roof, not floating over it
+    # buildings and poles start below the ground under them: nothing floats
+    main = boxes[[not any(np.all(k[:2] > o[:2]) and np.all(k[3:5] < o[3:5]) for o in boxes) for k in boxes]]
+    cx, cy = 0.5 * (main[:, 0] + main[:, 3]), 0.5 * (main[:, 1] + main[:, 4])
+    assert np.all(main[:, 2] < terrain_height(scene, cx, cy))
+    poles = mesh.submesh((np.arange(mesh.n_faces) >= ranges["pole"][0]) & (np.arange(mesh.n_faces) <
+                                                                             ranges["pole"][1]))
+    pl = poles.components()
+    for lab in np.unique(pl)[:20]:
+        v = poles.vertices[np.unique(poles.faces[pl == lab])] - scene.origin
+        c = v.mean(axis=0)
+        assert v[:, 2].min() < terrain_height(scene, c[0], c[1])
+
+
+def test_grid_scan_points_on_mesh_and_passes(grid):
+    scene, mesh, scan = grid
+    assert scan.n_frames == 12 and 0.6 * 12 * 64 * 60 < scan.n_points <= 12 * 64 * 60
+    rng = np.random.default_rng(0)
+    pick = rng.choice(scan.n_points, 1500, replace=False)
+    local_mesh = type(mesh)(mesh.vertices - scene.origin, mesh.faces)
+    dist, _ = point_to_mesh(scan.xyz[pick] - scene.origin, local_mesh)
+    assert dist.max() < 1e-6
+    # the points cover the district, not one street
+    span = np.ptp(scan.xyz[:, :2], axis=0)
+    assert np.all(span > 180.0)
+    # one pass per street: 3 along x (y on a centre line, x varies), then 3 along y
+    lines = grid_street_lines(scene)
+    pos = scan.poses[:, :3, 3] - scene.origin
+    on_x = np.abs(pos[:, 1, None] - lines).min(axis=1) < 0.25
+    on_y = np.abs(pos[:, 0, None] - lines).min(axis=1) < 0.25
+    assert np.array_equal(on_x, np.arange(12) < 6) and np.array_equal(on_y, np.arange(12) >= 6)
+    passes = grid_passes(scene)
+    assert [(a, d) for a, _, d in passes] == [(0, 1), (0, -1), (0, 1), (1, -1), (1, 1), (1, -1)]
+    for k, (axis, line, direction) in enumerate(passes):
+        p = pos[2 * k:2 * k + 2]
+        assert np.allclose(p[:, 1 - axis], line, atol=0.21)
+        assert np.allclose(p[:, axis], [50.0, 150.0][::direction])  # spread over the street, driving order
+    assert np.allclose(pos[:, 2] - terrain_height(scene, pos[:, 0], pos[:, 1]), SENSOR_HEIGHT_M, atol=1e-9)
+    # heading follows the street: the sensor's forward axis is along the pass direction, up to the wobble
+    R = scan.poses[:, :3, :3]
+    assert np.allclose(R @ R.transpose(0, 2, 1), np.eye(3), atol=1e-12) and np.allclose(R[:, 2, 2], 1.0)
+    forward = np.array([[d if a == 0 else 0.0, d if a == 1 else 0.0] for a, _, d in passes for _ in (0, 1)])
+    assert np.all(np.einsum("ij,ij->i", R[:, :2, 0], forward) > np.cos(0.07))
+    assert np.array_equal(scan.poses, sensor_poses(scene, 12))
+    # frame_spacing_m: that far apart around each street's middle
+    spaced = sensor_poses(scene, 12, 10.0)[:, :3, 3] - scene.origin
+    assert np.allclose(spaced[:2, 0], [95.0, 105.0]) and np.allclose(spaced[6:8, 1], [105.0, 95.0])
+    with pytest.raises(ValueError, match="do not fit"):
+        sensor_poses(scene, 60, 30.0)
+
+
+def test_grid_deterministic(grid):
+    scene, mesh, scan = grid
+    again_scene = StreetScene(seed=5, origin=UTM, layout="grid")
+    again_mesh = build_street(again_scene)
+    assert np.array_equal(again_mesh.vertices, mesh.vertices) and np.array_equal(again_mesh.faces, mesh.faces)
+    again = scan_street(again_scene, again_mesh, 12, azimuth_steps=60)
+    for name in ("xyz", "sensor", "frame", "poses", "face", "reflectance"):
+        assert np.array_equal(getattr(scan, name), getattr(again, name)), name
+    other = build_street(StreetScene(seed=6, origin=UTM, layout="grid"))
+    assert other.n_faces != mesh.n_faces or not np.array_equal(other.vertices, mesh.vertices)
+
+
+def test_grid_observed_samples(grid):
+    _, mesh, scan = grid
+    samples, normals = observed_samples(mesh, scan.xyz, 50_000, radius=0.5, seed=2)
+    assert 0.05 * 50_000 < len(samples) < 50_000
+    assert normals.shape == samples.shape
+    from pykdtree.kdtree import KDTree
+
+    c = scan.xyz.min(axis=0)
+    d, _ = KDTree(scan.xyz - c).query(samples - c, k=1)
+    assert d.max() <= 0.5
+    assert np.all(np.ptp(samples[:, :2], axis=0) > 150.0)  # observed along both axes of the grid
+
+
+def test_make_grid_sample(tmp_path):
+    laspy = pytest.importorskip("laspy")
+    out = make_street_sample(tmp_path, n_points=40_000, seed=1, origin=UTM, layout="grid")
+    assert out["layout"] == "grid" and out["n_passes"] == 6 and out["n_frames"] % 6 == 0
+    assert 0.85 * 40_000 < out["n_points"] < 1.15 * 40_000
+    meta = json.loads(out["meta"].read_text())
+    assert meta["layout"] == "grid" and meta["scene"]["layout"] == "grid" and meta["scene"]["extent_m"] == 200.0
+    las = laspy.read(out["laz"])
+    pts = np.column_stack([las.x, las.y, las.z])
+    assert len(pts) == out["n_points"]
+    local = pts - UTM
+    assert local[:, :2].min() >= 0.0 and local[:, :2].max() <= 200.0
+    assert np.all(np.ptp(local[:, :2], axis=0) > 150.0)
+    from tiled_gridpull.io import read_mesh
+
+    gt = read_mesh(out["gt_mesh"])
+    assert gt.n_faces == out["n_faces"]
+    dist, _ = point_to_mesh(pts[::200], gt)
+    assert dist.max() < 1e-3  # millimetre quantisation of LAS
+
+
+def test_grid_frames_for_points():
+    assert grid_frames_for_points(40_000) == 6
+    assert grid_frames_for_points(1_000_000) == 72  # 12 per pass, ~14 k points a frame
+    assert grid_frames_for_points(3_000_000) == 96  # capped at 16 per pass
+    assert grid_frames_for_points(14_000_000) == 144  # <= 100 k points a frame
+
+
+def test_bad_layout():
+    with pytest.raises(ValueError, match=r"layout must be one of \('street', 'grid'\), got 'blocks'"):
+        StreetScene(layout="blocks")
+    with pytest.raises(ValueError, match="extent_m must be >= 150"):
+        StreetScene(layout="grid", extent_m=100.0)
+    StreetScene(layout="street", extent_m=1.0)  # the street ignores the grid's size
+
+
+def test_make_sample_bad_layout(tmp_path):
+    with pytest.raises(ValueError, match="layout must be one of"):
+        make_street_sample(tmp_path / "out", n_points=1000, layout="Grid")
+    assert not (tmp_path / "out").exists()
+
+
+def test_cli_sample_grid(tmp_path, capsys):
+    from pipeline.cli import main
+
+    assert main(["sample", "street", str(tmp_path / "g"), "--layout", "grid", "--points", "20000"]) == 0
+    meta = json.loads((tmp_path / "g" / "street.json").read_text())
+    assert meta["layout"] == "grid" and meta["n_passes"] == 6
+    assert (tmp_path / "g" / "street.laz").is_file() and (tmp_path / "g" / "street_gt.ply").is_file()
+    assert main(["sample", "sphere", str(tmp_path / "s"), "--layout", "grid", "--points", "200"]) != 0
+    assert "applies to 'sample street' only" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["sample", "street", str(tmp_path / "x"), "--layout", "blocks"])
