@@ -85,12 +85,20 @@ class SolverConfig:
         ``iterations``, the others ``coarse_iterations``.
     coarse_iterations, refine_m2, refine_lr, refine_lr_step
         See ``levels``.
+    middle_iterations : int
+        Iterations of the levels between the coarsest and the finest (0: ``coarse_iterations``).
     refine_gamma, refine_sigma, refine_tv_form
         Gradient-consistency weight, query noise (cells) and TV form of the refinement levels. Once the coarse level
         has settled inside and outside, wider queries and a strong gradient-consistency term smooth the
         surface at the cell scale (see docs/solver.md for the measurements).
     knn : int
         Candidate list size of the nearest-neighbour cache.
+    queries_per_point : float
+        0 (paper): every iteration draws ``queries`` queries. ``r > 0``: a level holding ``N`` points (after
+        the coarse levels' thinning) draws ``min(queries, max(min_queries, ceil(r N)))`` per iteration, so
+        a tile's query cost follows what it holds (a tile of 500 points gets ``min_queries``, not 50,000).
+    min_queries : int
+        Floor of the per-iteration query count when ``queries_per_point > 0``.
     query_pool : int
         0 (paper): fresh queries every iteration. ``B > 0``: each level draws ``B`` batches of queries once,
         finds their nearest points in one go, and cycles through them (NeuralPull's precomputed queries), so
@@ -120,6 +128,8 @@ class SolverConfig:
     m2: int = 14
     iterations: int = 800
     queries: int = 50_000
+    queries_per_point: float = 0.0
+    min_queries: int = 2048
     lr: float = 1.0
     lr_decay: float = 0.3
     lr_step: int = 400
@@ -137,6 +147,7 @@ class SolverConfig:
     normal_weight: float = 0.0
     levels: int = 3
     coarse_iterations: int = 800
+    middle_iterations: int = 0
     refine_m2: int = 8
     refine_lr: float = 0.3
     refine_lr_step: int = 200
@@ -168,8 +179,8 @@ class SolverConfig:
             elif f.type in ("str", str):
                 if value not in _CHOICES[f.name]:
                     raise ConfigError(f"{f.name} must be one of {', '.join(_CHOICES[f.name])}; got {value!r}")
-        positive = ["resolution", "iterations", "queries", "lr", "lr_step", "knn", "levels", "coarse_iterations",
-                    "refine_lr", "refine_lr_step", "refine_sigma"]
+        positive = ["resolution", "iterations", "queries", "min_queries", "lr", "lr_step", "knn", "levels",
+                    "coarse_iterations", "refine_lr", "refine_lr_step", "refine_sigma"]
         if self.denoise_neighbors < 4:
             raise ConfigError(f"denoise_neighbors must be at least 4 (a plane fit), got {self.denoise_neighbors!r}")
         for name in positive:
@@ -177,7 +188,7 @@ class SolverConfig:
                 raise ConfigError(f"{name} must be positive, got {getattr(self, name)!r}")
         nonneg = ["margin", "m1", "m2", "alpha", "beta", "gamma", "query_sigma", "init_radius", "normal_weight",
                   "seed", "refine_m2", "refine_gamma", "noise_cells", "udf_beta", "udf_polish", "query_pool",
-                  "denoise", "denoise_bandwidth"]
+                  "denoise", "denoise_bandwidth", "queries_per_point", "middle_iterations"]
         for name in nonneg:
             if getattr(self, name) < 0:
                 raise ConfigError(f"{name} must be >= 0, got {getattr(self, name)!r}")
@@ -212,12 +223,22 @@ class SolverConfig:
             n += 1
         return n
 
-    def level_settings(self, level: int, n_levels: int) -> dict:
-        """Iterations, query pool length, learning-rate schedule, TV band, gradient weight, query noise and TV
-        form of ``level`` (0 = coarsest) out of ``n_levels``."""
+    def queries_for(self, n_points: int | None) -> int:
+        """Queries per iteration on a level holding ``n_points`` points (``None``: unknown, the most)."""
+        if self.queries_per_point <= 0 or n_points is None:
+            return self.queries
+        return int(min(self.queries, max(self.min_queries, math.ceil(self.queries_per_point * n_points))))
+
+    def level_settings(self, level: int, n_levels: int, n_points: int | None = None) -> dict:
+        """Iterations, queries per iteration, query pool length, learning-rate schedule, TV band, gradient
+        weight, query noise and TV form of ``level`` (0 = coarsest) out of ``n_levels``, for a level holding
+        ``n_points`` points (``None``: the most queries the settings allow)."""
         iterations = self.iterations if level == n_levels - 1 else self.coarse_iterations
+        if 0 < level < n_levels - 1 and self.middle_iterations:
+            iterations = self.middle_iterations
         # a pool longer than the level would never be cycled through
-        common = {"iterations": iterations, "query_pool": min(self.query_pool, iterations)}
+        common = {"iterations": iterations, "query_pool": min(self.query_pool, iterations),
+                  "queries": self.queries_for(n_points)}
         if level == 0:
             return {**common, "lr": self.lr, "lr_step": self.lr_step, "m2": self.m2, "gamma": self.gamma,
                     "sigma": self.query_sigma, "tv_form": self.tv_form}

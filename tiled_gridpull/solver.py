@@ -184,7 +184,7 @@ def solve(points: np.ndarray, lattice: Lattice, config: SolverConfig, *,
         if factor > 1:
             P, keep = _thin(P, config.seed + level)
             Nl = Nl[keep] if Nl is not None else None
-        st = config.level_settings(level, levels)
+        st = config.level_settings(level, levels, len(P))
         tb = time.perf_counter()
         band = build_band(P, lat, config.m1, st["m2"])
         t_band = time.perf_counter() - tb
@@ -273,7 +273,7 @@ def _optimize(P: np.ndarray, N: np.ndarray | None, band: Band, values: np.ndarra
     surface_form = kl.SURFACE_SQUARED if cfg.surface_form == "squared" else kl.SURFACE_ABS
     clamp = cfg.mode == "udf"
     shape = np.asarray(band.lattice.shape, np.int64)
-    nq = cfg.queries
+    nq = st["queries"]
     slots = np.empty((nq, 16), np.int64)
     grads = np.empty((nq, 16), np.float32)
     losses = np.empty((nq, 4), np.float32)
@@ -330,6 +330,8 @@ def _optimize(P: np.ndarray, N: np.ndarray | None, band: Band, values: np.ndarra
                 progress(it0 + it, total, rec)
     info = {
         "iterations": iterations,
+        "queries": nq,
+        "points": int(len(P)),
         "time_solve_s": time.perf_counter() - t0,
         "time_queries_s": t_query,
         "time_query_pool_s": t_pool,
