@@ -293,15 +293,17 @@ def task_arguments(specs: list[TileSpec], tiling: TilingConfig, solver: SolverCo
 
 
 def run_tiles(client, specs: list[TileSpec], solve_fn, solve_args, mesh_fn, mesh_args, retries: int = 2,
-              window: int = DEFAULT_WINDOW, stop: threading.Event | None = None):
+              window: int = DEFAULT_WINDOW, stop: threading.Event | None = None, cost=None):
     """Run the job's graph on ``client``, yielding ``(kind, tile index, summary)`` as tasks finish.
 
     The graph: one solve task per tile, then one mesh task per tile that needs the solve summaries of the tile
     and its (up to 26) neighbours. ``solve_fn(spec, *solve_args(spec))`` and ``mesh_fn(spec, own_summary,
     neighbour_specs, neighbour_summaries, *mesh_args(spec))``; tasks carry the small spec objects, never arrays.
 
-    Solves are submitted in tile order as a sliding window of at most ``window`` unfinished tasks; a tile's mesh
-    task goes in as soon as the solves of the tile and its neighbours have come back, with their summaries as
+    Solves are submitted as a sliding window of at most ``window`` unfinished tasks, in tile order from one window
+    to the next and, within each window's worth of tiles, the costliest first (``cost``: the longest tiles start
+    first, so a short tile, not a long one, is what runs alone at the end: longest-processing-time-first
+    scheduling; in the demo street the 250k-point tile had been started last); a tile's mesh task goes in as soon as the solves of the tile and its neighbours have come back, with their summaries as
     plain arguments. The scheduler, the workers and this process thus hold state for a window of tiles, not the
     whole job: submitting all 200,000 tasks of a 100,000-tile job at once overloaded the local scheduler until it
     dropped the client's connection. Plain summaries rather than solve futures as the mesh task's dependencies
@@ -313,6 +315,8 @@ def run_tiles(client, specs: list[TileSpec], solve_fn, solve_args, mesh_fn, mesh
     ----------
     window : int
         Most tasks submitted and not yet returned; at least 1.
+    cost : callable, optional
+        ``cost(spec)``: a sortable estimate of a tile's solve time (default: occupied bricks, then points).
     stop : threading.Event, optional
         Checked between results (every 0.1 s while waiting): when set, raises KeyboardInterrupt.
     """
@@ -336,6 +340,9 @@ def run_tiles(client, specs: list[TileSpec], solve_fn, solve_args, mesh_fn, mesh
     kinds: dict[str, tuple[str, int]] = {}
     pending = as_completed(with_results=True)  # results come with the futures, not one request each
     n, next_solve, in_flight = len(specs), 0, 0
+    cost = cost or (lambda s: (s.occupied_bricks, s.n_points))
+    # tile order across windows keeps a window's meshes close to its solves; costliest first within one
+    solve_order = sorted(range(n), key=lambda i: (i // window, _negated(cost(specs[i]))))
 
     def submit(kind: str, fn, rows: list[tuple], items: list[int]) -> None:
         keys = [f"{kind}-{specs[i].name}" for i in items]
@@ -361,7 +368,7 @@ def run_tiles(client, specs: list[TileSpec], solve_fn, solve_args, mesh_fn, mesh
             room -= len(take)
             in_flight += len(take)
         if room > 0 and next_solve < n:
-            take = list(range(next_solve, min(n, next_solve + room)))
+            take = solve_order[next_solve:min(n, next_solve + room)]
             submit("solve", solve_fn, [(specs[i], *solve_args(specs[i])) for i in take], take)
             next_solve += len(take)
             in_flight += len(take)
@@ -386,6 +393,11 @@ def run_tiles(client, specs: list[TileSpec], solve_fn, solve_args, mesh_fn, mesh
             yield kind, specs[i].index, result
         if stop is not None and stop.is_set():
             raise KeyboardInterrupt
+
+
+def _negated(key):
+    """A sort key that orders ``key`` (a number or a tuple of numbers) from largest to smallest."""
+    return tuple(-k for k in key) if isinstance(key, tuple) else -key
 
 
 def check_memory(specs: list[TileSpec] | None, tiling: TilingConfig, solver: SolverConfig, budget: int,

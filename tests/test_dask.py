@@ -248,3 +248,39 @@ def test_workers_compile_fresh_kernels_when_numba_was_imported_first(tmp_path):
     assert run.returncode == 0, run.stderr[-2000:]
     expected_threads = max(1, (os.cpu_count() or 1) // 2)
     assert f"[(45.0, {expected_threads}), (55.0, {expected_threads})]" in run.stdout
+
+
+_STARTED: list = []
+
+
+def _solve_records_start(spec):
+    _STARTED.append(spec.name)
+    return {"tile": spec.name, "status": "solved"}
+
+
+@pytest.mark.parametrize("window", [3, 10_000])
+def test_costliest_tiles_start_first_within_a_window(window):
+    """Longest-processing-time-first: within each window's worth of tiles (in tile order), solves start in
+    order of decreasing cost, so a big tile never starts last and runs alone while the other workers idle."""
+    import dataclasses
+
+    from distributed import Client
+
+    from pipeline.job import run_tiles
+
+    specs = _grid_specs(3, 3, 1)
+    # costs unrelated to tile order: occupied bricks from a fixed permutation
+    specs = [dataclasses.replace(s, occupied_bricks=int(c), n_points=1000)
+             for s, c in zip(specs, [5, 90, 20, 70, 10, 60, 30, 80, 40])]
+    by_name = {s.name: s for s in specs}
+    _STARTED.clear()
+    with Client(processes=False, n_workers=1, threads_per_worker=1, dashboard_address=":0") as client:
+        list(run_tiles(client, specs, _solve_records_start, lambda s: (), _mesh_echo, lambda s: (), window=window))
+    started = [by_name[n] for n in _STARTED]
+    ordered = sorted(specs, key=lambda s: s.index)
+    for w in range(0, len(ordered), window):
+        group = {s.name for s in ordered[w:w + window]}
+        costs = [s.occupied_bricks for s in started if s.name in group]
+        assert costs == sorted(costs, reverse=True), (w, costs)
+    if window >= len(specs):
+        assert [s.occupied_bricks for s in started] == sorted((s.occupied_bricks for s in specs), reverse=True)
