@@ -286,6 +286,21 @@ def main() -> None:
                   "The middle 25.6 m (one tile core) of a synthetic street scan repeated 1, 2, 4 and 8 times along "
                   "x, so every tile holds the same points: the job's cost per occupied tile, with configs/scene.yaml "
                   "on the default local Dask cluster.", "", tiles_table, ""]
+    wide_table = scenes.render_wide(load("scenes"))
+    if wide_table:
+        plot = scenes.plot_tile_costs(load("scenes"), RESULTS / "tile_costs.png")
+        parts += ["## Wide-area scans beside screened Poisson (`benchmarks/scenes.py wide`)", "",
+                  "A synthetic grid of streets (3 x 3 streets over 200 m x 200 m, one 64-beam pass per street, "
+                  "`tiled-gridpull sample street --layout grid`), 0.1 m cells, on the default local Dask cluster "
+                  "with 2 workers. Poisson is Open3D's screened Poisson at depth 11 in its own process, end to end: "
+                  "read, normals (30 neighbours, oriented up), Poisson, 5 % density trim, write "
+                  "(`benchmarks/poisson_scene.py`). `x Poisson` columns are ratios to the Poisson row of the same "
+                  "run; accuracy is against the ground truth over the observed region (0.2 m).", "",
+                  wide_table, ""]
+        if plot is not None:
+            parts += [f"![per-tile solve cost]({plot.relative_to(REPO)})", "",
+                      "Per-tile solve time (task seconds on one thread) against the tile's points and its "
+                      "finest-band vertices, from the same runs.", ""]
     paper_tables = paper_eval.render(load("paper_eval"))
     if paper_tables:
         parts += ["## The paper's evaluation, re-run (`benchmarks/paper_eval.py`)", "",

@@ -13,6 +13,13 @@ Usage::
     python -m benchmarks.scenes workers --points 1000000          # 1 vs 2 workers, same cloud
     python -m benchmarks.scenes lidar                              # ../shared/data/lidar files
     python -m benchmarks.scenes tiles --points 4000000 --copies 1 2 4 8   # time vs tile count, fixed density
+    python -m benchmarks.scenes wide --points 1000000 14000000 [--variants today default]
+        # a 200 m x 200 m grid of streets beside Open3D screened Poisson (depth 11) in the same run
+
+``wide`` runs, per cloud, Poisson once (:mod:`benchmarks.poisson_scene`: its normal estimation included, file in
+-> mesh out, its own process) and GridPull once per variant: ``default`` is configs/scene.yaml as shipped,
+``today`` pins the fixed schedule the scene settings had before the content-scaled one (every level 800
+iterations of 50,000 queries), so both are measured in the same run on the same machine.
 """
 
 from __future__ import annotations
@@ -169,9 +176,63 @@ def lidar(workers: int, work: Path) -> None:
         record(row)
 
 
+#: The scene schedule before issue 16 (fixed: 3 levels x 800 iterations x 50,000 queries), as overrides.
+TODAY = {"queries_per_point": 0, "iterations": 800, "coarse_iterations": 800, "middle_iterations": 0,
+         "lr_step": 400, "refine_lr_step": 200, "fine_lr_step": 0}
+VARIANTS = {"default": {}, "today": TODAY}
+
+
+def poisson_scene(src: Path, out: Path, depth: int = 11) -> dict:
+    """Open3D screened Poisson on ``src`` in a fresh process (:mod:`benchmarks.poisson_scene`)."""
+    from benchmarks.common import run_isolated
+
+    return run_isolated("benchmarks.poisson_scene", {"input": str(src), "output": str(out), "depth": depth})
+
+
+def wide(n_points: int, workers: int, work: Path, variants: list[str], depth: int = 11) -> None:
+    """A grid of streets (about 200 m x 200 m, one sensor pass per street) at ``n_points``: Poisson, then each
+    GridPull variant, on the same file in the same run; accuracy against the ground truth over the observed
+    region for all of them."""
+    from tiled_gridpull.synthetic.street import make_street_sample
+
+    t0 = time.perf_counter()
+    sample = make_street_sample(work / f"grid_{n_points}", n_points=n_points, origin=(500000.0, 4000000.0, 100.0),
+                                layout="grid")
+    t_sample = time.perf_counter() - t0
+    src, gt = sample["laz"], sample["gt_mesh"]
+    base = {"scene": "grid of streets (synthetic)", "suite": "wide", "points": sample["n_points"],
+            "workers": workers, "sample_s": t_sample, "cell_m": 0.1}
+    pout = work / f"grid_{n_points}" / "poisson.ply"
+    poisson = poisson_scene(src, pout, depth)
+    poisson.update(evaluate(pout, gt, src))
+    record({**base, **{k: v for k, v in poisson.items() if k != "points"}, "method": "poisson", "variant":
+            f"depth {depth}", "tiles": None, "tiles_planned": None, "points_per_s": sample["n_points"] /
+            poisson["wall_s"], "stages_s": {}, "x_poisson_time": 1.0, "x_poisson_memory": 1.0})
+    for name in variants:
+        out = work / f"grid_{n_points}" / f"gridpull_{name}.ply"
+        row = reconstruct(src, out, workers, ["--config", str(scene_config(work, VARIANTS[name]))])
+        row.update(evaluate(out, gt, src))
+        row.update(base, method="gridpull", variant=name, overrides=VARIANTS[name],
+                   points_per_s=sample["n_points"] / row["wall_s"],
+                   x_poisson_time=row["wall_s"] / poisson["wall_s"],
+                   x_poisson_memory=(row["peak_rss_mb"] or 0.0) / poisson["peak_rss_mb"],
+                   tile_costs=tile_costs(out))
+        record(row)
+
+
+def tile_costs(mesh: Path) -> list[dict]:
+    """Per-tile solve cost from a job's sidecar: points, finest-band vertices and task seconds of every tile."""
+    side = json.loads(mesh.with_suffix(".json").read_text())
+    return [{"tile": s["tile"], "points": s.get("points_used", s.get("points")), "band": s.get("band_params"),
+             "time_s": s.get("time_s"), "status": s.get("status")} for s in side.get("tile_summaries", [])]
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("suite", choices=("street", "workers", "lidar", "tiles"))
+    ap.add_argument("suite", choices=("street", "workers", "lidar", "tiles", "wide"))
+    ap.add_argument("--variants", nargs="+", choices=sorted(VARIANTS), default=["today", "default"],
+                    help="wide: GridPull settings to run beside Poisson")
+    ap.add_argument("--depth", type=int, default=11, help="wide: Poisson octree depth")
     ap.add_argument("--copies", type=int, nargs="+", default=[1, 2, 4, 8],
                     help="tiles: how many times the street slab is repeated, one run each")
     ap.add_argument("--points", type=int, nargs="+", default=[1_000_000])
@@ -194,6 +255,9 @@ def main() -> None:
         if a.suite == "street":
             for n in a.points:
                 street(n, a.workers, work, overrides)
+        elif a.suite == "wide":
+            for n in a.points:
+                wide(n, a.workers, work, a.variants, a.depth)
         elif a.suite == "tiles":
             tile_count(a.points[0], a.copies, a.workers, work)
         elif a.suite == "workers":
@@ -210,7 +274,7 @@ def main() -> None:
 
 def render(rows: list[dict]) -> str:
     """Markdown table of every scene run (newest last)."""
-    runs = [r for r in rows if r.get("scene") not in (None, "machine") and r.get("suite") != "tiles"]
+    runs = [r for r in rows if r.get("scene") not in (None, "machine") and r.get("suite") not in ("tiles", "wide")]
     if not runs:
         return ""
     out = ["| date | scene | coarse thinning | query pool | points | workers | tiles | wall s | points/s | peak RSS MB | partition s | solve task-s | "
@@ -263,6 +327,64 @@ def render_tiles(rows: list[dict]) -> str:
         out += ["", f"Least squares: wall = {a:.1f} s + {b:.2f} s x tiles (R^2 = {r2:.4f}); largest deviation "
                     f"from the line {np.max(np.abs(w - fit) / w) * 100:.1f} %."]
     return "\n".join(out)
+
+
+def render_wide(rows: list[dict]) -> str:
+    """Markdown table of the ``wide`` suite: each method and variant with its time and memory against Poisson's in
+    the same run (rows are grouped by the Poisson run they follow)."""
+    runs = [r for r in rows if r.get("suite") == "wide"]
+    if not runs:
+        return ""
+    table = []
+    for r in runs:
+        st = r.get("stages_s") or {}
+        table.append({**r, "what": "Poisson" if r["method"] == "poisson" else f"GridPull {r['variant']}",
+                      "tiles_of": "-" if r.get("tiles") is None else f"{r['tiles']}/{r['tiles_planned']}",
+                      "solve_task_s": st.get("solve_task_s"), "setting": r["variant"] if r["method"] == "poisson"
+                      else ("configs/scene.yaml" if r["variant"] == "default" else "fixed 3 x 800 x 50k")})
+    return markdown_table(table, [("date", "date", ""), ("points", "points", ""), ("what", "method", ""),
+                                  ("setting", "settings", ""), ("tiles_of", "tiles", ""), ("wall_s", "wall s", ".1f"),
+                                  ("x_poisson_time", "x Poisson time (same run)", ".2f"),
+                                  ("peak_rss_mb", "peak RSS MB", ".0f"),
+                                  ("x_poisson_memory", "x Poisson memory", ".2f"),
+                                  ("solve_task_s", "solve task-s", ".1f"), ("chamfer_l1_m", "CD-L1 m", ".4f"),
+                                  ("normal_consistency", "NC", ".3f"), ("fscore_0.1m", "F@0.1 m", ".3f"),
+                                  ("components", "pieces", ""), ("boundary_edges", "boundary edges", "")])
+
+
+def plot_tile_costs(rows: list[dict], path: Path) -> Path | None:
+    """Scatter of every tile's solve time against its points and its finest band (the latest ``wide`` run of
+    each variant and cloud size); written to ``path`` (PNG). None when there is nothing to plot."""
+    runs = {}
+    for r in rows:
+        if r.get("suite") == "wide" and r.get("tile_costs"):
+            runs[(r["points"], r["variant"])] = r
+    if not runs:
+        return None
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
+    for (n, variant), r in sorted(runs.items()):
+        tiles = [t for t in r["tile_costs"] if t.get("status") == "solved"]
+        label = f"{variant}, {n / 1e6:.1f}M points"
+        for ax, key in zip(axes, ("points", "band")):
+            ax.scatter([t[key] for t in tiles], [t["time_s"] for t in tiles], s=10, label=label, alpha=0.7)
+    for ax, name in zip(axes, ("points in the tile", "finest-band vertices")):
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel(name)
+        ax.set_ylabel("solve task seconds (1 thread)")
+        ax.grid(True, which="both", alpha=0.3)
+    axes[0].legend(fontsize=8)
+    fig.suptitle("Per-tile solve cost, grid of streets (benchmarks/scenes.py wide)")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path
 
 
 if __name__ == "__main__":
