@@ -151,3 +151,39 @@ def test_time_estimate_counts_one_search_per_pooled_query():
     # more band bricks and more points cost more
     assert tile_time(spec, [2 * b for b in bricks], pooled) > tile_time(spec, bricks, pooled)
     assert tile_time(SimpleNamespace(n_points=200_000), bricks, pooled) > tile_time(spec, bricks, pooled)
+
+
+def test_time_estimate_follows_the_points_with_content_scaled_queries():
+    """With ``queries_per_point`` a tile's queries follow its points (per level: coarse levels hold at most 4 points
+    per coarse cell of the occupied bricks), so a sparse tile is estimated cheaper than a dense one on the same band,
+    while the fixed schedule charges both the same queries."""
+    from types import SimpleNamespace
+
+    from tiled_gridpull.memory import level_points, tile_time
+
+    scaled = SolverConfig(queries_per_point=4, min_queries=2048)
+    fixed = SolverConfig()
+    bricks = [300, 1000, 3000]
+    sparse = SimpleNamespace(n_points=1_000, occupied_bricks=500)
+    dense = SimpleNamespace(n_points=250_000, occupied_bricks=500)
+    assert level_points(dense, 2, 3) == 250_000                       # the finest level holds every point
+    assert level_points(dense, 0, 3) == 4 * 500 * 6                   # 4 per cell, 1.5 x 2^2 cells per brick
+    assert level_points(dense, 1, 3) == 4 * 500 * 24                  # 1.5 x 4^2 cells per brick
+    assert level_points(sparse, 0, 3) == 1_000                        # fewer points than the cap
+    assert tile_time(sparse, bricks, scaled) < tile_time(dense, bricks, scaled)
+    fixed_gap = tile_time(dense, bricks, fixed) - tile_time(sparse, bricks, fixed)
+    scaled_gap = tile_time(dense, bricks, scaled) - tile_time(sparse, bricks, scaled)
+    assert scaled_gap > 2 * fixed_gap  # the fixed schedule differs only by the points' set-up
+
+
+def test_wall_estimate_schedules_the_costliest_tiles_first():
+    from pipeline.dryrun import job_wall_time
+    from tiled_gridpull import memory as m
+
+    assert m.makespan([5, 4, 3, 3, 3], 2) == 10  # LPT: 5+3+... on one worker, 4+3+3 on the other
+    assert m.makespan([5, 4, 3, 3, 3], 1) == 18
+    assert m.makespan([7], 4) == 7
+    est = [{"time_s": 10.0, "mesh_time_s": 1.0}, {"time_s": 2.0, "mesh_time_s": 0.5}]
+    fixed = m.JOB_SETUP_S + 1000 * (m.RATE_PARTITION_POINT_S + m.RATE_MERGE_POINT_S)
+    assert job_wall_time(est, 1000, 2) == pytest.approx(fixed + 11.0)
+    assert job_wall_time(est, 1000, 1) == pytest.approx(fixed + 13.5)

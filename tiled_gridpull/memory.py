@@ -40,7 +40,8 @@ if TYPE_CHECKING:
     from .config import SolverConfig
     from .tile import TileSpec, TilingConfig
 
-__all__ = ["parse_size", "band_bricks_bound", "tile_memory", "tile_time", "format_size", "estimate_tiles", "MB"]
+__all__ = ["parse_size", "band_bricks_bound", "tile_memory", "tile_time", "mesh_time", "makespan", "level_points",
+           "format_size", "estimate_tiles", "MB"]
 
 MB = 1024 * 1024
 BASE_MB = 260.0  # resident size of a Dask worker that has imported and compiled everything (measured 220 MB
@@ -72,6 +73,12 @@ RATE_NN_S = 2e-7
 RATE_SLOT_S = 3e-9
 RATE_POINT_S = 4e-6
 TILE_SETUP_S = 0.3
+ITERATION_S = 0.0  # fixed cost of one iteration (kernel calls from Python)
+MESH_SETUP_S = 0.1
+RATE_MESH_BRICK_S = 3e-4  # blend + marching cubes + trim per finest band brick
+JOB_SETUP_S = 4.0  # local cluster start, imports and numba's cached kernels loaded in each worker
+RATE_PARTITION_POINT_S = 2.5e-6  # reading, scanning and partitioning, per input point
+RATE_MERGE_POINT_S = 2e-6  # welding the pieces and writing the mesh, per input point
 
 _SIZE = re.compile(r"^\s*(\d+(?:\.\d*)?|\.\d+)\s*(?:([kmgt])(?:i?b)?|b)?\s*$", re.IGNORECASE)
 
@@ -174,17 +181,52 @@ def tile_memory(spec: "TileSpec", occupancy: np.ndarray, solver: "SolverConfig",
             "points": n}
 
 
+def level_points(spec: "TileSpec", level: int, levels: int) -> int:
+    """Points a level of the tile's solve holds, estimated from the partition alone.
+
+    The finest level holds them all; a coarser level keeps at most ``COARSE_POINTS_PER_CELL`` per cell
+    (:func:`tiled_gridpull.solver._thin`), and a surface crosses about ``1.5 (8 / f)^2`` of the ``(8 / f)^3``
+    cells of factor ``f`` in each occupied brick of 8^3 fine cells.
+    """
+    from .solver import COARSE_POINTS_PER_CELL
+
+    n = int(spec.n_points)
+    f = 2 ** (levels - 1 - level)
+    if f == 1:
+        return n
+    per_brick = min(1.5 * (BRICK / f) ** 2, (BRICK / f) ** 3)
+    cells = max(int(getattr(spec, "occupied_bricks", 0) or 0), 1) * per_brick
+    return int(min(n, COARSE_POINTS_PER_CELL * cells))
+
+
 def tile_time(spec: "TileSpec", bricks: list[int], solver: "SolverConfig") -> float:
-    """Rough single-thread seconds to solve one tile: per level, iterations x (queries + band slots) plus the
-    nearest-point searches (the query pool's batches once, or every iteration's), and the points' set-up."""
+    """Rough seconds (one thread of a 2-worker job) to solve one tile: per level, iterations x (queries + band
+    slots) with the queries the level's points give (``queries_per_point``), plus the nearest-point searches
+    (the query pool's batches once, or every iteration's), and the points' set-up."""
     levels = len(bricks)
     t = TILE_SETUP_S + spec.n_points * RATE_POINT_S
     for level, b in enumerate(bricks):
-        st = solver.level_settings(level, levels)
-        it = st["iterations"]
-        searched = (st["query_pool"] or it) * solver.queries
-        t += it * (solver.queries * RATE_QUERY_S + b * SLOT * RATE_SLOT_S) + searched * RATE_NN_S
+        st = solver.level_settings(level, levels, level_points(spec, level, levels))
+        it, nq = st["iterations"], st["queries"]
+        searched = (st["query_pool"] or it) * nq
+        t += it * (ITERATION_S + nq * RATE_QUERY_S + b * SLOT * RATE_SLOT_S) + searched * RATE_NN_S
     return t
+
+
+def mesh_time(bricks: int) -> float:
+    """Rough seconds of a tile's mesh step (blend with its neighbours, marching cubes, trim) from its finest band
+    bound (bricks)."""
+    return MESH_SETUP_S + bricks * RATE_MESH_BRICK_S
+
+
+def makespan(durations: list[float], workers: int) -> float:
+    """Finish time of ``durations`` on ``workers`` when the longest start first (the job's order)."""
+    import heapq
+
+    load = [0.0] * max(1, int(workers))
+    for d in sorted(durations, reverse=True):
+        heapq.heapreplace(load, load[0] + d)
+    return max(load)
 
 
 def estimate_tiles(specs: list["TileSpec"], solver: "SolverConfig", tiling: "TilingConfig",
@@ -209,5 +251,6 @@ def estimate_tiles(specs: list["TileSpec"], solver: "SolverConfig", tiling: "Til
         est = tile_memory(s, occ, solver, tiling, nb)
         est["tile"] = s.name
         est["time_s"] = tile_time(s, est["bricks"], solver)
+        est["mesh_time_s"] = mesh_time(est["bricks"][-1])
         out.append(est)
     return out
