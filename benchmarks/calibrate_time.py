@@ -17,11 +17,13 @@ from pathlib import Path
 import numpy as np
 
 
-def tile_work(spec, solver, tiling) -> dict:
+def tile_work(spec, solver, tiling, occupancy=None) -> dict:
+    """The work counts of one tile's solve as the estimate sees them, and its band bounds per level."""
     from tiled_gridpull import memory as m
     from tiled_gridpull.tile import read_occupancy
 
-    bricks = m.band_bricks_bound(read_occupancy(spec), spec.block.shape, solver)
+    occ = read_occupancy(spec) if occupancy is None else occupancy
+    bricks = m.band_bricks_bound(occ, spec.block.shape, solver)
     levels = len(bricks)
     w = {"query": 0.0, "nn": 0.0, "slot": 0.0, "iteration": 0.0, "point": float(spec.n_points), "one": 1.0}
     for level, b in enumerate(bricks):

@@ -178,7 +178,7 @@ def lidar(workers: int, work: Path) -> None:
 
 #: The scene schedule before issue 16 (fixed: 3 levels x 800 iterations x 50,000 queries), as overrides.
 TODAY = {"queries_per_point": 0, "iterations": 800, "coarse_iterations": 800, "middle_iterations": 0,
-         "lr_step": 400, "refine_lr_step": 200, "fine_lr_step": 0}
+         "lr_step": 400, "refine_lr_step": 200, "m2": 25}
 VARIANTS = {"default": {}, "today": TODAY}
 
 
@@ -220,6 +220,49 @@ def wide(n_points: int, workers: int, work: Path, variants: list[str], depth: in
         record(row)
 
 
+def holdout(workers: int, work: Path, variants: list[str], depth: int = 10, fraction: float = 0.1) -> None:
+    """Real scans without a ground truth: hold out ``fraction`` of each shared LiDAR file's points (seeded), run
+    Poisson and each GridPull variant on the rest, and score the distance of the held-out points to each mesh
+    (mean, median, 90th percentile, share within one cell), same run."""
+    import numpy as np
+
+    from tiled_gridpull.io import read_mesh, read_points
+    from tiled_gridpull.metrics import point_to_mesh
+    from tiled_gridpull.synthetic.street import write_las
+
+    folder = REPO.parent / "shared" / "data" / "lidar"
+    for name, cell in LIDAR.items():
+        src = folder / name
+        if not src.exists():
+            print(f"skip {name}: not in ../shared/data/lidar", flush=True)
+            continue
+        xyz = read_points(src).xyz
+        held = np.random.default_rng(0).random(len(xyz)) < fraction
+        train = write_las(work / f"{src.stem}_train.laz", xyz[~held])
+        test = xyz[held]
+        base = {"scene": name, "suite": "holdout", "points": int((~held).sum()), "held_out": int(held.sum()),
+                "workers": workers, "cell": cell}
+
+        def score(mesh_path: Path) -> dict:
+            d, _ = point_to_mesh(test, read_mesh(mesh_path))
+            return {"holdout_mean": float(d.mean()), "holdout_median": float(np.median(d)),
+                    "holdout_p90": float(np.quantile(d, 0.9)), "holdout_within_cell": float(np.mean(d <= cell))}
+
+        pout = work / f"{src.stem}_poisson.ply"
+        poisson = poisson_scene(train, pout, depth)
+        record({**base, **{k: v for k, v in poisson.items() if k != "points"}, **score(pout), "method": "poisson",
+                "variant": f"depth {depth}", "tiles": None, "tiles_planned": None, "stages_s": {},
+                "points_per_s": base["points"] / poisson["wall_s"], "x_poisson_time": 1.0})
+        for v in variants:
+            out = work / f"{src.stem}_{v}.ply"
+            row = reconstruct(train, out, workers, ["--config", str(scene_config(work, VARIANTS[v])),
+                                                    "--voxel-size", str(cell), "--tile-size", str(256 * cell),
+                                                    "--overlap", str(32 * cell)])
+            row.update(base, **score(out), method="gridpull", variant=v, overrides=VARIANTS[v],
+                       points_per_s=base["points"] / row["wall_s"], x_poisson_time=row["wall_s"] / poisson["wall_s"])
+            record(row)
+
+
 def tile_costs(mesh: Path) -> list[dict]:
     """Per-tile solve cost from a job's sidecar: points, finest-band vertices and task seconds of every tile."""
     side = json.loads(mesh.with_suffix(".json").read_text())
@@ -229,10 +272,11 @@ def tile_costs(mesh: Path) -> list[dict]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("suite", choices=("street", "workers", "lidar", "tiles", "wide"))
+    ap.add_argument("suite", choices=("street", "workers", "lidar", "tiles", "wide", "holdout"))
     ap.add_argument("--variants", nargs="+", choices=sorted(VARIANTS), default=["today", "default"],
                     help="wide: GridPull settings to run beside Poisson")
-    ap.add_argument("--depth", type=int, default=11, help="wide: Poisson octree depth")
+    ap.add_argument("--depth", type=int, default=None,
+                    help="wide, holdout: Poisson octree depth (default 11 for wide, 10 for holdout)")
     ap.add_argument("--copies", type=int, nargs="+", default=[1, 2, 4, 8],
                     help="tiles: how many times the street slab is repeated, one run each")
     ap.add_argument("--points", type=int, nargs="+", default=[1_000_000])
@@ -255,9 +299,11 @@ def main() -> None:
         if a.suite == "street":
             for n in a.points:
                 street(n, a.workers, work, overrides)
+        elif a.suite == "holdout":
+            holdout(a.workers, work, a.variants, a.depth or 10)
         elif a.suite == "wide":
             for n in a.points:
-                wide(n, a.workers, work, a.variants, a.depth)
+                wide(n, a.workers, work, a.variants, a.depth or 11)
         elif a.suite == "tiles":
             tile_count(a.points[0], a.copies, a.workers, work)
         elif a.suite == "workers":
@@ -274,7 +320,8 @@ def main() -> None:
 
 def render(rows: list[dict]) -> str:
     """Markdown table of every scene run (newest last)."""
-    runs = [r for r in rows if r.get("scene") not in (None, "machine") and r.get("suite") not in ("tiles", "wide")]
+    runs = [r for r in rows if r.get("scene") not in (None, "machine")
+            and r.get("suite") not in ("tiles", "wide", "holdout")]
     if not runs:
         return ""
     out = ["| date | scene | coarse thinning | query pool | points | workers | tiles | wall s | points/s | peak RSS MB | partition s | solve task-s | "
@@ -350,6 +397,23 @@ def render_wide(rows: list[dict]) -> str:
                                   ("solve_task_s", "solve task-s", ".1f"), ("chamfer_l1_m", "CD-L1 m", ".4f"),
                                   ("normal_consistency", "NC", ".3f"), ("fscore_0.1m", "F@0.1 m", ".3f"),
                                   ("components", "pieces", ""), ("boundary_edges", "boundary edges", "")])
+
+
+def render_holdout(rows: list[dict]) -> str:
+    """Markdown table of the ``holdout`` suite (held-out points' distance to each mesh, same run as Poisson)."""
+    runs = [r for r in rows if r.get("suite") == "holdout"]
+    if not runs:
+        return ""
+    table = [{**r, "what": "Poisson" if r["method"] == "poisson" else f"GridPull {r['variant']}",
+              "setting": r["variant"] if r["method"] == "poisson"
+              else ("configs/scene.yaml" if r["variant"] == "default" else "fixed 3 x 800 x 50k")} for r in runs]
+    return markdown_table(table, [("date", "date", ""), ("scene", "file", ""), ("cell", "cell", "g"),
+                                  ("points", "points in", ""), ("held_out", "held out", ""), ("what", "method", ""),
+                                  ("setting", "settings", ""), ("wall_s", "wall s", ".1f"),
+                                  ("x_poisson_time", "x Poisson time", ".2f"),
+                                  ("holdout_mean", "held-out mean dist", ".4f"),
+                                  ("holdout_median", "median", ".4f"), ("holdout_p90", "90th pct", ".4f"),
+                                  ("holdout_within_cell", "share within 1 cell", ".3f")])
 
 
 def plot_tile_costs(rows: list[dict], path: Path) -> Path | None:

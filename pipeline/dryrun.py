@@ -70,7 +70,8 @@ def job_wall_time(estimates: list[dict], n_points: int, workers: int) -> float:
     from tiled_gridpull import memory as m
 
     tasks = [e["time_s"] + e.get("mesh_time_s", 0.0) for e in estimates]
-    return (m.JOB_SETUP_S + n_points * (m.RATE_PARTITION_POINT_S + m.RATE_MERGE_POINT_S)
+    fine_bricks = sum(e["bricks"][-1] for e in estimates)
+    return (m.JOB_SETUP_S + n_points * m.RATE_PARTITION_POINT_S + fine_bricks * m.RATE_MERGE_BRICK_S
             + m.makespan(tasks, workers))
 
 

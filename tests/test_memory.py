@@ -183,7 +183,8 @@ def test_wall_estimate_schedules_the_costliest_tiles_first():
     assert m.makespan([5, 4, 3, 3, 3], 2) == 10  # LPT: 5+3+... on one worker, 4+3+3 on the other
     assert m.makespan([5, 4, 3, 3, 3], 1) == 18
     assert m.makespan([7], 4) == 7
-    est = [{"time_s": 10.0, "mesh_time_s": 1.0}, {"time_s": 2.0, "mesh_time_s": 0.5}]
-    fixed = m.JOB_SETUP_S + 1000 * (m.RATE_PARTITION_POINT_S + m.RATE_MERGE_POINT_S)
+    est = [{"time_s": 10.0, "mesh_time_s": 1.0, "bricks": [10, 20, 300]},
+           {"time_s": 2.0, "mesh_time_s": 0.5, "bricks": [5, 10, 100]}]
+    fixed = m.JOB_SETUP_S + 1000 * m.RATE_PARTITION_POINT_S + 400 * m.RATE_MERGE_BRICK_S
     assert job_wall_time(est, 1000, 2) == pytest.approx(fixed + 11.0)
     assert job_wall_time(est, 1000, 1) == pytest.approx(fixed + 13.5)

@@ -64,21 +64,24 @@ TRIM_BYTES = 60  # mesh step: the tile's points as float64 and their KD-tree
 QUERY_BYTES = 16 * 8 + 16 * 4 + 4 * 4 + 8 + 3 * 4 * 3 + 8 + 4  # slots, grads, losses, centres, q, s, nn
 POOL_BYTES_PER_QUERY = 4  # int32 nearest-point index per pooled query
 UNTRACKED = 1.15  # allocations numpy does not see (KD-trees, numba's per-brick buffers) and heap fragmentation
-# rough solve rates, one thread, measured per level on street tiles of 4k and 793k points (2026-11-22):
-# losses, interpolation and scatter 88-181 ns per query and iteration; nearest-point search 55-313 ns per query
-# searched (once per pooled query, or every iteration without a pool); TV + Adam 2.6-4.8 ns per band slot and
-# iteration; 4 us per point of set-up (normals, orientation, band building)
-RATE_QUERY_S = 1e-7
+# Rough rates of a job on its default local cluster (one-thread workers, two of them sharing the memory bus),
+# fitted by benchmarks/calibrate_time.py to 72 tiles of two jobs with the content-scaled scene schedule (the
+# 300k-point demo street and the 1M-point grid of streets; 2-core Intel Xeon, 2026-11-23): a query costs 240 ns
+# per iteration (drawing, losses, scatter), a nearest-point search 200 ns (once per pooled query, or every
+# iteration without a pool), a band slot 5 ns per iteration (TV + Adam), a point 13 us of set-up (reading,
+# normals, orientation, band building). The mesh step (blend with the neighbours, marching cubes, trim) costs
+# about 0.4 ms per finest band brick, and the weld 30 us per finest band brick of the job.
+RATE_QUERY_S = 2.4e-7
 RATE_NN_S = 2e-7
-RATE_SLOT_S = 3e-9
-RATE_POINT_S = 4e-6
+RATE_SLOT_S = 5e-9
+RATE_POINT_S = 1.3e-5
 TILE_SETUP_S = 0.3
-ITERATION_S = 0.0  # fixed cost of one iteration (kernel calls from Python)
+ITERATION_S = 0.0  # fixed cost of one iteration (kernel calls from Python): too small to fit
 MESH_SETUP_S = 0.1
-RATE_MESH_BRICK_S = 3e-4  # blend + marching cubes + trim per finest band brick
+RATE_MESH_BRICK_S = 4e-4
 JOB_SETUP_S = 4.0  # local cluster start, imports and numba's cached kernels loaded in each worker
 RATE_PARTITION_POINT_S = 2.5e-6  # reading, scanning and partitioning, per input point
-RATE_MERGE_POINT_S = 2e-6  # welding the pieces and writing the mesh, per input point
+RATE_MERGE_BRICK_S = 3e-5  # welding the pieces and writing the mesh, per finest band brick of the job
 
 _SIZE = re.compile(r"^\s*(\d+(?:\.\d*)?|\.\d+)\s*(?:([kmgt])(?:i?b)?|b)?\s*$", re.IGNORECASE)
 
