@@ -85,6 +85,10 @@ def pou_weight(g: np.ndarray, block_lo: np.ndarray, block_hi: np.ndarray, overla
 def blend_into(own: TileField, others: list[TileField], region_lo: np.ndarray, region_hi: np.ndarray) -> int:
     """Replace ``own``'s parameters in the vertex box ``[region_lo, region_hi]`` by the blended values.
 
+    Only vertices that some other tile's block holds can change; each is ``sum_t w_t d_t / sum_t w_t`` over the
+    tiles (``own`` included) that hold it as a parameter, summed in tile index order in float64
+    (:func:`tiled_gridpull.kernels.blend.blend_bricks`).
+
     Parameters
     ----------
     own : TileField
@@ -99,32 +103,45 @@ def blend_into(own: TileField, others: list[TileField], region_lo: np.ndarray, r
     int
         Number of vertices whose value changed.
     """
+    from .kernels.blend import blend_bricks
+
     tiles = sorted([own, *others], key=lambda t: tuple(t.index))
-    g_all = (own.brick_coords[:, None, :] * BRICK
-             + np.indices((BRICK, BRICK, BRICK)).reshape(3, -1).T[None]).reshape(-1, 3)
-    param = (own.flags.reshape(-1) & PARAM) != 0
-    in_region = np.all((g_all >= region_lo) & (g_all <= region_hi), axis=1)
-    # only vertices inside some other tile's block can change
-    near = np.zeros(len(g_all), bool)
-    for t in others:
-        near |= np.all((g_all >= t.block_lo) & (g_all <= t.block_hi), axis=1)
-    sel = np.flatnonzero(param & in_region & near)
-    if len(sel) == 0:
+    rank = next(i for i, t in enumerate(tiles) if t is own)
+    region_lo = np.asarray(region_lo, np.int64)
+    region_hi = np.asarray(region_hi, np.int64)
+    lo = np.zeros((len(tiles), 3), np.int64)
+    dims = np.zeros((len(tiles), 3), np.int64)
+    start = np.zeros(len(tiles), np.int64)
+    tables, values, flags = [], [], []
+    offset = n_bricks = 0
+    for i, t in enumerate(tiles):
+        if i == rank:
+            continue
+        coords = np.asarray(t.brick_coords, np.int64)
+        # only a neighbour's bricks that reach into the region are ever read: the overlap strip, not its field
+        keep = np.flatnonzero(np.all((coords * BRICK + BRICK - 1 >= region_lo) & (coords * BRICK <= region_hi), axis=1))
+        if len(keep) == 0:
+            continue
+        coords = coords[keep]
+        lo[i] = coords.min(axis=0)
+        dims[i] = coords.max(axis=0) + 1 - lo[i]
+        table = np.full(tuple(dims[i]), -1, np.int64)
+        rel = coords - lo[i]
+        table[rel[:, 0], rel[:, 1], rel[:, 2]] = n_bricks + np.arange(len(coords))
+        tables.append(table.ravel())
+        start[i] = offset
+        offset += table.size
+        n_bricks += len(coords)
+        values.append(np.asarray(t.values).reshape(-1, BRICK ** 3)[keep])
+        flags.append(np.asarray(t.flags).reshape(-1, BRICK ** 3)[keep])
+    if not tables:
         return 0
-    g = g_all[sel]
-    num = np.zeros(len(sel), np.float64)
-    den = np.zeros(len(sel), np.float64)
-    for t in tiles:
-        if t is own:
-            vals = own.values.reshape(-1)[sel]
-            mask = np.ones(len(sel), bool)
-        else:
-            vals, mask = t.lookup(g)
-        w = pou_weight(g, t.block_lo, t.block_hi, t.overlap) * mask
-        num += w * vals.astype(np.float64)
-        den += w
-    blended = (num / np.where(den > 0, den, 1.0)).astype(np.float32)
-    flat = own.values.reshape(-1)
-    changed = int(np.count_nonzero(flat[sel] != blended))
-    flat[sel] = blended
-    return changed
+    own_values = own.values.reshape(-1, BRICK ** 3)
+    changed = blend_bricks(np.ascontiguousarray(own.brick_coords, np.int64), own_values,
+                           np.ascontiguousarray(own.flags, np.uint8).reshape(-1, BRICK ** 3), rank, region_lo,
+                           region_hi, np.array([t.block_lo for t in tiles], np.int64),
+                           np.array([t.block_hi for t in tiles], np.int64),
+                           np.array([t.overlap for t in tiles], np.int64), lo, dims, start, np.concatenate(tables),
+                           np.concatenate(values).astype(np.float32, copy=False),
+                           np.concatenate(flags).astype(np.uint8, copy=False))
+    return int(changed)
