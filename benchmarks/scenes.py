@@ -160,13 +160,19 @@ def tile_count(n_points: int, copies: list[int], workers: int, work: Path) -> No
         record(row)
 
 
-def lidar(workers: int, work: Path) -> None:
+def shared_lidar_files():
+    """``(name, cell, path)`` of each shared LiDAR file of ``LIDAR`` that exists (a line for each one missing)."""
     folder = REPO.parent / "shared" / "data" / "lidar"
     for name, cell in LIDAR.items():
         src = folder / name
-        if not src.exists():
+        if src.exists():
+            yield name, cell, src
+        else:
             print(f"skip {name}: not in ../shared/data/lidar", flush=True)
-            continue
+
+
+def lidar(workers: int, work: Path) -> None:
+    for name, cell, src in shared_lidar_files():
         out = work / (src.stem + ".ply")
         row = reconstruct(src, out, workers, ["--config", str(REPO / "configs" / "scene.yaml"),
                                               "--voxel-size", str(cell), "--tile-size", str(256 * cell),
@@ -230,12 +236,7 @@ def holdout(workers: int, work: Path, variants: list[str], depth: int = 10, frac
     from tiled_gridpull.metrics import point_to_mesh
     from tiled_gridpull.synthetic.street import write_las
 
-    folder = REPO.parent / "shared" / "data" / "lidar"
-    for name, cell in LIDAR.items():
-        src = folder / name
-        if not src.exists():
-            print(f"skip {name}: not in ../shared/data/lidar", flush=True)
-            continue
+    for name, cell, src in shared_lidar_files():
         xyz = read_points(src).xyz
         held = np.random.default_rng(0).random(len(xyz)) < fraction
         train = write_las(work / f"{src.stem}_train.laz", xyz[~held])

@@ -385,9 +385,7 @@ def build_street(scene: StreetScene) -> Mesh:
             if all(abs(x - px) > 2.5 or ps != side for px, ps in poles):
                 y = side * 8.2
                 z = float(h(x, y))
-                v, f = _cylinder(0.18, z - 0.3, z + trunk_h + 0.5 * r, 12)
-                out.add("tree", v + (x, y, 0.0), f)
-                out.add("tree", crown_v * r + (x, y, z + trunk_h + 0.6 * r), crown_f)
+                _add_tree(out, x, y, z, trunk_h, r, crown_v, crown_f)
             x += step
 
     # ---- cars: moving ones in the lanes, parked ones along the curbs, small random yaw
@@ -549,9 +547,7 @@ def _build_grid_scene(scene: StreetScene) -> Mesh:
                                                        if pk == k and pside == side):
                     x, y = (float(c) for c in _street_to_local(axis, line, s, side * 8.2))
                     z = float(h(x, y))
-                    v, f = _cylinder(0.18, z - 0.3, z + trunk_h + 0.5 * r, 12)
-                    out.add("tree", v + (x, y, 0.0), f)
-                    out.add("tree", crown_v * r + (x, y, z + trunk_h + 0.6 * r), crown_f)
+                    _add_tree(out, x, y, z, trunk_h, r, crown_v, crown_f)
                 s += step
 
     # ---- cars: moving ones in the lanes, parked ones along the curbs, small random yaw; the crossings stay
@@ -584,6 +580,15 @@ def _build_grid_scene(scene: StreetScene) -> Mesh:
     meta = {"generator": "tiled_gridpull.synthetic.street", "scene": scene.to_dict(), "face_classes": ranges,
             "units": "m"}
     return Mesh(v + scene.origin_array, f, meta)
+
+
+def _add_tree(out: _Builder, x: float, y: float, z: float, trunk_h: float, r: float, crown_v: np.ndarray,
+              crown_f: np.ndarray) -> None:
+    """A tree at ground point (x, y, z): a trunk (r = 0.18 m, sunk 0.3 m) and an icosphere crown of radius ``r``
+    whose centre is ``trunk_h + 0.6 r`` above the ground (the trunk reaches half-way into it)."""
+    v, f = _cylinder(0.18, z - 0.3, z + trunk_h + 0.5 * r, 12)
+    out.add("tree", v + (x, y, 0.0), f)
+    out.add("tree", crown_v * r + (x, y, z + trunk_h + 0.6 * r), crown_f)
 
 
 def _add_box(out: _Builder, cls: str, lo, hi) -> None:
