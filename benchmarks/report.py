@@ -295,7 +295,9 @@ def main() -> None:
                   "with 2 workers. Poisson is Open3D's screened Poisson at depth 11 in its own process, end to end: "
                   "read, normals (30 neighbours, oriented up), Poisson, 5 % density trim, write "
                   "(`benchmarks/poisson_scene.py`). `x Poisson` columns are ratios to the Poisson row of the same "
-                  "run; accuracy is against the ground truth over the observed region (0.2 m).", "",
+                  "run; accuracy is against the ground truth over the observed region (0.2 m). The 2026-11-23 `today` run "
+                  "shared the machine with a test run for part of its time (its Poisson took 71 s instead of 56 s).",
+                  "",
                   wide_table, ""]
         if plot is not None:
             parts += [f"![per-tile solve cost]({plot.relative_to(REPO)})", "",
