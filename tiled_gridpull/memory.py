@@ -51,7 +51,9 @@ SLOT = BRICK ** 3
 OPT_BYTES_PER_SLOT = 30  # while optimized: d_a, d_b, m, v, qgrad, TV weights (float32), initial values, flags
 INIT_BYTES_PER_SLOT = 50  # transfer from the coarser level / initial field: int64 and float64 slot positions
 FIELD_BYTES_PER_SLOT = 5  # a stored field (the coarser level, a neighbour's): float32 value + flags
-BLEND_BYTES_PER_SLOT = 55  # mesh step: global vertex indices and masks of the tile's own band
+BLEND_BYTES_PER_SLOT = 25  # mesh step, per slot of the tile's own band: marching cubes and its band tables (the NumPy
+# blend's int64 vertex indices and masks, about 30 bytes more, went with the blend kernel: the estimate had grown to
+# 2.09x the measured mesh peak on the street of tests/test_memory.py)
 # Bytes per input point (N, before duplicates are dropped):
 POINT_BYTES = 150  # spill records, float32/float64 copies, dedupe sort, normals, index coordinates, Morton order
 POINT_BYTES_SENSOR = 40  # sensor origins in the spill record, float32 and float64 copies
@@ -76,7 +78,6 @@ RATE_NN_S = 2e-7
 RATE_SLOT_S = 5e-9
 RATE_POINT_S = 1.3e-5
 TILE_SETUP_S = 0.3
-ITERATION_S = 0.0  # fixed cost of one iteration (kernel calls from Python): too small to fit
 MESH_SETUP_S = 0.1
 RATE_MESH_BRICK_S = 4e-4
 JOB_SETUP_S = 4.0  # local cluster start, imports and numba's cached kernels loaded in each worker
@@ -212,7 +213,7 @@ def tile_time(spec: "TileSpec", bricks: list[int], solver: "SolverConfig") -> fl
         st = solver.level_settings(level, levels, level_points(spec, level, levels))
         it, nq = st["iterations"], st["queries"]
         searched = (st["query_pool"] or it) * nq
-        t += it * (ITERATION_S + nq * RATE_QUERY_S + b * SLOT * RATE_SLOT_S) + searched * RATE_NN_S
+        t += it * (nq * RATE_QUERY_S + b * SLOT * RATE_SLOT_S) + searched * RATE_NN_S
     return t
 
 
