@@ -293,7 +293,7 @@ def task_arguments(specs: list[TileSpec], tiling: TilingConfig, solver: SolverCo
 
 
 def run_tiles(client, specs: list[TileSpec], solve_fn, solve_args, mesh_fn, mesh_args, retries: int = 2,
-              window: int = DEFAULT_WINDOW, stop: threading.Event | None = None, cost=None):
+              window: int = DEFAULT_WINDOW, stop: threading.Event | None = None):
     """Run the job's graph on ``client``, yielding ``(kind, tile index, summary)`` as tasks finish.
 
     The graph: one solve task per tile, then one mesh task per tile that needs the solve summaries of the tile
@@ -301,10 +301,10 @@ def run_tiles(client, specs: list[TileSpec], solve_fn, solve_args, mesh_fn, mesh
     neighbour_specs, neighbour_summaries, *mesh_args(spec))``; tasks carry the small spec objects, never arrays.
 
     Solves are submitted as a sliding window of at most ``window`` unfinished tasks, in tile order from one window
-    to the next and, within each window's worth of tiles, the costliest first (``cost``: the longest tiles start
-    first, so a short tile, not a long one, is what runs alone at the end: longest-processing-time-first
-    scheduling; in the demo street the 250k-point tile had been started last); a tile's mesh task goes in as soon as the solves of the tile and its neighbours have come back, with their summaries as
-    plain arguments. The scheduler, the workers and this process thus hold state for a window of tiles, not the
+    to the next and, within each window's worth of tiles, the costliest first (most occupied bricks, then most
+    points): a short tile, not a long one, is what runs alone at the end (longest-processing-time-first
+    scheduling; in the demo street the 250k-point tile had been started last). A tile's mesh task goes in as soon
+    as the solves of the tile and its neighbours have come back, with their summaries as plain arguments. The scheduler, the workers and this process thus hold state for a window of tiles, not the
     whole job: submitting all 200,000 tasks of a 100,000-tile job at once overloaded the local scheduler until it
     dropped the client's connection. Plain summaries rather than solve futures as the mesh task's dependencies
     spare the scheduler 27 edges per mesh task and the workers fetching summaries from each other; with tasks
@@ -315,8 +315,6 @@ def run_tiles(client, specs: list[TileSpec], solve_fn, solve_args, mesh_fn, mesh
     ----------
     window : int
         Most tasks submitted and not yet returned; at least 1.
-    cost : callable, optional
-        ``cost(spec)``: a sortable estimate of a tile's solve time (default: occupied bricks, then points).
     stop : threading.Event, optional
         Checked between results (every 0.1 s while waiting): when set, raises KeyboardInterrupt.
     """
@@ -340,9 +338,10 @@ def run_tiles(client, specs: list[TileSpec], solve_fn, solve_args, mesh_fn, mesh
     kinds: dict[str, tuple[str, int]] = {}
     pending = as_completed(with_results=True)  # results come with the futures, not one request each
     n, next_solve, in_flight = len(specs), 0, 0
-    cost = cost or (lambda s: (s.occupied_bricks, s.n_points))
-    # tile order across windows keeps a window's meshes close to its solves; costliest first within one
-    solve_order = sorted(range(n), key=lambda i: (i // window, _negated(cost(specs[i]))))
+    # tile order across windows keeps a window's meshes close to its solves; costliest first within one (both
+    # sorts are stable: equal costs keep tile order)
+    solve_order = sorted(range(n), key=lambda i: (specs[i].occupied_bricks, specs[i].n_points), reverse=True)
+    solve_order.sort(key=lambda i: i // window)
 
     def submit(kind: str, fn, rows: list[tuple], items: list[int]) -> None:
         keys = [f"{kind}-{specs[i].name}" for i in items]
@@ -393,11 +392,6 @@ def run_tiles(client, specs: list[TileSpec], solve_fn, solve_args, mesh_fn, mesh
             yield kind, specs[i].index, result
         if stop is not None and stop.is_set():
             raise KeyboardInterrupt
-
-
-def _negated(key):
-    """A sort key that orders ``key`` (a number or a tuple of numbers) from largest to smallest."""
-    return tuple(-k for k in key) if isinstance(key, tuple) else -key
 
 
 def check_memory(specs: list[TileSpec] | None, tiling: TilingConfig, solver: SolverConfig, budget: int,
