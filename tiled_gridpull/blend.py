@@ -19,7 +19,7 @@ import numpy as np
 
 from .kernels import BRICK, PARAM
 
-__all__ = ["TileField", "pou_weight", "blend_into"]
+__all__ = ["TileField", "brick_table", "pou_weight", "blend_into"]
 
 
 @dataclass(eq=False)
@@ -52,13 +52,8 @@ class TileField:
     def lookup(self, g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Values and parameter mask at global vertices ``g`` (M, 3) (False where the tile has none)."""
         bricks = g // BRICK
-        lo = self.brick_coords.min(axis=0) if len(self.brick_coords) else np.zeros(3, np.int64)
-        hi = self.brick_coords.max(axis=0) + 1 if len(self.brick_coords) else np.zeros(3, np.int64)
-        dims = np.maximum(hi - lo, 1)
-        table = np.full(tuple(dims), -1, np.int64)
-        if len(self.brick_coords):
-            rel = self.brick_coords - lo
-            table[rel[:, 0], rel[:, 1], rel[:, 2]] = np.arange(len(self.brick_coords))
+        lo, table = brick_table(self.brick_coords)
+        dims = np.asarray(table.shape)
         rel = bricks - lo
         inside = np.all((rel >= 0) & (rel < dims), axis=1)
         b = np.full(len(g), -1, np.int64)
@@ -71,6 +66,33 @@ class TileField:
         vals[ok] = self.values[b[ok], slot[ok]]
         mask[ok] = (self.flags[b[ok], slot[ok]] & PARAM) != 0
         return vals, mask
+
+
+def brick_table(coords: np.ndarray, first: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Dense table over the box of some bricks: ``table[c - lo]`` is ``first + i`` for brick ``i``, -1 elsewhere.
+
+    Parameters
+    ----------
+    coords : (nb, 3) int
+        Brick coordinates.
+    first : int
+        Number of the first brick.
+
+    Returns
+    -------
+    lo : (3,) int64
+        Low corner of the box (zeros for no bricks).
+    table : (dx, dy, dz) int64
+        At least one entry along each axis.
+    """
+    coords = np.asarray(coords, np.int64)
+    if len(coords) == 0:
+        return np.zeros(3, np.int64), np.full((1, 1, 1), -1, np.int64)
+    lo = coords.min(axis=0)
+    table = np.full(tuple(coords.max(axis=0) + 1 - lo), -1, np.int64)
+    rel = coords - lo
+    table[rel[:, 0], rel[:, 1], rel[:, 2]] = first + np.arange(len(coords))
+    return lo, table
 
 
 def pou_weight(g: np.ndarray, block_lo: np.ndarray, block_hi: np.ndarray, overlap: int) -> np.ndarray:
@@ -119,19 +141,16 @@ def blend_into(own: TileField, others: list[TileField], region_lo: np.ndarray, r
             continue
         coords = np.asarray(t.brick_coords, np.int64)
         # only a neighbour's bricks that reach into the region are ever read: the overlap strip, not its field
-        keep = np.flatnonzero(np.all((coords * BRICK + BRICK - 1 >= region_lo) & (coords * BRICK <= region_hi), axis=1))
+        keep = np.flatnonzero(np.all((coords * BRICK + BRICK - 1 >= region_lo) & (coords * BRICK <= region_hi),
+                                     axis=1))
         if len(keep) == 0:
             continue
-        coords = coords[keep]
-        lo[i] = coords.min(axis=0)
-        dims[i] = coords.max(axis=0) + 1 - lo[i]
-        table = np.full(tuple(dims[i]), -1, np.int64)
-        rel = coords - lo[i]
-        table[rel[:, 0], rel[:, 1], rel[:, 2]] = n_bricks + np.arange(len(coords))
+        lo[i], table = brick_table(coords[keep], n_bricks)
+        dims[i] = table.shape
         tables.append(table.ravel())
         start[i] = offset
         offset += table.size
-        n_bricks += len(coords)
+        n_bricks += len(keep)
         values.append(np.asarray(t.values).reshape(-1, BRICK ** 3)[keep])
         flags.append(np.asarray(t.flags).reshape(-1, BRICK ** 3)[keep])
     if not tables:
