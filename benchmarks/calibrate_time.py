@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 
-def tile_work(spec, solver, tiling, occupancy=None) -> dict:
+def tile_work(spec, solver, occupancy=None) -> dict:
     """The work counts of one tile's solve as the estimate sees them, and its band bounds per level."""
     from tiled_gridpull import memory as m
     from tiled_gridpull.tile import read_occupancy
@@ -37,17 +37,17 @@ def tile_work(spec, solver, tiling, occupancy=None) -> dict:
 
 
 def main(argv: list[str]) -> None:
+    import argparse
+
+    from pipeline.cli import resolve_settings
     from tiled_gridpull import memory as m
-    from tiled_gridpull.config import SolverConfig, load_config_file
-    from tiled_gridpull.tile import TilingConfig, read_manifest
+    from tiled_gridpull.tile import read_manifest
 
     rows, names = [], ["query", "nn", "slot", "iteration", "point", "one"]
     for arg in argv:
         job, _, cfg = arg.partition(":")
-        settings = load_config_file(cfg or "configs/scene.yaml")
-        tkeys = {f for f in TilingConfig.__dataclass_fields__}
-        solver = SolverConfig(**{k: v for k, v in settings.items() if k not in tkeys})
-        tiling = TilingConfig(**{k: v for k, v in settings.items() if k in tkeys})
+        # the settings exactly as `tiled-gridpull reconstruct --config CFG` resolves them
+        solver, _ = resolve_settings(argparse.Namespace(config=cfg or "configs/scene.yaml", overrides=[]))
         _, specs = read_manifest(Path(job) / "manifest.json")
         for spec in specs:
             p = Path(job) / "summaries" / f"solve_{spec.name}.json"
@@ -56,7 +56,7 @@ def main(argv: list[str]) -> None:
             s = json.loads(p.read_text())
             if s.get("status") != "solved":
                 continue
-            w, bricks = tile_work(spec, solver, tiling)
+            w, bricks = tile_work(spec, solver)
             est = m.tile_time(spec, bricks, solver)
             rows.append((w, s["time_s"], est, spec.name, job))
     A = np.array([[r[0][k] for k in names] for r in rows])

@@ -211,19 +211,26 @@ def wide(n_points: int, workers: int, work: Path, variants: list[str], depth: in
     pout = work / f"grid_{n_points}" / "poisson.ply"
     poisson = poisson_scene(src, pout, depth)
     poisson.update(evaluate(pout, gt, src))
-    record({**base, **{k: v for k, v in poisson.items() if k != "points"}, "method": "poisson", "variant":
-            f"depth {depth}", "tiles": None, "tiles_planned": None, "points_per_s": sample["n_points"] /
-            poisson["wall_s"], "stages_s": {}, "x_poisson_time": 1.0, "x_poisson_memory": 1.0})
+    record(poisson_row(base, poisson, depth))
     for name in variants:
         out = work / f"grid_{n_points}" / f"gridpull_{name}.ply"
         row = reconstruct(src, out, workers, ["--config", str(scene_config(work, VARIANTS[name]))])
         row.update(evaluate(out, gt, src))
-        row.update(base, method="gridpull", variant=name, overrides=VARIANTS[name],
-                   points_per_s=sample["n_points"] / row["wall_s"],
-                   x_poisson_time=row["wall_s"] / poisson["wall_s"],
-                   x_poisson_memory=(row["peak_rss_mb"] or 0.0) / poisson["peak_rss_mb"],
-                   tile_costs=tile_costs(out))
-        record(row)
+        record(gridpull_row(row, base, poisson, name, tile_costs=tile_costs(out)))
+
+
+def poisson_row(base: dict, poisson: dict, depth: int, **extra) -> dict:
+    """A results row of a Poisson run (:func:`poisson_scene` output) beside the GridPull rows of the same run."""
+    return {**base, **{k: v for k, v in poisson.items() if k != "points"}, **extra, "method": "poisson",
+            "variant": f"depth {depth}", "tiles": None, "tiles_planned": None, "stages_s": {},
+            "points_per_s": base["points"] / poisson["wall_s"], "x_poisson_time": 1.0, "x_poisson_memory": 1.0}
+
+
+def gridpull_row(row: dict, base: dict, poisson: dict, variant: str, **extra) -> dict:
+    """A results row of a GridPull job (:func:`reconstruct` output) with its ratios to Poisson's run."""
+    return {**row, **base, **extra, "method": "gridpull", "variant": variant, "overrides": VARIANTS[variant],
+            "points_per_s": base["points"] / row["wall_s"], "x_poisson_time": row["wall_s"] / poisson["wall_s"],
+            "x_poisson_memory": (row["peak_rss_mb"] or 0.0) / poisson["peak_rss_mb"]}
 
 
 def holdout(workers: int, work: Path, variants: list[str], depth: int = 10, fraction: float = 0.1) -> None:
@@ -251,17 +258,13 @@ def holdout(workers: int, work: Path, variants: list[str], depth: int = 10, frac
 
         pout = work / f"{src.stem}_poisson.ply"
         poisson = poisson_scene(train, pout, depth)
-        record({**base, **{k: v for k, v in poisson.items() if k != "points"}, **score(pout), "method": "poisson",
-                "variant": f"depth {depth}", "tiles": None, "tiles_planned": None, "stages_s": {},
-                "points_per_s": base["points"] / poisson["wall_s"], "x_poisson_time": 1.0})
+        record(poisson_row(base, poisson, depth, **score(pout)))
         for v in variants:
             out = work / f"{src.stem}_{v}.ply"
             row = reconstruct(train, out, workers, ["--config", str(scene_config(work, VARIANTS[v])),
                                                     "--voxel-size", str(cell), "--tile-size", str(256 * cell),
                                                     "--overlap", str(32 * cell)])
-            row.update(base, **score(out), method="gridpull", variant=v, overrides=VARIANTS[v],
-                       points_per_s=base["points"] / row["wall_s"], x_poisson_time=row["wall_s"] / poisson["wall_s"])
-            record(row)
+            record(gridpull_row(row, base, poisson, v, **score(out)))
 
 
 def tile_costs(mesh: Path) -> list[dict]:
