@@ -34,7 +34,7 @@ def _total_query_loss(values, band, q, s, normals, beta, gamma, lam, form):
     grads = np.empty((nq, 16), np.float64)
     losses = np.empty((nq, 4), np.float64)
     n = kl.query_losses(values, band.flags.reshape(-1), band.brick_table, np.asarray(band.lattice.shape, np.int64),
-                        q, s, normals, CELL_PULL, beta, gamma, lam, form, slots, grads, losses)
+                        q, s, np.arange(nq), normals, CELL_PULL, beta, gamma, lam, form, slots, grads, losses)
     total = losses[:, 0].sum() + beta * losses[:, 1].sum() + gamma * losses[:, 2].sum() + lam * losses[:, 3].sum()
     return total, slots, grads, n
 

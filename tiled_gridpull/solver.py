@@ -279,7 +279,7 @@ def _optimize(P: np.ndarray, N: np.ndarray | None, band: Band, values: np.ndarra
     losses = np.empty((nq, 4), np.float32)
     centres = np.empty(nq, np.int64)
     q = np.empty((nq, 3), np.float32)
-    empty_normals = np.zeros((0, 3), np.float32)
+    nrm = N if N is not None else np.zeros((0, 3), np.float32)
     beta1, beta2, eps = 0.9, 0.999, 1e-8
     iterations, lr0, lr_step = st["iterations"], st["lr"], st["lr_step"]
     t_query = t_step = 0.0
@@ -299,9 +299,7 @@ def _optimize(P: np.ndarray, N: np.ndarray | None, band: Band, values: np.ndarra
         batch = it % pool if pool else it
         ksamp.draw_queries(P, cfg.seed, it0 + batch, sigma, centres, q)
         nn_idx = pool_nn[batch] if pool else nn.query(q, centres)[0]
-        s = P[nn_idx]
-        nrm = N[nn_idx] if N is not None else empty_normals
-        n_valid = kl.query_losses(d_a, flat_flags, band.brick_table, shape, q, s, nrm, CELL_PULL,
+        n_valid = kl.query_losses(d_a, flat_flags, band.brick_table, shape, q, P, nn_idx, nrm, CELL_PULL,
                                   beta, gamma, cfg.normal_weight, surface_form, slots, grads, losses)
         if n_valid:
             kl.scatter_add(qgrad, slots, grads, np.float32(1.0 / n_valid))

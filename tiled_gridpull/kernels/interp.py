@@ -68,35 +68,53 @@ def corner_slots(table, i, j, k, out, o):
 
 
 @njit(cache=True, inline="always")
-def weights(tx, ty, tz, c):
-    """Weight of corner c and its derivatives along x, y, z (cell units)."""
-    dx = c >> 2
-    dy = (c >> 1) & 1
-    dz = c & 1
-    wx = tx if dx else 1.0 - tx
-    wy = ty if dy else 1.0 - ty
-    wz = tz if dz else 1.0 - tz
-    sx = 1.0 if dx else -1.0
-    sy = 1.0 if dy else -1.0
-    sz = 1.0 if dz else -1.0
-    return wx * wy * wz, sx * wy * wz, wx * sy * wz, wx * wy * sz
+def eval_corners(values, slots, o, tx, ty, tz):
+    """Value and gradient from the 8 corner slots ``slots[o:o+8]`` (all valid).
+
+    Interpolates along z, then y, then x (11 multiply-adds for the value and its gradient, against 4 x 8 products
+    of per-corner weights): the same trilinear function, rounded differently."""
+    d0 = values[slots[o]]
+    d1 = values[slots[o + 1]]
+    d2 = values[slots[o + 2]]
+    d3 = values[slots[o + 3]]
+    d4 = values[slots[o + 4]]
+    d5 = values[slots[o + 5]]
+    d6 = values[slots[o + 6]]
+    d7 = values[slots[o + 7]]
+    ux = 1.0 - tx
+    uy = 1.0 - ty
+    uz = 1.0 - tz
+    a00 = d0 * uz + d1 * tz
+    a01 = d2 * uz + d3 * tz
+    a10 = d4 * uz + d5 * tz
+    a11 = d6 * uz + d7 * tz
+    b0 = a00 * uy + a01 * ty
+    b1 = a10 * uy + a11 * ty
+    f = b0 * ux + b1 * tx
+    gx = b1 - b0
+    gy = (a01 - a00) * ux + (a11 - a10) * tx
+    gz = ((d1 - d0) * uy + (d3 - d2) * ty) * ux + ((d5 - d4) * uy + (d7 - d6) * ty) * tx
+    return f, gx, gy, gz
 
 
 @njit(cache=True, inline="always")
-def eval_corners(values, slots, o, tx, ty, tz):
-    """Value and gradient from the 8 corner slots ``slots[o:o+8]`` (all valid)."""
-    f = 0.0
-    gx = 0.0
-    gy = 0.0
-    gz = 0.0
-    for c in range(8):
-        d = values[slots[o + c]]
-        w, wx, wy, wz = weights(tx, ty, tz, c)
-        f += w * d
-        gx += wx * d
-        gy += wy * d
-        gz += wz * d
-    return f, gx, gy, gz
+def corner_gradients(out, o, tx, ty, tz, df, gx, gy, gz):
+    """``out[o + c] = df * w_c + (gx, gy, gz) . grad w_c`` for the 8 corners: the gradient of a loss that reads
+    the field's value (``df``) and gradient (``gx, gy, gz``) at position ``t`` of a cell w.r.t. its corner values."""
+    ux = 1.0 - tx
+    uy = 1.0 - ty
+    uz = 1.0 - tz
+    # per x side: df * wx + gx * d(wx)/dtx, and wx itself (weights the y and z derivative terms)
+    for dx in range(2):
+        wx = tx if dx else ux
+        ax = df * wx + (gx if dx else -gx)
+        for dy in range(2):
+            wy = ty if dy else uy
+            sy = gy if dy else -gy
+            for dz in range(2):
+                wz = tz if dz else uz
+                sz = gz if dz else -gz
+                out[o + 4 * dx + 2 * dy + dz] = ax * wy * wz + wx * (sy * wz + sz * wy)
 
 
 @njit(cache=True, parallel=True)

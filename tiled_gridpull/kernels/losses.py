@@ -1,6 +1,6 @@
 """Per-query GridPull losses and their analytic gradients w.r.t. the vertex values.
 
-For a query ``q`` with nearest input point ``s = NN(q)`` (index coordinates, field in cells):
+For a query ``q`` with nearest input point ``s = P[NN(q)]`` (index coordinates, field in cells):
 
 * pull     ``|q - f(q) n(q) - s|`` with ``n = grad f / |grad f|`` (flows through both f and n);
 * surface  ``|f(s)|`` (paper) or ``f(s)^2`` (authors' code), weight ``beta``;
@@ -20,7 +20,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from .interp import corner_slots, eval_corners, locate, weights
+from .interp import corner_gradients, corner_slots, eval_corners, locate
 
 SURFACE_ABS = 0
 SURFACE_SQUARED = 1
@@ -28,7 +28,7 @@ _EPS = 1e-12
 
 
 @njit(cache=True, parallel=True, fastmath=True)
-def query_losses(values, flags, table, shape, q, s, normals, pull_bit,
+def query_losses(values, flags, table, shape, q, points, nearest, normals, pull_bit,
                  beta, gamma, lam, surface_form, slots, grads, losses):
     """Evaluate the losses of every query and the gradient at its 16 corner slots.
 
@@ -42,10 +42,14 @@ def query_losses(values, flags, table, shape, q, s, normals, pull_bit,
         Brick table.
     shape : (3,) int64
         Lattice vertex counts.
-    q, s : (Nq, 3) float32
-        Queries and their nearest input points (index coordinates).
-    normals : (Nq, 3) float32 or (0, 3)
-        Unit normals at ``s`` (used when ``lam > 0``).
+    q : (Nq, 3) float32
+        Queries (index coordinates).
+    points : (N, 3) float32
+        Input points (index coordinates).
+    nearest : (Nq,) integer
+        Row of ``points`` nearest to each query (read here rather than gathered into an (Nq, 3) copy first).
+    normals : (N, 3) float32 or (0, 3)
+        Unit normals of ``points`` (used when ``lam > 0``).
     beta, gamma, lam : float
         Weights of the surface, gradient-consistency and normal losses (the pull has weight 1).
     surface_form : int
@@ -65,10 +69,12 @@ def query_losses(values, flags, table, shape, q, s, normals, pull_bit,
     nq = q.shape[0]
     nx, ny, nz = shape[0], shape[1], shape[2]
     valid = np.zeros(nq, np.uint8)
-    use_normals = lam > 0.0 and normals.shape[0] == nq
+    use_normals = lam > 0.0 and normals.shape[0] == points.shape[0]
     for n in prange(nq):
+        p = nearest[n]
+        sx, sy, sz = points[p, 0], points[p, 1], points[p, 2]
         qi, qj, qk, qtx, qty, qtz = locate(q[n, 0], q[n, 1], q[n, 2], nx, ny, nz)
-        si, sj, sk, stx, sty, stz = locate(s[n, 0], s[n, 1], s[n, 2], nx, ny, nz)
+        si, sj, sk, stx, sty, stz = locate(sx, sy, sz, nx, ny, nz)
         ok = corner_slots(table, qi, qj, qk, slots[n], 0)
         ok = corner_slots(table, si, sj, sk, slots[n], 8) and ok
         if ok:
@@ -89,9 +95,9 @@ def query_losses(values, flags, table, shape, q, s, normals, pull_bit,
         nqx, nqy, nqz = gqx / gq, gqy / gq, gqz / gq
         nsx, nsy, nsz = gsx / gs, gsy / gs, gsz / gs
         # --- pull
-        rx = q[n, 0] - fq * nqx - s[n, 0]
-        ry = q[n, 1] - fq * nqy - s[n, 1]
-        rz = q[n, 2] - fq * nqz - s[n, 2]
+        rx = q[n, 0] - fq * nqx - sx
+        ry = q[n, 1] - fq * nqy - sy
+        rz = q[n, 2] - fq * nqz - sz
         lp = math.sqrt(rx * rx + ry * ry + rz * rz + 1e-20)
         ux, uy, uz = rx / lp, ry / lp, rz / lp
         un = ux * nqx + uy * nqy + uz * nqz
@@ -126,18 +132,15 @@ def query_losses(values, flags, table, shape, q, s, normals, pull_bit,
         # --- normal supervision at s
         ln = 0.0
         if use_normals:
-            Nx, Ny, Nz = normals[n, 0], normals[n, 1], normals[n, 2]
+            Nx, Ny, Nz = normals[p, 0], normals[p, 1], normals[p, 2]
             cn = nsx * Nx + nsy * Ny + nsz * Nz
             ln = 1.0 - cn
             b = -lam / gs
             dgsx += b * (Nx - cn * nsx)
             dgsy += b * (Ny - cn * nsy)
             dgsz += b * (Nz - cn * nsz)
-        for c in range(8):
-            w, wx, wy, wz = weights(qtx, qty, qtz, c)
-            grads[n, c] = dfq * w + dgqx * wx + dgqy * wy + dgqz * wz
-            w, wx, wy, wz = weights(stx, sty, stz, c)
-            grads[n, 8 + c] = dfs * w + dgsx * wx + dgsy * wy + dgsz * wz
+        corner_gradients(grads[n], 0, qtx, qty, qtz, dfq, dgqx, dgqy, dgqz)
+        corner_gradients(grads[n], 8, stx, sty, stz, dfs, dgsx, dgsy, dgsz)
         losses[n, 0] = lp
         losses[n, 1] = ls
         losses[n, 2] = lg
