@@ -31,6 +31,13 @@ class _Formatter(argparse.RawDescriptionHelpFormatter):
         return text
 
 
+class _Parser(argparse.ArgumentParser):
+    """Usage mistakes as one line, like every other error (argparse prints the whole usage block first)."""
+
+    def error(self, message: str):
+        self.exit(2, f"error: {message} (see `{self.prog} --help`)\n")
+
+
 def _add_common(p: argparse.ArgumentParser) -> None:
     g = p.add_mutually_exclusive_group()
     g.add_argument("-v", "--verbose", action="count", default=0, help="more output (-vv: debug, tracebacks)")
@@ -41,7 +48,7 @@ def build_parser() -> argparse.ArgumentParser:
     """The argument parser (also used to document the options)."""
     from tiled_gridpull import __version__
 
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="tiled-gridpull", formatter_class=_Formatter,
         description="GridPull surface reconstruction for point clouds, from one shape to KITTI-scale LiDAR "
                     "sequences (tiled on Dask).",
@@ -57,6 +64,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("inputs", nargs="+", metavar="INPUT",
                    help="PLY, XYZ/TXT/PTS/CSV, NPY, LAS/LAZ, KITTI .bin or a KITTI sequence directory")
     r.add_argument("-o", "--output", required=True, help="output mesh (.ply or .obj); a .json sidecar is written beside it")
+    r.add_argument("--overwrite", action="store_true",
+                   help="replace an existing output mesh or sidecar that tiled-gridpull did not write (inputs are "
+                        "never replaced)")
     r.add_argument("--config", help="YAML file of settings (see configs/)")
     r.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="override one setting (repeatable), e.g. --set alpha=2")
@@ -210,13 +220,18 @@ def resolve_settings(args) -> tuple:
 def cmd_reconstruct(args) -> int:
     """Run ``reconstruct``."""
     from tiled_gridpull.errors import ConfigError, InputError
-    from tiled_gridpull.io import read_points, write_mesh, write_sidecar
+    from tiled_gridpull.io import check_outputs, read_points, write_mesh, write_sidecar
     from tiled_gridpull.reconstruct import reconstruct
 
     out = Path(args.output)
     if out.suffix.lower() not in (".ply", ".obj"):
         raise ConfigError(f"output {out}: use a .ply or .obj file name")
     cfg, tiling = resolve_settings(args)  # validated before any file is read
+    if tiling is not None:
+        check_outputs(args.inputs, out, work_dir=args.work_dir or out.with_suffix(".job"),
+                      tile_meshes=args.tile_meshes, overwrite=args.overwrite)
+    else:
+        check_outputs(args.inputs, out, overwrite=args.overwrite)
     if tiling is not None:
         return _reconstruct_tiled(args, out, cfg, tiling)
     for opt in ("workers", "scheduler", "work_dir", "frames", "max_memory"):

@@ -2,9 +2,10 @@
 
 from .atomic import atomic_open, atomic_path, write_json
 from .meshes import read_mesh, read_sidecar, sidecar_path, write_mesh, write_sidecar
+from .outputs import check_outputs, written_by_us
 
 __all__ = ["atomic_open", "atomic_path", "write_json", "read_mesh", "write_mesh", "write_sidecar",
-           "read_sidecar", "sidecar_path"]
+           "read_sidecar", "sidecar_path", "check_outputs", "written_by_us"]
 
 from .points import (SUPPORTED_POINT_FORMATS, PointCloud, clean_points, iter_point_chunks, point_count,
                      read_kitti_sequence, read_points)

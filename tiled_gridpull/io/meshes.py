@@ -73,7 +73,9 @@ def _write_ply(mesh: Mesh, path: Path, float32: bool, offset) -> None:
 
 def _write_obj(mesh: Mesh, path: Path) -> None:
     with atomic_open(path, "w") as fh:
-        fh.write("# tiled_gridpull\n")
+        # the marker io.outputs looks for before replacing a file (one line, like the PLY header's comment)
+        gen = str(mesh.metadata.get("generator", "tiled_gridpull")).splitlines()[0]
+        fh.write(f"# generator {gen}\n")
         np.savetxt(fh, mesh.vertices, fmt="v %.17g %.17g %.17g")
         np.savetxt(fh, mesh.faces + 1, fmt="f %d %d %d")
 

@@ -1,0 +1,116 @@
+"""Checks on a job's output paths, made before any work: never replace an input, nor a file this tool did not
+write, and say so in one line while there is still nothing to lose.
+
+A file counts as written by this tool when it carries the marker every reconstruction writes: the PLY header's
+``comment generator tiled_gridpull <version>``, the OBJ's first line ``# generator tiled_gridpull <version>``, or a
+JSON sidecar whose ``generator`` is ``tiled_gridpull <version>``. The sample generator's files
+(``tiled_gridpull.synthetic.*``) are not reconstructions and are protected like any other file.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Sequence
+from pathlib import Path
+
+from ..errors import ConfigError
+from .meshes import sidecar_path
+
+#: what ``generator`` of a reconstruction starts with (``tiled_gridpull 0.1.0``)
+GENERATOR_PREFIX = "tiled_gridpull "
+
+
+def _resolved(p: str | Path) -> Path:
+    return Path(os.path.abspath(os.path.realpath(p)))
+
+
+def written_by_us(path: str | Path) -> bool:
+    """True when ``path`` is a mesh or sidecar written by a reconstruction (see the module's docstring)."""
+    path = Path(path)
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(4096)
+    except OSError:
+        return False
+    suffix = path.suffix.lower()
+    if suffix == ".json":
+        try:
+            meta = json.loads(path.read_text())
+        except (OSError, ValueError):
+            return False
+        gen = meta.get("generator") if isinstance(meta, dict) else None
+        return isinstance(gen, str) and gen.startswith(GENERATOR_PREFIX)
+    marker = {".ply": b"comment generator " + GENERATOR_PREFIX.encode(),
+              ".obj": b"# generator " + GENERATOR_PREFIX.encode()}.get(suffix)
+    if marker is None:
+        return False
+    if suffix == ".ply":
+        header = head.split(b"end_header", 1)[0]
+        return any(line.strip().startswith(marker) for line in header.splitlines())
+    return head.startswith(marker)
+
+
+def _writable_dir(path: Path) -> Path | None:
+    """The nearest existing ancestor of ``path`` when it cannot be written into, else None."""
+    d = path.parent
+    while not d.exists() and d != d.parent:
+        d = d.parent
+    return None if os.access(d, os.W_OK | os.X_OK) else d
+
+
+def check_outputs(inputs: Sequence[str | Path], mesh: str | Path, *, work_dir: str | Path | None = None,
+                  tile_meshes: str | Path | None = None, overwrite: bool = False) -> None:
+    """Refuse output paths that would lose data, before anything is read or solved.
+
+    Parameters
+    ----------
+    inputs : sequence of path
+        Input files (or KITTI sequence directories).
+    mesh : path
+        The output mesh; its JSON sidecar is ``mesh`` with the suffix ``.json``.
+    work_dir, tile_meshes : path, optional
+        The tiled job's work directory and ``--tile-meshes`` directory.
+    overwrite : bool
+        Replace an existing mesh or sidecar even when this tool did not write it (never an input).
+
+    Raises
+    ------
+    ConfigError
+        When an output is an input, would be written into an input, is a directory where a file goes (or a file
+        where a directory goes), lies in a directory that cannot be written, or exists without this tool's marker
+        and ``overwrite`` is False.
+    """
+    ins = [_resolved(p) for p in inputs]
+    mesh = Path(mesh)
+    files = {"output": mesh, "sidecar": sidecar_path(mesh)}
+    for what, path in files.items():
+        r = _resolved(path)
+        for src, orig in zip(ins, inputs):
+            if r == src:
+                raise ConfigError(f"{what} {path} is the input {orig}: refusing to overwrite an input")
+        if path.is_dir():
+            raise ConfigError(f"{what} {path} is a directory")
+        blocked = _writable_dir(path)
+        if blocked is not None:
+            raise ConfigError(f"{what} {path}: directory {blocked} is not writable")
+        if path.exists() and not overwrite and not written_by_us(path):
+            raise ConfigError(f"{what} {path} exists and was not written by tiled-gridpull: pass --overwrite to "
+                              "replace it, or choose another name")
+    for what, d in (("--work-dir", work_dir), ("--tile-meshes", tile_meshes)):
+        if d is None:
+            continue
+        d = Path(d)
+        if d.exists() and not d.is_dir():
+            raise ConfigError(f"{what} {d} is a file, not a directory")
+        rd = _resolved(d)
+        for src, orig in zip(ins, inputs):
+            # the work directory is the job's to rewrite as a whole; tile meshes only take tile_*.ply names
+            clash = rd in src.parents if what == "--work-dir" else (
+                src.parent == rd and src.name.startswith("tile_") and src.suffix.lower() == ".ply")
+            if rd == src or clash:
+                raise ConfigError(f"{what} {d} holds the input {orig}: job files there could replace it; "
+                                  "choose another directory")
+        blocked = _writable_dir(d / "x")
+        if blocked is not None:
+            raise ConfigError(f"{what} {d}: directory {blocked} is not writable")
