@@ -83,6 +83,16 @@ def test_bad_config_file(tmp_path, capsys, sphere_xyz):
     _one_error_line(err)
 
 
+def test_config_key_given_twice_is_refused(tmp_path, capsys, sphere_xyz):
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("resolution: 40\niterations: 100\nresolution: 64\n")
+    code, _, err = run(["reconstruct", str(sphere_xyz), "-o", str(tmp_path / "o.ply"), "--config", str(cfg)],
+                       capsys)
+    assert code == 2 and "'resolution' is given twice (line 3)" in err, err
+    _one_error_line(err)
+    assert not (tmp_path / "o.ply").exists()
+
+
 def test_reconstruct_evaluate_roundtrip(tmp_path, capsys, sphere_xyz):
     out = tmp_path / "mesh.ply"
     code, _, err = run(["reconstruct", str(sphere_xyz), "-o", str(out), "-q", "--resolution", "40",
@@ -132,3 +142,16 @@ def test_normals_flag_supervises_with_the_file_normals(tmp_path, capsys):
                         "--iterations", "100", "--set", "coarse_iterations=100", "--set", "normal_weight=0.25"],
                        capsys)
     assert code == 0 and json.loads(out.with_suffix(".json").read_text())["config"]["normal_weight"] == 0.25
+
+
+@pytest.mark.parametrize("argv,needle", [
+    (["reconstruct"], "required: INPUT"),
+    (["reconstruct", "a.ply", "-o", "b.ply", "--workers", "abc"], "invalid int value: 'abc'"),
+    (["frob"], "invalid choice: 'frob'"),
+])
+def test_usage_mistakes_are_one_line(argv, needle, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    err = capsys.readouterr().err
+    assert exc.value.code == 2 and needle in err and "--help" in err
+    _one_error_line(err)

@@ -973,3 +973,17 @@ def test_rust_panics_become_one_line_input_errors(tmp_path):
     with pytest.raises(KeyboardInterrupt):  # other BaseExceptions pass through
         with points_mod._input_errors(tmp_path / "x.laz", ".laz"):
             raise KeyboardInterrupt
+
+
+def test_kitti_frame_range_past_the_end_refused_without_listing_it(tmp_path, capsys):
+    from pipeline.cli import main
+
+    make_sequence(tmp_path / "seq", n_frames=3)
+    # refused before range() is listed (a billion-entry list takes gigabytes)
+    with pytest.raises(InputError, match="frames 0:1000000000 requested but the sequence ends at frame 2"):
+        read_kitti_sequence(tmp_path / "seq", frames=(0, 1_000_000_000))
+    code = main(["reconstruct", str(tmp_path / "seq"), "-o", str(tmp_path / "m.ply"), "--voxel-size", "0.5",
+                 "--overlap", "8",
+                 "--frames", "0:99999999999999999999", "-q"])
+    err = capsys.readouterr().err
+    assert code == 3 and err.count("\n") == 1 and "sequence ends at frame 2" in err, err

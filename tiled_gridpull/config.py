@@ -287,15 +287,39 @@ def parse_overrides(items: list[str]) -> dict[str, Any]:
     return out
 
 
+def _unique_key_loader():
+    """A safe YAML loader that refuses a key given twice in one mapping (plain YAML keeps the last silently, so
+    a setting edited in one place and left in another would be ignored without a word)."""
+    import yaml
+
+    class UniqueKeyLoader(yaml.SafeLoader):
+        pass
+
+    def mapping(loader, node, deep=False):
+        seen = set()
+        for key_node, _ in node.value:
+            key = loader.construct_object(key_node, deep=deep)
+            if key in seen:
+                raise ConfigError(f"setting {key!r} is given twice (line {key_node.start_mark.line + 1})")
+            seen.add(key)
+        return loader.construct_mapping(node, deep=deep)
+
+    UniqueKeyLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, mapping)
+    return UniqueKeyLoader
+
+
 def load_config_file(path: str | Path) -> dict[str, Any]:
-    """Read a flat YAML mapping of settings; one-line errors for a missing or malformed file."""
+    """Read a flat YAML mapping of settings; one-line errors for a missing or malformed file or a key given
+    twice."""
     import yaml
 
     p = Path(path)
     if not p.is_file():
         raise ConfigError(f"config file {p}: not found")
     try:
-        data = yaml.safe_load(p.read_text())
+        data = yaml.load(p.read_text(), Loader=_unique_key_loader())
+    except ConfigError as exc:
+        raise ConfigError(f"config file {p}: {exc}") from None
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" (line {mark.line + 1})" if mark is not None else ""

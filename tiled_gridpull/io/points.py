@@ -1240,13 +1240,17 @@ def _to4x4(row: np.ndarray) -> np.ndarray:
     return m
 
 
-def _frame_list(frames, root: Path) -> list[int] | None:
+def _frame_list(frames, root: Path, last: int) -> list[int] | None:
+    """The frame numbers selected by ``frames``; ``last``: the highest frame number present in ``root``."""
     if frames is None:
         return None
     if isinstance(frames, tuple) and len(frames) == 2:
         start, stop = frames
         if not all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) for v in (start, stop)):
             raise ConfigError(f"{root}: frames=(start, stop) must be two integers, got {frames!r}")
+        if 0 <= start < stop and stop - 1 > last:
+            # refused before range() is listed: --frames 0:1000000000 must not build a billion-entry list
+            raise InputError(f"{root}: frames {start}:{stop} requested but the sequence ends at frame {last}")
         wanted = list(range(int(start), int(stop)))
     else:
         try:
@@ -1269,8 +1273,8 @@ def _kitti_frames(root: Path, frames) -> Iterator[tuple[int, np.ndarray, np.ndar
     Everything that can be checked without reading scans (frame files, poses, calib) is checked before the
     first frame is yielded.
     """
-    wanted = _frame_list(frames, root)
     scans, files = _kitti_layout(root)
+    wanted = _frame_list(frames, root, max(files))
     width = min(len(f.stem) for f in files.values())
     if wanted is None:
         last = max(files)
