@@ -31,8 +31,8 @@ from pathlib import Path
 from tiled_gridpull.config import SolverConfig
 from tiled_gridpull.errors import TileFailedError
 from tiled_gridpull.mesh import Mesh
-from tiled_gridpull.scene import (JobPaths, finish_job, job_metadata, key_reference, neighbors_of, plan_centre,
-                                  prepare_job)
+from tiled_gridpull.scene import (JobPaths, check_some_tile_solvable, check_some_tile_solved, finish_job,
+                                  job_metadata, key_reference, neighbors_of, plan_centre, prepare_job)
 from tiled_gridpull.tile import TileSpec, TilingConfig, check_compatible
 
 log = logging.getLogger("tiled_gridpull")
@@ -196,10 +196,12 @@ def run_job(inputs: list[str], output: str | Path, tiling: TilingConfig, solver:
     log.info("%s %d points into %d tiles (%d planned) in %.1f s",
              "reused the partition of" if scan.get("partition_reused") else "partitioned", scan["points"],
              len(specs), int(plan.tile_range[0] * plan.tile_range[1] * plan.tile_range[2]), t_part - t0)
+    check_some_tile_solvable(specs, tiling)
     if options.max_memory is not None:
         check_memory(specs, tiling, solver, options.max_memory)
     with _deferred_interrupt() as interrupted:
         solve_summaries, mesh_summaries = _run_tasks(specs, tiling, solver, paths, plan, options, interrupted)
+    check_some_tile_solved(solve_summaries)
     t_mesh = time.perf_counter()
     by_index = {s.index: s for s in specs}
     n_solve = sum(1 for s in solve_summaries if s.get("reused"))

@@ -136,3 +136,38 @@ def test_read_only_output_directory_is_refused_before_work(tmp_path, capsys, clo
         ro.chmod(0o755)
     assert code == 2
     _one_line(err, "not writable")
+
+
+def test_no_tile_with_enough_points_is_refused_before_solving(tmp_path, capsys):
+    pts = np.random.default_rng(0).uniform(0, 30, size=(60, 3))
+    src = tmp_path / "sparse.npy"
+    np.save(src, pts)
+    out = tmp_path / "m.ply"
+    code, err = run(["reconstruct", str(src), "-o", str(out), "--voxel-size", "0.1", "-q"], capsys)
+    assert code == 3
+    _one_line(err, "no tile holds min_points (100) points, the largest holds")
+    assert not out.exists() and not out.with_suffix(".json").exists()
+
+
+@pytest.mark.parametrize("case", ["duplicates", "too_few_to_solve"])
+def test_job_with_no_solved_tile_writes_nothing(tmp_path, case):
+    from tiled_gridpull.config import SolverConfig
+    from tiled_gridpull.errors import InputError, TileFailedError
+    from tiled_gridpull.scene import reconstruct_scene
+    from tiled_gridpull.tile import TilingConfig
+
+    rng = np.random.default_rng(1)
+    if case == "duplicates":
+        # 150 rows, 3 distinct points: above min_points when planned, 3 once duplicates are dropped -> skipped
+        pts, min_points, error = np.repeat(rng.uniform(1, 2, size=(3, 3)), 50, axis=0), 100, InputError
+    else:
+        # 6 points pass min_points 5 but a solve needs 10: the tile fails for a data reason
+        pts, min_points, error = rng.uniform(1, 2, size=(6, 3)), 5, TileFailedError
+    src = tmp_path / "p.npy"
+    np.save(src, pts)
+    out = tmp_path / "m.ply"
+    tiling = TilingConfig(voxel_size=0.2, tile_size=6.4, overlap=1.6, min_points=min_points)
+    with pytest.raises(error, match="no tile was solved, nothing written"):
+        reconstruct_scene([str(src)], out, tiling, SolverConfig(m2=6, refine_m2=6, iterations=20,
+                                                                coarse_iterations=20), tmp_path / "job")
+    assert not out.exists() and not out.with_suffix(".json").exists()

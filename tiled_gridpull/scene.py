@@ -19,7 +19,7 @@ import numpy as np
 
 from ._version import __version__
 from .config import SolverConfig
-from .errors import InputError
+from .errors import InputError, TileFailedError
 from .io.atomic import write_json
 from .mesh import Mesh
 from .stitch import load_piece, mesh_tile, weld_pieces
@@ -165,6 +165,26 @@ def finish_job(pieces: Iterable[Path], output: str | Path | None, metadata: dict
     return mesh
 
 
+def check_some_tile_solvable(specs: list[TileSpec], tiling: TilingConfig) -> None:
+    """Refuse, before any solve, a job none of whose tiles holds ``min_points`` points."""
+    largest = max((s.n_points for s in specs), default=0)
+    if largest < tiling.min_points:
+        raise InputError(f"no tile holds min_points ({tiling.min_points}) points, the largest holds {largest}: "
+                         "lower min_points or raise tile_size")
+
+
+def check_some_tile_solved(summaries: list[dict]) -> None:
+    """Stop a job none of whose tiles was solved before it writes anything: an empty mesh with exit 0 would
+    look like a result. All tiles failed: :class:`TileFailedError`; else (skipped, e.g. duplicates left too few
+    points): :class:`InputError`."""
+    if any(s["status"] == "solved" for s in summaries):
+        return
+    first = summaries[0] if summaries else {"tile": "-", "reason": "no tiles"}
+    error = TileFailedError if any(s["status"] == "failed" for s in summaries) else InputError
+    raise error(f"no tile was solved, nothing written ({len(summaries)} tile(s); {first['tile']}: "
+                f"{first.get('reason')})")
+
+
 def reconstruct_scene(inputs: list[str], output: str | Path | None, tiling: TilingConfig, solver: SolverConfig,
                       work_dir: str | Path, *, frames=None, float32: bool = False,
                       log: Callable[[str], None] | None = None, tile_meshes: str | Path | None = None) -> Mesh:
@@ -177,6 +197,7 @@ def reconstruct_scene(inputs: list[str], output: str | Path | None, tiling: Tili
     check_compatible(tiling, solver)
     paths = JobPaths(work_dir)
     plan, specs, scan = prepare_job(inputs, tiling, paths, frames=frames)
+    check_some_tile_solvable(specs, tiling)
     t_part = time.perf_counter()
     solved: dict[tuple, TileSpec] = {}
     summaries = []
@@ -188,6 +209,7 @@ def reconstruct_scene(inputs: list[str], output: str | Path | None, tiling: Tili
             solved[spec.index] = spec
         if log:
             log(f"{spec.name}: {s['status']} ({s.get('reason', '')}{s['time_s']:.1f} s)")
+    check_some_tile_solved(summaries)
     t_solve = time.perf_counter()
     ref = key_reference(plan)
     mesh_summaries = []
