@@ -286,6 +286,23 @@ def test_ply_offset_comment_from_write_mesh(tmp_path):
     np.testing.assert_allclose(read_points(p).xyz, xyz, rtol=0, atol=1e-6)
 
 
+def test_ply_offset_comment_of_another_tool_is_not_applied(tmp_path):
+    """Another writer's ``comment offset x y z`` may mean anything: only this package's files are shifted."""
+    from tiled_gridpull.io import read_mesh
+
+    xyz = cloud_xyz(12)
+    p = tmp_path / "other.ply"
+    head = ("ply\nformat ascii 1.0\ncomment offset 1000 2000 3000\nelement vertex 12\nproperty double x\n"
+            "property double y\nproperty double z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n")
+    rows = "".join(f"{a!r} {b!r} {c!r}\n" for a, b, c in xyz.tolist()) + "3 0 1 2\n"
+    p.write_text(head + rows)
+    np.testing.assert_array_equal(read_points(p).xyz, xyz)
+    np.testing.assert_array_equal(read_mesh(p).vertices, xyz)
+    p.write_text(head.replace("comment offset", "comment generator tiled_gridpull 0.1.0\ncomment offset") + rows)
+    np.testing.assert_allclose(read_points(p).xyz, xyz + [1000, 2000, 3000], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(read_mesh(p).vertices, xyz + [1000, 2000, 3000], rtol=0, atol=1e-9)
+
+
 def test_ply_faces_but_no_vertices(tmp_path):
     p = tmp_path / "faces.ply"
     p.write_text("ply\nformat ascii 1.0\nelement vertex 0\nproperty float x\nproperty float y\n"

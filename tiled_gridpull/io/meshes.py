@@ -58,6 +58,9 @@ def _write_ply(mesh: Mesh, path: Path, float32: bool, offset) -> None:
     for key in ("generator", "crs"):
         if key in mesh.metadata:
             comments.append(f"{key} {str(mesh.metadata[key]).splitlines()[0]}")
+    if float32 and "generator" not in mesh.metadata:
+        # the offset is trusted on reading only beside this package's marker (see ply_offset)
+        comments.append("generator tiled_gridpull.io")
     header = ["ply", "format binary_little_endian 1.0"]
     header += [f"comment {c}" for c in comments]
     header += [f"element vertex {len(V)}", f"property {vtype} x", f"property {vtype} y", f"property {vtype} z",
@@ -128,7 +131,7 @@ def _read_ply(path: Path):
         raise InputError(f"{path}: PLY has no vertex element")
     v = ply["vertex"].data
     V = np.column_stack([np.asarray(v[a], dtype=np.float64) for a in ("x", "y", "z")])
-    offset = _ply_offset(ply)
+    offset = ply_offset(ply.comments)
     if offset is not None:
         V = V + offset
     if "face" not in names:
@@ -145,11 +148,21 @@ def _read_ply(path: Path):
     return V, F
 
 
-def _ply_offset(ply) -> np.ndarray | None:
-    for c in ply.comments:
-        parts = c.split()
+def ply_offset(comments: list[str]) -> np.ndarray | None:
+    """The base point of a PLY written by :func:`write_mesh` with ``float32=True`` (vertices are relative to it):
+    its ``comment offset x y z``, trusted only beside this package's ``comment generator tiled_gridpull...``
+    (another tool's comment of that form means something else, or nothing)."""
+    words = [c.split() for c in comments]
+    if not any(len(w) >= 2 and w[0] == "generator" and w[1].startswith("tiled_gridpull") for w in words):
+        return None
+    for parts in words:
         if len(parts) == 4 and parts[0] == "offset":
-            return np.array([float(x) for x in parts[1:]])
+            try:
+                off = np.array([float(x) for x in parts[1:]])
+            except ValueError:
+                continue
+            if np.all(np.isfinite(off)):
+                return off
     return None
 
 

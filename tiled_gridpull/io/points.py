@@ -873,7 +873,9 @@ def _ply_vertex_columns(p: Path) -> tuple[dict, int]:
         cols = {a: table[:, j] for j, a in enumerate(names)}
     else:
         cols = _ply_vertex_plyfile(p, n)
-    offset = _ply_offset(hdr.comments)
+    from .meshes import ply_offset
+
+    offset = ply_offset(hdr.comments)
     if offset is not None:
         cols["__offset__"] = offset
     return cols, n
@@ -890,20 +892,6 @@ def _ply_vertex_plyfile(p: Path, n: int) -> dict:
     if len(data) != n:
         raise InputError(f"{p}: truncated PLY file (vertex element has {len(data)} of {n} rows)")
     return {a: data[a] for a in data.dtype.names}
-
-
-def _ply_offset(comments: list[str]) -> np.ndarray | None:
-    """The ``comment offset x y z`` written by write_mesh(float32=True) (vertices are relative to it)."""
-    for c in comments:
-        parts = c.split()
-        if len(parts) == 4 and parts[0] == "offset":
-            try:
-                off = np.array([float(x) for x in parts[1:]])
-            except ValueError:
-                continue
-            if np.all(np.isfinite(off)):
-                return off
-    return None
 
 
 # ------------------------------------------------------------------------------------------------------------
