@@ -1004,3 +1004,26 @@ def test_kitti_frame_range_past_the_end_refused_without_listing_it(tmp_path, cap
                  "--frames", "0:99999999999999999999", "-q"])
     err = capsys.readouterr().err
     assert code == 3 and err.count("\n") == 1 and "sequence ends at frame 2" in err, err
+
+
+def test_identical_follows_the_extent_not_the_coordinates_size():
+    from tiled_gridpull.io import PointCloud, clean_points
+    from tiled_gridpull.synthetic import sample_shape, sphere
+
+    pts, _ = sample_shape(sphere(), 2000, seed=0)
+    far = pts * 0.5 + 1e12  # a 1 m sphere at 1e12: 4,500 float64 steps across, plenty to mesh
+    assert len(clean_points(PointCloud(far))) == 2000
+    # rounding noise of a few units in the last place around one point is still one point
+    jitter = 1e12 + np.random.default_rng(0).integers(-2, 3, size=(500, 3)) * np.spacing(1e12)
+    with pytest.raises(InputError, match="identical"):
+        clean_points(PointCloud(jitter))
+
+
+@pytest.mark.parametrize("scale", [1e-300, 1e200])
+def test_extent_float64_cannot_resolve_is_refused(scale):
+    from tiled_gridpull.io import PointCloud, clean_points
+    from tiled_gridpull.synthetic import sample_shape, sphere
+
+    pts, _ = sample_shape(sphere(), 500, seed=0)
+    with pytest.raises(InputError, match="outside what float64 arithmetic resolves"):
+        clean_points(PointCloud(pts * scale))

@@ -171,3 +171,18 @@ def test_job_with_no_solved_tile_writes_nothing(tmp_path, case):
         reconstruct_scene([str(src)], out, tiling, SolverConfig(m2=6, refine_m2=6, iterations=20,
                                                                 coarse_iterations=20), tmp_path / "job")
     assert not out.exists() and not out.with_suffix(".json").exists()
+
+
+@pytest.mark.parametrize("stray", [(0.0, 0.0, 0.0), (2e20, 0.0, 0.0)])
+def test_lattice_beyond_the_edge_keys_is_refused_when_planning(tmp_path, capsys, stray):
+    rng = np.random.default_rng(2)
+    pts = np.vstack([rng.uniform(0, 10, size=(2000, 3)) + [500000.0, 4000000.0, 50.0], [stray]])
+    src = tmp_path / "utm.npy"
+    np.save(src, pts)
+    out = tmp_path / "m.ply"
+    for extra in ([], ["--dry-run"]):
+        code, err = run(["reconstruct", str(src), "-o", str(out), "--voxel-size", "0.1", "-q", *extra], capsys)
+        assert code == 3
+        _one_line(err, "more than the lattice can hold")
+        assert "stray points" in err
+    assert not out.exists() and not (tmp_path / "m.job" / "fields").exists()

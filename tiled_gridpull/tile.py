@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .errors import ConfigError
+from .errors import ConfigError, InputError
 from .io.atomic import atomic_open, write_json
 from .kernels import BRICK
 from .lattice import Lattice
@@ -301,6 +301,25 @@ class TilePlan:
                 "tile_range": list(self.tile_range), "bounds": self.bounds.tolist(), "n_points": self.n_points}
 
 
+def check_lattice_span(lo: np.ndarray, hi: np.ndarray, cell: float) -> None:
+    """Refuse, when planning, bounds whose global lattice marching cubes cannot key (2^21 x 2^21 x 2^19
+    vertices: 64-bit edge keys), before any point is partitioned or solved.
+
+    The usual cause is a few stray points far from the rest (a ``(0, 0, 0)`` in a UTM cloud) stretching the
+    bounds; the cell counts are compared as floats, so an extent of 1e21 cells is refused, not wrapped."""
+    from .kernels.mc import KEY_BITS_X, KEY_BITS_Y, KEY_BITS_Z
+
+    span = (np.asarray(hi, np.float64) - np.asarray(lo, np.float64)) / cell + 2
+    limit = np.array([2.0 ** KEY_BITS_X, 2.0 ** KEY_BITS_Y, 2.0 ** KEY_BITS_Z])
+    if np.all(span < limit):
+        return
+    size = " x ".join(f"{v:.4g}" for v in np.asarray(hi) - np.asarray(lo))
+    cells = " x ".join(f"{v:.3g}" for v in span)
+    raise InputError(f"the points span {size} (units of the input) = {cells} cells of {cell:g}, more than the "
+                     f"lattice can hold (2^{KEY_BITS_X} x 2^{KEY_BITS_Y} x 2^{KEY_BITS_Z}): stray points far "
+                     f"from the rest? Remove them, or use a larger voxel_size")
+
+
 def plan_tiles(bounds: np.ndarray, n_points: int, config: TilingConfig) -> TilePlan:
     """Lay the global lattice and the tile grid over a bounding box.
 
@@ -313,6 +332,7 @@ def plan_tiles(bounds: np.ndarray, n_points: int, config: TilingConfig) -> TileP
         raise ConfigError("cannot plan tiles over non-finite bounds")
     cell = config.voxel_size
     origin = np.floor(lo / cell) * cell
+    check_lattice_span(lo, hi, cell)
     first = np.floor((lo - origin) / cell).astype(np.int64)
     last = np.floor((hi - origin) / cell).astype(np.int64) + 1
     T = config.tile_cells

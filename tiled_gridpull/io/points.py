@@ -41,6 +41,8 @@ _FORMAT_NAMES = {".ply": "PLY", ".xyz": "XYZ", ".txt": "text", ".pts": "PTS", ".
 _DEGENERATE_RTOL = 1e-9
 # Degeneracy is first tested on this many evenly spaced points: a non-degenerate subset proves the whole
 # cloud non-degenerate, so the full O(N) factorisation is only needed for (nearly) degenerate clouds.
+_IDENTICAL_ULPS = 64
+_EXTENT_RANGE = (1e-150, 1e150)
 _DEGENERATE_SAMPLE = 200_000
 _READ_CHUNK = 1_000_000
 
@@ -277,6 +279,11 @@ def clean_points(cloud: PointCloud, *, what: str = "", min_points: int = 10,
     kind = _degeneracy(xyz, reject_planar)
     if kind is not None:
         raise InputError(f"{what}: all {m} points are {kind}; a surface cannot be reconstructed from them")
+    extent = float(np.max(xyz.max(axis=0) - xyz.min(axis=0)))
+    if not _EXTENT_RANGE[0] <= extent <= _EXTENT_RANGE[1]:
+        # squared distances of such an extent underflow or overflow float64: the mesh would be garbage
+        raise InputError(f"{what}: the points span {extent:.3g} units, outside what float64 arithmetic resolves "
+                         f"({_EXTENT_RANGE[0]:g} to {_EXTENT_RANGE[1]:g}): rescale the coordinates")
     report["points_kept"] = m
 
     out = _take(cloud, keep, xyz=xyz)
@@ -670,7 +677,9 @@ def _degeneracy(xyz: np.ndarray, reject_planar: bool) -> str | None:
     def classify(pts):
         s = _singular_values(pts)
         scale = max(float(np.abs(pts).max()), np.finfo(np.float64).tiny)
-        if s[0] <= 1e-12 * scale * np.sqrt(len(pts)):
+        # identical up to the rounding of coordinates this large: a few units in the last place, not a fixed
+        # fraction (1e-12 of 1e12 is a metre: a 1 m object there was called a single point)
+        if s[0] <= _IDENTICAL_ULPS * np.finfo(np.float64).eps * scale * np.sqrt(len(pts)):
             return "identical"
         if s[1] <= _DEGENERATE_RTOL * s[0]:
             return "collinear"
