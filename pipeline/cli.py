@@ -164,6 +164,12 @@ def _setup_logging(args) -> None:
         logging.DEBUG if getattr(args, "verbose", 0) >= 2 else logging.INFO)
     logging.basicConfig(level=level, format="%(message)s", stream=sys.stderr)
     logging.captureWarnings(True)
+    if getattr(args, "verbose", 0) < 2:
+        # one line per warning, like errors: Python's default adds the source path and the line of code
+        import warnings
+
+        warnings.formatwarning = lambda message, category, filename, lineno, line=None: \
+            f"warning: {str(message).splitlines()[0] if str(message) else category.__name__}"
 
 
 #: normal_weight set by ``--normals``: measured on exact normals in benchmarks/paper_eval.py (normals suite).
@@ -220,7 +226,7 @@ def resolve_settings(args) -> tuple:
 def cmd_reconstruct(args) -> int:
     """Run ``reconstruct``."""
     from tiled_gridpull.errors import ConfigError, InputError
-    from tiled_gridpull.io import check_outputs, read_points, write_mesh, write_sidecar
+    from tiled_gridpull.io import check_outputs, read_points, write_mesh_and_sidecar
     from tiled_gridpull.reconstruct import reconstruct
 
     out = Path(args.output)
@@ -243,7 +249,7 @@ def cmd_reconstruct(args) -> int:
         raise InputError("one-shape mode reads one input; give --voxel-size to reconstruct several files as tiles")
     cloud = read_points(args.inputs[0])
     log.info("read %s: %d points", args.inputs[0], len(cloud))
-    bar = _progress_bar(cfg.iterations, args)
+    bar = _progress_bar(cfg.total_iterations(cfg.resolution), args)
     try:
         mesh = reconstruct(cloud, config=cfg, progress=bar.update if bar else None)
     finally:
@@ -252,8 +258,7 @@ def cmd_reconstruct(args) -> int:
     mesh.metadata["inputs"] = [str(Path(p).resolve()) for p in args.inputs]
     if cloud.crs:
         mesh.metadata["crs"] = cloud.crs
-    write_mesh(mesh, out, float32=args.float32)
-    write_sidecar(out, mesh.metadata)
+    write_mesh_and_sidecar(mesh, out, float32=args.float32)
     topo = mesh.topology
     log.info("wrote %s: %d vertices, %d faces, %d component(s), %s in %.1f s", out, topo.n_vertices, topo.n_faces,
              topo.components, "watertight" if topo.watertight else f"{topo.boundary_edges} boundary edges",
@@ -363,6 +368,9 @@ class _IterationBar:
         self.bar = tqdm(total=total, unit="it", desc="solve", dynamic_ncols=True, file=sys.stderr)
 
     def update(self, it: int, total: int, stats: dict) -> None:
+        # the solver knows the total over all its levels (and a UDF polish); the bar's first guess may not
+        if self.bar.total != total:
+            self.bar.total = total
         self.bar.n = it + 1
         self.bar.set_postfix(pull=f"{stats['pull']:.3g}", lr=f"{stats['lr']:.3g}", refresh=False)
         self.bar.refresh()

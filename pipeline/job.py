@@ -32,7 +32,7 @@ from tiled_gridpull.config import SolverConfig
 from tiled_gridpull.errors import TileFailedError
 from tiled_gridpull.mesh import Mesh
 from tiled_gridpull.scene import (JobPaths, check_some_tile_solvable, check_some_tile_solved, finish_job,
-                                  job_metadata, key_reference, neighbors_of, plan_centre, prepare_job)
+                                  job_lock, job_metadata, key_reference, neighbors_of, plan_centre, prepare_job)
 from tiled_gridpull.tile import TileSpec, TilingConfig, check_compatible
 
 log = logging.getLogger("tiled_gridpull")
@@ -188,9 +188,14 @@ def mesh_task(spec: TileSpec, own: dict, neighbor_specs: list, neighbor_summarie
 def run_job(inputs: list[str], output: str | Path, tiling: TilingConfig, solver: SolverConfig, work_dir: str | Path,
             options: JobOptions = JobOptions(), *, frames=None) -> Mesh:
     """Tiled reconstruction on Dask; writes ``output`` and its sidecar, returns the welded mesh."""
-    t0 = time.perf_counter()
     check_compatible(tiling, solver)
-    paths = JobPaths(work_dir)
+    with job_lock(work_dir):
+        return _run_job(inputs, output, tiling, solver, JobPaths(work_dir), options, frames=frames)
+
+
+def _run_job(inputs: list[str], output: str | Path, tiling: TilingConfig, solver: SolverConfig, paths: JobPaths,
+             options: JobOptions, *, frames) -> Mesh:
+    t0 = time.perf_counter()
     plan, specs, scan = prepare_job(inputs, tiling, paths, frames=frames)
     t_part = time.perf_counter()
     log.info("%s %d points into %d tiles (%d planned) in %.1f s",
@@ -201,6 +206,9 @@ def run_job(inputs: list[str], output: str | Path, tiling: TilingConfig, solver:
         check_memory(specs, tiling, solver, options.max_memory)
     with _deferred_interrupt() as interrupted:
         solve_summaries, mesh_summaries = _run_tasks(specs, tiling, solver, paths, plan, options, interrupted)
+    for s in solve_summaries + mesh_summaries:
+        if s.get("redone"):
+            log.warning("%s: %s; computed again", s["tile"], s["redone"])
     check_some_tile_solved(solve_summaries)
     t_mesh = time.perf_counter()
     by_index = {s.index: s for s in specs}
@@ -217,12 +225,13 @@ def run_job(inputs: list[str], output: str | Path, tiling: TilingConfig, solver:
     meta["engine"] = {"scheduler": options.scheduler or "LocalCluster", "workers": options.workers}
     meta["reused"] = {"partition": bool(scan.get("partition_reused")), "solves": n_solve, "meshes": n_mesh}
     pieces = [paths.piece(by_index[tuple(m["index"])]) for m in mesh_summaries if m.get("status") == "meshed"]
-    mesh = finish_job(pieces, output, meta, float32=options.float32, tile_meshes=options.tile_meshes)
+    mesh = finish_job(pieces, None, meta, float32=options.float32, tile_meshes=options.tile_meshes)
     mesh.metadata["timings_s"]["merge"] = time.perf_counter() - t_mesh
     mesh.metadata["timings_s"]["total"] = time.perf_counter() - t0
-    from tiled_gridpull.io import write_sidecar
+    from tiled_gridpull.io import write_mesh_and_sidecar
 
-    write_sidecar(output, mesh.metadata)
+    # one commit: a sidecar that cannot be written leaves no mesh behind
+    write_mesh_and_sidecar(mesh, output, float32=options.float32)
     from tiled_gridpull.report import write_report
 
     write_report(paths.root, mesh.metadata, output=output)  # report.json + tiles.png in the job directory

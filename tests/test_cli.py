@@ -155,3 +155,17 @@ def test_usage_mistakes_are_one_line(argv, needle, capsys):
     err = capsys.readouterr().err
     assert exc.value.code == 2 and needle in err and "--help" in err
     _one_error_line(err)
+
+
+def test_warnings_are_one_line_without_source_paths(tmp_path, sphere_xyz):
+    pts = np.loadtxt(sphere_xyz)
+    pts[:5] = np.nan
+    src = tmp_path / "holes.xyz"
+    np.savetxt(src, pts)
+    proc = subprocess.run([sys.executable, "-m", "tiled_gridpull", "reconstruct", str(src), "-o",
+                           str(tmp_path / "m.ply"), "-q", "--resolution", "32", "--iterations", "50", "--set",
+                           "coarse_iterations=50"], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+    assert any(ln.startswith("warning: ") and "dropped 5 of 5000 points" in ln for ln in lines), proc.stderr
+    assert ".py:" not in proc.stderr and "UserWarning" not in proc.stderr

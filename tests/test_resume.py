@@ -8,6 +8,8 @@ import hashlib
 import json
 import os
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -64,6 +66,16 @@ def test_damaged_spill_file_forces_a_new_partition(tmp_path, ground):
         fh.truncate(12 * (specs[0].n_points - 1))
     _, again, scan = prepare_job([str(ground)], TILING, paths)
     assert scan["partition_reused"] is False and _names(again) == _names(specs)
+    # zeroed in place, size and modification time kept: the recorded SHA-256 catches it
+    spill = Path(again[0].points_path)
+    st = spill.stat()
+    data = bytearray(spill.read_bytes())
+    data[:1200] = bytes(1200)
+    spill.write_bytes(bytes(data))
+    os.utime(spill, ns=(st.st_atime_ns, st.st_mtime_ns))
+    _, third, scan = prepare_job([str(ground)], TILING, paths)
+    assert scan["partition_reused"] is False
+    assert [s.points_sha256 for s in third] == [s.points_sha256 for s in again]
 
 
 def test_interrupted_partition_is_never_taken_for_a_finished_one(tmp_path, ground, monkeypatch):
@@ -115,12 +127,20 @@ def test_solve_result_reused_only_while_its_field_is_intact(tmp_path, ground):
     assert rec["key"] == solve_key(s, TILING, SOLVER) and rec["field_sha256"] == first["field_sha256"]
     again = solve_tile_resumable(s, TILING, SOLVER, field, summary, before_solve=pytest.fail)
     assert again["reused"] is True and again["field_sha256"] == first["field_sha256"]
-    # a field rewritten behind the job's back (or half-copied) no longer matches its record: solved again,
-    # to the very same values
+    # only the content counts: a touched (or copied) field is still reused
     st = field.stat()
     os.utime(field, ns=(st.st_atime_ns, st.st_mtime_ns + 1))
+    assert solve_tile_resumable(s, TILING, SOLVER, field, summary, before_solve=pytest.fail)["reused"] is True
+    # a field damaged in place, size and modification time kept, no longer matches its record: solved again,
+    # to the very same values, and the summary says why
+    st = field.stat()
+    data = bytearray(field.read_bytes())
+    data[len(data) // 2: len(data) // 2 + 4096] = bytes(4096)
+    field.write_bytes(bytes(data))
+    os.utime(field, ns=(st.st_atime_ns, st.st_mtime_ns))
     third = solve_tile_resumable(s, TILING, SOLVER, field, summary)
     assert third["reused"] is False and third["field_sha256"] == first["field_sha256"]
+    assert "damaged" in third["redone"]
     # other settings: solved again
     fourth = solve_tile_resumable(s, TILING, SOLVER.replace(iterations=20), field, summary)
     assert fourth["reused"] is False and fourth["field_sha256"] != first["field_sha256"]

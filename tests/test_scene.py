@@ -206,3 +206,33 @@ def test_float32_output_keeps_millimetres(street, up_run, tmp_path):
     write_mesh(mesh, p, float32=True)
     back = read_mesh(p)
     assert np.abs(back.vertices - mesh.vertices).max() < 1e-3
+
+
+def _las_with_wkt(path, xyz, wkt):
+    import laspy
+    from laspy.vlrs.known import WktCoordinateSystemVlr
+
+    header = laspy.LasHeader(point_format=6, version="1.4")
+    header.scales = [0.001] * 3
+    header.offsets = xyz.min(axis=0)
+    header.global_encoding.wkt = True
+    header.vlrs.append(WktCoordinateSystemVlr(wkt))
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+    las.write(str(path))
+
+
+def test_inputs_in_different_crs_are_refused(tmp_path):
+    from tiled_gridpull.errors import InputError
+    from tiled_gridpull.scene import scan_inputs
+
+    rng = np.random.default_rng(0)
+    a, b, c = tmp_path / "a.las", tmp_path / "b.las", tmp_path / "c.las"
+    _las_with_wkt(a, rng.uniform(0, 10, (500, 3)), 'PROJCS["Amersfoort / RD New",GEOGCS["Amersfoort"]]')
+    _las_with_wkt(b, rng.uniform(0, 10, (500, 3)), 'PROJCS["ETRS89 / UTM zone 31N",GEOGCS["ETRS89"]]')
+    _las_with_wkt(c, rng.uniform(0, 10, (500, 3)), 'PROJCS["Amersfoort / RD New",\n GEOGCS["Amersfoort"]]')
+    with pytest.raises(InputError, match=r"different coordinate reference systems: .*a\.las.* \(Amersfoort / RD "
+                                         r"New\) and .*b\.las.* \(ETRS89 / UTM zone 31N\); reproject"):
+        scan_inputs([str(a), str(b)])
+    # the same CRS written with other whitespace is the same CRS
+    assert scan_inputs([str(a), str(c)])["crs"].startswith('PROJCS["Amersfoort / RD New"')

@@ -245,6 +245,12 @@ class SolverConfig:
         return {**common, "lr": self.refine_lr, "lr_step": self.refine_lr_step, "m2": self.refine_m2,
                 "gamma": self.refine_gamma, "sigma": self.refine_sigma, "tv_form": self.refine_tv_form}
 
+    def total_iterations(self, cells: int) -> int:
+        """Iterations of a solve on a lattice ``cells`` across, over all its levels and a UDF polish."""
+        levels = self.levels_for(cells)
+        total = sum(self.level_settings(level, levels)["iterations"] for level in range(levels))
+        return total + (self.udf_polish if self.mode == "udf" else 0)
+
     def polish_settings(self) -> dict:
         """Settings of the signed refinement that ends a UDF solve: a refinement level's (even after a one-level
         solve: the polish refines a field that has settled), for ``udf_polish`` iterations, the learning rate

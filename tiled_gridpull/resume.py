@@ -19,8 +19,9 @@ atomically (a killed run leaves at most a hidden temporary file, never a result 
   the overlap, the job's edge-key origin, the spill file checksum (trimming reads the points) and the version.
 
 A result is reused when its summary's key equals the key the current run computes and its output file is
-still the one the summary describes (same size and modification time, so a job directory copied with its
-timestamps stays reusable); anything else is recomputed. Solves
+still the one the summary describes: same size and the same SHA-256 of its bytes (a file damaged in place, even
+with its size and modification time kept, is recomputed and the summary says why in ``redone``). Spill files
+are checked against their recorded SHA-256 before a partition is reused. Anything else is recomputed. Solves
 and meshes are deterministic, so a resumed job writes the same mesh, byte for byte, as an uninterrupted one.
 """
 
@@ -61,6 +62,15 @@ def digest(obj) -> str:
 def _stat(path: Path) -> dict:
     st = path.stat()
     return {"size": st.st_size, "mtime_ns": st.st_mtime_ns}
+
+
+def file_sha256(path: str | Path) -> str:
+    """SHA-256 of a file's bytes, read in 1 MiB blocks."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
 
 
 def input_fingerprint(inputs: list) -> list[dict]:
@@ -115,6 +125,9 @@ def load_partition(paths: "JobPaths", key: str, tiling: "TilingConfig"):
             if (not spec.points_sha256 or not spill.is_file() or spill.stat().st_size != size
                     or not Path(spec.occupancy_path).is_file()):
                 return None
+            # the spill's content is what every solve key stands on: a damaged one means partitioning again
+            if file_sha256(spill) != spec.points_sha256:
+                return None
             specs.append(spec)
     except (KeyError, TypeError, ValueError):
         return None
@@ -162,29 +175,35 @@ def mesh_key(spec: "TileSpec", field_sha: str, neighbors: list[tuple[str, str]],
                    "key_ref": [int(v) for v in np.asarray(key_ref)], "version": __version__})
 
 
-def _reusable(summary_path: Path, key: str, statuses: tuple, output: str | Path) -> dict | None:
-    """The recorded summary if its key matches and ``output`` (when it records one) is the file it describes."""
+def _reusable(summary_path: Path, key: str, statuses: tuple, output: str | Path) -> tuple[dict | None, str | None]:
+    """``(summary, None)`` if the recorded summary's key matches and ``output`` (when it records one) is the file
+    it describes, byte for byte; else ``(None, why)``, ``why`` naming a damaged or missing output when the
+    record itself matched (None when there was nothing to reuse)."""
     try:
         prev = json.loads(Path(summary_path).read_text())
     except (OSError, ValueError):
-        return None
+        return None, None
     if not isinstance(prev, dict) or prev.get("key") != key or prev.get("status") not in statuses:
-        return None
+        return None, None
     rec = prev.get("output")
     if rec is not None:
         try:
-            if _stat(Path(output)) != {"size": rec["size"], "mtime_ns": rec["mtime_ns"]}:
-                return None
-        except (OSError, KeyError, TypeError):
-            return None
+            if Path(output).stat().st_size != rec["size"]:
+                return None, f"{output} changed size since it was written"
+            if file_sha256(output) != rec["sha256"]:
+                return None, f"{output} is damaged (SHA-256 differs from the one recorded)"
+        except OSError:
+            return None, f"{output} is missing or unreadable"
+        except (KeyError, TypeError):
+            return None, None  # a record of an older layout: recompute quietly
     prev["reused"] = True
-    return prev
+    return prev, None
 
 
 def _record(summary: dict, summary_path: str | Path, key: str, output: str | Path | None) -> None:
     summary["key"] = key
     if output is not None:
-        summary["output"] = _stat(Path(output))
+        summary["output"] = {**_stat(Path(output)), "sha256": file_sha256(output)}
     write_json(summary_path, summary)
 
 
@@ -198,12 +217,14 @@ def solve_tile_resumable(spec: "TileSpec", tiling: "TilingConfig", solver: "Solv
     from .tile import solve_tile
 
     key = solve_key(spec, tiling, solver, centre)
-    prev = _reusable(Path(summary_path), key, ("solved", "skipped"), field_path)
+    prev, why = _reusable(Path(summary_path), key, ("solved", "skipped"), field_path)
     if prev is not None:
         return prev
     if before_solve is not None:
         before_solve()
     out = solve_tile(spec, tiling, solver, field_path, centre=centre)
+    if why:
+        out["redone"] = why
     if out["status"] in ("solved", "skipped"):
         _record(out, summary_path, key, field_path if out["status"] == "solved" else None)
     else:
@@ -223,11 +244,13 @@ def mesh_tile_resumable(spec: "TileSpec", own: dict, neighbors: list[tuple["Tile
 
     key = mesh_key(spec, own["field_sha256"], [(s.name, summ["field_sha256"]) for s, summ, _ in neighbors],
                    tiling, key_ref)
-    prev = _reusable(Path(summary_path), key, ("meshed",), piece_path)
+    prev, why = _reusable(Path(summary_path), key, ("meshed",), piece_path)
     if prev is not None:
         return prev
     out = mesh_tile(spec, [(s, p) for s, _, p in neighbors], tiling, key_ref, field_path, piece_path)
     out["status"] = "meshed"
+    if why:
+        out["redone"] = why
     _record(out, summary_path, key, piece_path)
     out["reused"] = False
     return out

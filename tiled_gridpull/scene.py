@@ -10,16 +10,18 @@ meshes) and ``summaries/`` (one JSON per finished tile step).
 
 from __future__ import annotations
 
+import contextlib
 import json
+import os
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 
 import numpy as np
 
 from ._version import __version__
 from .config import SolverConfig
-from .errors import InputError, TileFailedError
+from .errors import ConfigError, InputError, TileFailedError
 from .io.atomic import write_json
 from .mesh import Mesh
 from .stitch import load_piece, mesh_tile, weld_pieces
@@ -53,6 +55,36 @@ class JobPaths:
         return self.root / "summaries" / f"{step}_{spec.name}.json"
 
 
+@contextlib.contextmanager
+def job_lock(root: str | Path) -> Iterator[None]:
+    """Hold a work directory for one job: a second job started on it stops at once, naming the holder's PID.
+
+    Two jobs on one directory would interleave their spill files and replace each other's fields. The lock is
+    ``flock`` on ``<root>/.lock``: the kernel releases it when the holder exits, even on SIGKILL, so a crashed
+    job never leaves the directory locked.
+    """
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - not POSIX: no lock, as before
+        yield
+        return
+    root = Path(root)
+    root.mkdir(parents=True, exist_ok=True)
+    fd = os.open(root / ".lock", os.O_RDWR | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0), 0o666)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "unknown"
+            raise ConfigError(f"work directory {root} is in use by another job (PID {holder}): wait for it to "
+                              "finish, or give another --work-dir") from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, str(os.getpid()).encode(), 0)
+        yield
+    finally:
+        os.close(fd)
+
+
 def scan_inputs(inputs: list[str], chunk_size: int = 2_000_000, frames=None) -> dict:
     """One streaming pass: bounds, point count and whether sensor origins are known."""
     from .io.points import iter_point_chunks
@@ -61,18 +93,47 @@ def scan_inputs(inputs: list[str], chunk_size: int = 2_000_000, frames=None) -> 
     hi = np.full(3, -np.inf)
     n = 0
     has_sensor = True
-    crs = None
+    crs = crs_source = None
     for chunk in _chunks(inputs, chunk_size, frames):
+        if chunk.crs:
+            if crs is None:
+                crs, crs_source = chunk.crs, chunk.source
+            elif _crs_text(chunk.crs) != _crs_text(crs):
+                # merging would place one survey's points in another's frame without a word
+                raise InputError(f"inputs in different coordinate reference systems: {_file_of(crs_source)} "
+                                 f"({_crs_name(crs)}) and {_file_of(chunk.source)} ({_crs_name(chunk.crs)}); "
+                                 "reproject them to one first")
         if len(chunk) == 0:
             continue
         lo = np.minimum(lo, chunk.xyz.min(axis=0))
         hi = np.maximum(hi, chunk.xyz.max(axis=0))
         n += len(chunk)
         has_sensor &= chunk.sensor is not None
-        crs = crs or chunk.crs
     if n == 0:
         raise InputError(f"{', '.join(map(str, inputs))}: no points")
     return {"bounds": np.stack([lo, hi]), "points": n, "has_sensor": bool(has_sensor), "crs": crs}
+
+
+def _crs_text(crs: str) -> str:
+    """A CRS's text without the layout whitespace outside quoted names (WKT pretty-printed or not)."""
+    import re
+
+    return re.sub(r'\s+(?=(?:[^"]*"[^"]*")*[^"]*$)', "", crs)
+
+
+def _file_of(source) -> str:
+    """The file of a chunk's ``source`` (``path[start:stop]``)."""
+    import re
+
+    return re.sub(r"\[\d+:\d+\]$", "", str(source))
+
+
+def _crs_name(crs: str) -> str:
+    """A short name for a CRS in a message: the WKT's first quoted name, else its start."""
+    import re
+
+    m = re.search(r'"([^"]+)"', crs)
+    return m.group(1) if m else crs.split("\n")[0][:60]
 
 
 def _chunks(inputs, chunk_size, frames):
@@ -142,12 +203,13 @@ def key_reference(plan: TilePlan) -> np.ndarray:
 
 def finish_job(pieces: Iterable[Path], output: str | Path | None, metadata: dict, *,
                float32: bool = False, tile_meshes: str | Path | None = None) -> Mesh:
-    """Weld the tile pieces into one mesh and write it (and its JSON sidecar) atomically.
+    """Weld the tile pieces into one mesh and, when ``output`` is given, write it and its JSON sidecar as one
+    commit (:func:`~tiled_gridpull.io.write_mesh_and_sidecar`).
 
     ``tile_meshes``: also write each tile's piece as ``<dir>/<tile>.ply`` (input coordinates; pieces share their
     border vertices exactly, so they fit together without gaps).
     """
-    from .io import write_mesh, write_sidecar
+    from .io import write_mesh, write_mesh_and_sidecar
 
     loaded = [(Path(p), load_piece(p)) for p in pieces]
     if tile_meshes is not None:
@@ -160,8 +222,7 @@ def finish_job(pieces: Iterable[Path], output: str | Path | None, metadata: dict
     mesh.metadata.update(metadata)
     mesh.metadata["mesh"] = mesh.topology.to_dict()
     if output is not None:
-        write_mesh(mesh, output, float32=float32)
-        write_sidecar(output, mesh.metadata)
+        write_mesh_and_sidecar(mesh, output, float32=float32)
     return mesh
 
 
@@ -193,9 +254,15 @@ def reconstruct_scene(inputs: list[str], output: str | Path | None, tiling: Tili
     Returns the welded mesh; ``mesh.metadata`` describes the job (lattice, settings, per-tile summaries,
     timings).
     """
-    t0 = time.perf_counter()
     check_compatible(tiling, solver)
-    paths = JobPaths(work_dir)
+    with job_lock(work_dir):
+        return _reconstruct_scene(inputs, output, tiling, solver, JobPaths(work_dir), frames=frames,
+                                  float32=float32, log=log, tile_meshes=tile_meshes)
+
+
+def _reconstruct_scene(inputs, output, tiling, solver, paths: JobPaths, *, frames, float32, log,
+                       tile_meshes) -> Mesh:
+    t0 = time.perf_counter()
     plan, specs, scan = prepare_job(inputs, tiling, paths, frames=frames)
     check_some_tile_solvable(specs, tiling)
     t_part = time.perf_counter()
@@ -219,14 +286,14 @@ def reconstruct_scene(inputs: list[str], output: str | Path | None, tiling: Tili
     t_mesh = time.perf_counter()
     meta = job_metadata(plan, tiling, solver, scan, summaries, mesh_summaries,
                         {"partition": t_part - t0, "solve": t_solve - t_part, "mesh": t_mesh - t_solve})
-    mesh = finish_job([paths.piece(s) for s in solved.values()], output, meta, float32=float32,
+    mesh = finish_job([paths.piece(s) for s in solved.values()], None, meta, float32=float32,
                       tile_meshes=tile_meshes)
     mesh.metadata["timings_s"]["merge"] = time.perf_counter() - t_mesh
     mesh.metadata["timings_s"]["total"] = time.perf_counter() - t0
     if output is not None:
-        from .io import write_sidecar
+        from .io import write_mesh_and_sidecar
 
-        write_sidecar(output, mesh.metadata)
+        write_mesh_and_sidecar(mesh, output, float32=float32)
     from .report import write_report
 
     write_report(paths.root, mesh.metadata, output=output)  # report.json + tiles.png in the job directory

@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .errors import ConfigError, InputError
-from .io.atomic import atomic_open, write_json
+from .io.atomic import atomic_open, open_no_follow, write_json
 from .kernels import BRICK
 from .lattice import Lattice
 
@@ -394,7 +394,7 @@ def partition(chunks: Iterable, plan: TilePlan, out_dir: str | Path | None, has_
                     h.update(part.tobytes())
                 continue
             path = tmp_paths.setdefault(key, out / f".{plan.spec(key).name}.points.partial")
-            with open(path, "ab") as fh:
+            with open_no_follow(path, "ab") as fh:
                 for part in parts:
                     data = part.tobytes()
                     h.update(data)
@@ -451,7 +451,8 @@ def partition(chunks: Iterable, plan: TilePlan, out_dir: str | Path | None, has_
             final = out / f"{spec.name}.points"
             tmp_paths[t].replace(final)
             path = str(final)
-            np.save(final.with_suffix(".occ.npy"), np.packbits(grid.ravel()))
+            with atomic_open(final.with_suffix(".occ.npy")) as fh:
+                np.save(fh, np.packbits(grid.ravel()))
         if occupancy is not None:
             occupancy[t] = grid
         specs.append(plan.spec(t, n_points=counts[t], points_path=path, has_sensor=has_sensor,

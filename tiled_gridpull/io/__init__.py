@@ -1,11 +1,11 @@
 """Reading and writing point clouds and meshes (atomic outputs, one-line errors)."""
 
 from .atomic import atomic_open, atomic_path, write_json
-from .meshes import read_mesh, read_sidecar, sidecar_path, write_mesh, write_sidecar
+from .meshes import read_mesh, read_sidecar, sidecar_path, write_mesh, write_mesh_and_sidecar, write_sidecar
 from .outputs import check_outputs, written_by_us
 
 __all__ = ["atomic_open", "atomic_path", "write_json", "read_mesh", "write_mesh", "write_sidecar",
-           "read_sidecar", "sidecar_path", "check_outputs", "written_by_us"]
+           "read_sidecar", "sidecar_path", "check_outputs", "written_by_us", "write_mesh_and_sidecar"]
 
 from .points import (SUPPORTED_POINT_FORMATS, PointCloud, clean_points, iter_point_chunks, point_count,
                      read_kitti_sequence, read_points)

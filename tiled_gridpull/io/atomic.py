@@ -1,15 +1,35 @@
 """Atomic file output: write to a temporary name beside the target, then rename into place.
 
-A run killed mid-write leaves at most a ``.<name>.tmp-<pid>`` file, never a target that looks complete.
+A run killed mid-write leaves at most a ``.<name>.<random>.tmp`` file, never a target that looks complete. The
+temporary file is created exclusively under a fresh name (``O_EXCL``: never through a symlink planted in the
+directory, never shared by two jobs), and the rename replaces a symlink at the target rather than writing
+through it.
 """
 
 from __future__ import annotations
 
 import contextlib
 import os
+import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 from typing import IO
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+_UMASK = _umask()
+
+
+def open_no_follow(path: str | os.PathLike, mode: str = "ab") -> IO:
+    """Open ``path`` for appending ("ab") or writing ("wb") without following a symlink at it (``OSError``
+    ELOOP if there is one)."""
+    flags = os.O_WRONLY | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0) | (os.O_APPEND if mode == "ab" else os.O_TRUNC)
+    return os.fdopen(os.open(path, flags, 0o666), mode)
 
 
 @contextlib.contextmanager
@@ -17,8 +37,12 @@ def atomic_path(target: str | os.PathLike) -> Iterator[Path]:
     """Yield a temporary path to write; on success it replaces ``target`` atomically, on error it is removed."""
     target = Path(target)
     target.parent.mkdir(parents=True, exist_ok=True)
-    tmp = target.with_name(f".{target.name}.tmp-{os.getpid()}")
+    fd, name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+    os.close(fd)
+    tmp = Path(name)
     try:
+        # mkstemp makes the file private (0600); outputs get the permissions any new file would
+        os.chmod(tmp, 0o666 & ~_UMASK)
         yield tmp
         os.replace(tmp, target)
     except BaseException:
@@ -39,11 +63,16 @@ def atomic_open(target: str | os.PathLike, mode: str = "wb") -> Iterator[IO]:
 
 def write_json(target: str | os.PathLike, data: dict) -> None:
     """Write a JSON document atomically (sorted keys, 2-space indent)."""
+    with atomic_open(target, "w") as fh:
+        dump_json(fh, data)
+
+
+def dump_json(fh: IO, data: dict) -> None:
+    """The JSON document of :func:`write_json`, into an open text file."""
     import json
 
-    with atomic_open(target, "w") as fh:
-        json.dump(data, fh, indent=2, sort_keys=True, default=_json_default)
-        fh.write("\n")
+    json.dump(data, fh, indent=2, sort_keys=True, default=_json_default)
+    fh.write("\n")
 
 
 def _json_default(obj):

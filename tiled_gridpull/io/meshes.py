@@ -32,17 +32,43 @@ def write_mesh(mesh: Mesh, path: str | Path, *, float32: bool = False, offset: n
     offset : (3,) float, optional
     """
     path = Path(path)
-    suffix = path.suffix.lower()
-    if suffix == ".ply":
-        _write_ply(mesh, path, float32, offset)
-    elif suffix == ".obj":
-        _write_obj(mesh, path)
-    else:
-        raise InputError(f"{path}: unknown mesh format '{suffix}' (use .ply or .obj)")
+    mode = _mesh_mode(path)
+    with atomic_open(path, mode) as fh:
+        _write_to(fh, mesh, path, float32, offset)
     return path
 
 
-def _write_ply(mesh: Mesh, path: Path, float32: bool, offset) -> None:
+def write_mesh_and_sidecar(mesh: Mesh, path: str | Path, *, float32: bool = False) -> Path:
+    """Write a mesh and its JSON sidecar (``mesh.metadata``) as one commit: both files or neither.
+
+    Both are written to temporary files first; the sidecar is renamed into place, then the mesh. A sidecar that
+    cannot be written (disk full, a directory at its name) leaves no mesh behind.
+    """
+    from .atomic import dump_json
+
+    path = Path(path)
+    with atomic_open(path, _mesh_mode(path)) as fm:
+        _write_to(fm, mesh, path, float32, None)
+        with atomic_open(sidecar_path(path), "w") as fs:
+            dump_json(fs, mesh.metadata)
+    return path
+
+
+def _mesh_mode(path: Path) -> str:
+    suffix = path.suffix.lower()
+    if suffix not in (".ply", ".obj"):
+        raise InputError(f"{path}: unknown mesh format '{suffix}' (use .ply or .obj)")
+    return "wb" if suffix == ".ply" else "w"
+
+
+def _write_to(fh, mesh: Mesh, path: Path, float32: bool, offset) -> None:
+    if path.suffix.lower() == ".ply":
+        _write_ply(mesh, fh, float32, offset)
+    else:
+        _write_obj(mesh, fh)
+
+
+def _write_ply(mesh: Mesh, fh, float32: bool, offset) -> None:
     V = mesh.vertices
     comments = []
     if float32:
@@ -68,19 +94,17 @@ def _write_ply(mesh: Mesh, path: Path, float32: bool, offset) -> None:
     faces = np.empty(len(mesh.faces), dtype=[("n", "u1"), ("v", "<i4", (3,))])
     faces["n"] = 3
     faces["v"] = mesh.faces
-    with atomic_open(path, "wb") as fh:
-        fh.write(("\n".join(header) + "\n").encode("ascii"))
-        fh.write(np.ascontiguousarray(verts).tobytes())
-        fh.write(faces.tobytes())
+    fh.write(("\n".join(header) + "\n").encode("ascii"))
+    fh.write(np.ascontiguousarray(verts).tobytes())
+    fh.write(faces.tobytes())
 
 
-def _write_obj(mesh: Mesh, path: Path) -> None:
-    with atomic_open(path, "w") as fh:
-        # the marker io.outputs looks for before replacing a file (one line, like the PLY header's comment)
-        gen = str(mesh.metadata.get("generator", "tiled_gridpull")).splitlines()[0]
-        fh.write(f"# generator {gen}\n")
-        np.savetxt(fh, mesh.vertices, fmt="v %.17g %.17g %.17g")
-        np.savetxt(fh, mesh.faces + 1, fmt="f %d %d %d")
+def _write_obj(mesh: Mesh, fh) -> None:
+    # the marker io.outputs looks for before replacing a file (one line, like the PLY header's comment)
+    gen = str(mesh.metadata.get("generator", "tiled_gridpull")).splitlines()[0]
+    fh.write(f"# generator {gen}\n")
+    np.savetxt(fh, mesh.vertices, fmt="v %.17g %.17g %.17g")
+    np.savetxt(fh, mesh.faces + 1, fmt="f %d %d %d")
 
 
 def read_mesh(path: str | Path) -> Mesh:
