@@ -70,3 +70,14 @@ def test_a_small_cloud_draws_fewer_queries_and_the_solve_records_them():
 def test_schedule_settings_are_validated(kw, needle):
     with pytest.raises(ConfigError, match=needle):
         SolverConfig(**kw)
+
+
+@pytest.mark.parametrize("mode,levels", [("sdf", 3), ("sdf", 1), ("udf", 2)])
+def test_total_iterations_is_the_total_the_solver_reports(mode, levels):
+    cfg = SolverConfig(levels=levels, coarse_iterations=30, middle_iterations=20, iterations=10, queries=2000,
+                       mode=mode, udf_polish=7)
+    lat = Lattice((-0.5, -0.5, -0.5), 1.0 / 128, (129, 129, 129))
+    totals = set()
+    solve(_sphere_cloud(3000), lat, cfg, progress=lambda it, total, stats: totals.add(total), history_every=5)
+    assert totals == {cfg.total_iterations(128)}
+    assert cfg.total_iterations(128) == {1: 10, 3: 60, 2: 40}[levels] + (7 if mode == "udf" else 0)
