@@ -196,13 +196,19 @@ def run_job(inputs: list[str], output: str | Path, tiling: TilingConfig, solver:
 def _run_job(inputs: list[str], output: str | Path, tiling: TilingConfig, solver: SolverConfig, paths: JobPaths,
              options: JobOptions, *, frames) -> Mesh:
     t0 = time.perf_counter()
-    plan, specs, scan = prepare_job(inputs, tiling, paths, frames=frames)
+    check = None
+    if options.max_memory is not None:
+        # refuse before the partition writes anything
+        def check(planned, occupancy):
+            check_some_tile_solvable(planned, tiling)
+            check_memory(planned, tiling, solver, options.max_memory, occupancy=occupancy)
+    plan, specs, scan = prepare_job(inputs, tiling, paths, frames=frames, check=check)
     t_part = time.perf_counter()
     log.info("%s %d points into %d tiles (%d planned) in %.1f s",
              "reused the partition of" if scan.get("partition_reused") else "partitioned", scan["points"],
              len(specs), int(plan.tile_range[0] * plan.tile_range[1] * plan.tile_range[2]), t_part - t0)
     check_some_tile_solvable(specs, tiling)
-    if options.max_memory is not None:
+    if options.max_memory is not None and scan.get("partition_reused"):
         check_memory(specs, tiling, solver, options.max_memory)
     with _deferred_interrupt() as interrupted:
         solve_summaries, mesh_summaries = _run_tasks(specs, tiling, solver, paths, plan, options, interrupted)

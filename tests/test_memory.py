@@ -96,6 +96,8 @@ def test_max_memory_refuses_before_solving(street, capsys):
     assert re.search(r"tile_\d+_\d+_\d+ \(\d+ MB\)", lines[0]) and "--tile-size" in lines[0], lines[0]
     assert not out.exists() and not out.with_suffix(".json").exists()
     assert not (work / "fields").exists() and not (work / "summaries").exists()  # nothing was solved
+    # nor partitioned: the estimate comes from a counting pass before any spill file is written
+    assert not (work / "points").exists() and not (work / "manifest.json").exists()
 
 
 def test_dry_run_prints_the_plan_and_writes_nothing(street, tmp_path, capsys):

@@ -153,11 +153,16 @@ def _chunks(inputs, chunk_size, frames):
 
 
 def prepare_job(inputs: list[str], tiling: TilingConfig, paths: JobPaths, *, frames=None,
-                chunk_size: int = 2_000_000) -> tuple[TilePlan, list[TileSpec], dict]:
+                chunk_size: int = 2_000_000,
+                check: Callable[[list[TileSpec], dict], None] | None = None) -> tuple[TilePlan, list[TileSpec], dict]:
     """Scan and partition the inputs into tiles; writes the manifest. Returns the plan, tiles and scan facts.
 
     A finished partition of the same inputs (path, size, mtime) and tile grid in ``paths`` is reused without
     reading the inputs (``scan["partition_reused"]``; see :mod:`tiled_gridpull.resume`).
+
+    ``check(specs, occupancy)``, when given, runs on a counting pass (tiles and their occupied bricks, nothing
+    written) before the partition writes its spill files: it refuses a job (e.g. ``--max-memory``) by raising,
+    so a refused job leaves no partition behind. It costs one more read of the inputs.
     """
     from .resume import load_partition, partition_key, scan_record
 
@@ -168,6 +173,10 @@ def prepare_job(inputs: list[str], tiling: TilingConfig, paths: JobPaths, *, fra
     paths.manifest.unlink(missing_ok=True)  # the manifest commits a partition: none while one is under way
     scan = scan_inputs(inputs, chunk_size, frames)
     plan = plan_tiles(scan["bounds"], scan["points"], tiling)
+    if check is not None:
+        occupancy: dict = {}
+        check(partition(_chunks(inputs, chunk_size, frames), plan, None, scan["has_sensor"], occupancy=occupancy),
+              occupancy)
     specs = partition(_chunks(inputs, chunk_size, frames), plan, paths.points(), scan["has_sensor"])
     write_manifest(paths.manifest, plan, specs, {"inputs": [str(Path(p).resolve()) for p in inputs],
                                                  "crs": scan["crs"], "version": __version__,
