@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from tiled_gridpull.config import SolverConfig
-from tiled_gridpull.errors import TileFailedError
+from tiled_gridpull.errors import ClusterError, ConfigError, TileFailedError
 from tiled_gridpull.mesh import Mesh
 from tiled_gridpull.scene import (JobPaths, check_some_tile_solvable, check_some_tile_solved, finish_job,
                                   job_lock, job_metadata, key_reference, neighbors_of, plan_centre, prepare_job)
@@ -42,6 +42,9 @@ __all__ = ["JobOptions", "run_job", "run_tiles", "task_arguments", "make_client"
 #: Tasks in flight at once: enough to keep any cluster busy (a task is a whole tile, seconds to minutes of work)
 #: and to cover a slab of tiles, so mesh tasks follow their solves closely.
 DEFAULT_WINDOW = 4000
+
+#: Seconds without any worker (while tasks wait) before a job stops instead of waiting for ever.
+NO_WORKER_TIMEOUT_S = 120.0
 
 
 @dataclass(frozen=True)
@@ -68,6 +71,9 @@ class JobOptions:
         Bytes one worker may use for one tile; the job is refused up front if a tile's estimate exceeds it.
     window : int
         Most tasks in flight at once (:func:`run_tiles`); tiles are submitted as a sliding window in tile order.
+    no_worker_timeout : float
+        Seconds the job waits without any worker (an external scheduler none joined, or a cluster whose workers
+        were all killed) before it stops with a clear message.
     """
 
     workers: int | None = None
@@ -80,10 +86,45 @@ class JobOptions:
     extra: dict = field(default_factory=dict)
     max_memory: int | None = None
     window: int = DEFAULT_WINDOW
+    no_worker_timeout: float = NO_WORKER_TIMEOUT_S
 
 
 def _threads_for(workers: int) -> int:
     return max(1, (os.cpu_count() or 1) // max(1, workers))
+
+
+_SCHEMES = ("tcp", "tls")
+
+
+def check_scheduler_address(address: str, connect_timeout: float = 5.0) -> str:
+    """A Dask scheduler address checked before a client waits on it: ``[tcp|tls://]host:port`` with a port in
+    1-65535, and something listening there. Returns the address with its scheme.
+
+    Raises
+    ------
+    ConfigError
+        Malformed, or nothing accepts a connection within ``connect_timeout`` seconds (Dask's client would wait
+        its whole timeout, then fail as an internal error).
+    """
+    import re
+    import socket
+
+    m = re.fullmatch(r"(?:([A-Za-z][A-Za-z0-9+.-]*)://)?(\[[0-9A-Fa-f:]+\]|[^:/\s\[\]]+):(\d{1,5})/?", address.strip())
+    if m is None:
+        raise ConfigError(f"--scheduler {address!r}: expected tcp://HOST:PORT")
+    scheme, host, port = (m.group(1) or "tcp").lower(), m.group(2), int(m.group(3))
+    if scheme not in _SCHEMES:
+        raise ConfigError(f"--scheduler {address!r}: scheme {scheme!r} is not supported (use tcp:// or tls://)")
+    if not 1 <= port <= 65535:
+        raise ConfigError(f"--scheduler {address!r}: port {port} is not in 1-65535")
+    try:
+        with socket.create_connection((host.strip("[]"), port), timeout=connect_timeout):
+            pass
+    except OSError as exc:
+        why = "nothing listens there" if isinstance(exc, ConnectionRefusedError) else (
+            "timed out" if isinstance(exc, (socket.timeout, TimeoutError)) else exc.__class__.__name__)
+        raise ConfigError(f"--scheduler {address}: cannot reach a Dask scheduler ({why})") from None
+    return f"{scheme}://{host}:{port}"
 
 
 def make_client(options: JobOptions, n_tiles: int):
@@ -91,7 +132,12 @@ def make_client(options: JobOptions, n_tiles: int):
     from distributed import Client, LocalCluster
 
     if options.scheduler:
-        return Client(options.scheduler, timeout="30s"), None
+        address = check_scheduler_address(options.scheduler)
+        try:
+            return Client(address, timeout="15s"), None
+        except (OSError, TimeoutError) as exc:
+            raise ConfigError(f"--scheduler {options.scheduler}: no Dask scheduler answered "
+                              f"({exc.__class__.__name__})") from None
     if not log.isEnabledFor(logging.DEBUG):
         # the scheduler of a LocalCluster lives in this process: keep its chatter out of the user's terminal
         logging.getLogger("distributed").setLevel(logging.ERROR)
@@ -137,15 +183,19 @@ def solve_task(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig, field
         out = solve_tile(spec, tiling, solver, field_path, centre=centre)
     else:
         out = solve_tile_resumable(spec, tiling, solver, field_path, summary_path, centre,
-                                   before_solve=lambda: _test_hold(spec.name))
+                                   before_solve=lambda: _test_hooks(spec.name))
     if not out.get("reused"):
         out["worker"] = _worker_address()
     return out
 
 
-def _test_hold(tile: str) -> None:
-    """Test hook: with ``TILED_GRIDPULL_TEST_HOLD=DIR:SECONDS``, the first attempt at solving each tile writes
-    ``DIR/<tile>.<pid>`` and sleeps, so a test can kill the worker process mid-task. Unset in normal use."""
+def _test_hooks(tile: str) -> None:
+    """Test hooks, unset in normal use. ``TILED_GRIDPULL_TEST_CRASH=TILE``: every attempt at solving that tile
+    kills its worker process (a tile that keeps running its worker out of memory).
+    ``TILED_GRIDPULL_TEST_HOLD=DIR:SECONDS``: the first attempt at solving each tile writes ``DIR/<tile>.<pid>``
+    and sleeps, so a test can kill the worker process mid-task."""
+    if os.environ.get("TILED_GRIDPULL_TEST_CRASH") == tile:
+        os._exit(137)
     spec = os.environ.get("TILED_GRIDPULL_TEST_HOLD")
     if not spec:
         return
@@ -189,6 +239,9 @@ def run_job(inputs: list[str], output: str | Path, tiling: TilingConfig, solver:
             options: JobOptions = JobOptions(), *, frames=None) -> Mesh:
     """Tiled reconstruction on Dask; writes ``output`` and its sidecar, returns the welded mesh."""
     check_compatible(tiling, solver)
+    if options.scheduler:
+        check_scheduler_address(options.scheduler)  # before the partition, not after it
+    work_dir = Path(work_dir).resolve()  # workers of an external cluster do not share this process's cwd
     with job_lock(work_dir):
         return _run_job(inputs, output, tiling, solver, JobPaths(work_dir), options, frames=frames)
 
@@ -229,6 +282,9 @@ def _run_job(inputs: list[str], output: str | Path, tiling: TilingConfig, solver
     meta = job_metadata(plan, tiling, solver, scan, solve_summaries, mesh_summaries,
                         {"partition": t_part - t0, "solve_and_mesh": t_mesh - t_part})
     meta["engine"] = {"scheduler": options.scheduler or "LocalCluster", "workers": options.workers}
+    # a mesh task that failed (it killed its worker) leaves its tile out of the mesh: report it like a solve
+    meta["tiles"]["not_solved"] += [{"tile": m["tile"], "status": "failed", "reason": m.get("reason")}
+                                    for m in mesh_summaries if m.get("status") == "failed"]
     meta["reused"] = {"partition": bool(scan.get("partition_reused")), "solves": n_solve, "meshes": n_mesh}
     pieces = [paths.piece(by_index[tuple(m["index"])]) for m in mesh_summaries if m.get("status") == "meshed"]
     mesh = finish_job(pieces, None, meta, float32=options.float32, tile_meshes=options.tile_meshes)
@@ -280,9 +336,11 @@ def _run_tasks(specs: list[TileSpec], tiling: TilingConfig, solver: SolverConfig
     if client.dashboard_link:
         log.info("Dask dashboard: %s", client.dashboard_link)
     try:
+        if options.scheduler:
+            check_workers_see(client, paths.root, options.no_worker_timeout)
         solve_args, mesh_args = task_arguments(specs, tiling, solver, paths, plan_centre(plan), key_reference(plan))
         events = run_tiles(client, specs, solve_task, solve_args, mesh_task, mesh_args, options.retries,
-                           window=options.window, stop=interrupted)
+                           window=options.window, stop=interrupted, no_worker_timeout=options.no_worker_timeout)
         return _collect(events, len(specs), options)
     finally:
         client.close()
@@ -310,7 +368,8 @@ def task_arguments(specs: list[TileSpec], tiling: TilingConfig, solver: SolverCo
 
 
 def run_tiles(client, specs: list[TileSpec], solve_fn, solve_args, mesh_fn, mesh_args, retries: int = 2,
-              window: int = DEFAULT_WINDOW, stop: threading.Event | None = None):
+              window: int = DEFAULT_WINDOW, stop: threading.Event | None = None,
+              no_worker_timeout: float = NO_WORKER_TIMEOUT_S):
     """Run the job's graph on ``client``, yielding ``(kind, tile index, summary)`` as tasks finish.
 
     The graph: one solve task per tile, then one mesh task per tile that needs the solve summaries of the tile
@@ -334,6 +393,10 @@ def run_tiles(client, specs: list[TileSpec], solve_fn, solve_args, mesh_fn, mesh
         Most tasks submitted and not yet returned; at least 1.
     stop : threading.Event, optional
         Checked between results (every 0.1 s while waiting): when set, raises KeyboardInterrupt.
+    no_worker_timeout : float
+        Seconds the cluster may have no worker while tasks wait before the job stops with
+        :class:`~tiled_gridpull.errors.ClusterError` (0: wait for ever). Without it a cluster that lost every
+        worker left the driver waiting for ever.
     """
     from collections import deque
 
@@ -354,6 +417,7 @@ def run_tiles(client, specs: list[TileSpec], solve_fn, solve_args, mesh_fn, mesh
     ready: deque[int] = deque()  # tiles whose mesh task can be submitted
     kinds: dict[str, tuple[str, int]] = {}
     pending = as_completed(with_results=True)  # results come with the futures, not one request each
+    watch = _WorkerWatch(client, no_worker_timeout)
     n, next_solve, in_flight = len(specs), 0, 0
     # tile order across windows keeps a window's meshes close to its solves; costliest first within one (both
     # sorts are stable: equal costs keep tile order)
@@ -391,12 +455,20 @@ def run_tiles(client, specs: list[TileSpec], solve_fn, solve_args, mesh_fn, mesh
         while not pending.has_ready():
             if stop is not None and stop.is_set():
                 raise KeyboardInterrupt
+            if no_worker_timeout > 0:
+                watch.check()
             with pending.thread_condition:  # notified as each task finishes
                 pending.thread_condition.wait(timeout=0.1)
         for fut, result in pending.next_batch(block=False):
             kind, i = kinds.pop(fut.key)
             if fut.status == "error":
-                raise result[1].with_traceback(result[2])
+                if not _killed_worker(result[1]):
+                    raise result[1].with_traceback(result[2])
+                # the task took its worker down every time it ran (out of memory, a crash in native code):
+                # a failed tile, reported by name; the rest of the job goes on
+                result = {"tile": specs[i].name, "index": list(specs[i].index), "points": specs[i].n_points,
+                          "status": "failed", "faces": 0,
+                          "reason": f"its {kind} killed the worker process on every attempt (out of memory?)"}
             if isinstance(result, BaseException):  # cancelled (e.g. the cluster went away)
                 raise result
             in_flight -= 1
@@ -409,6 +481,53 @@ def run_tiles(client, specs: list[TileSpec], solve_fn, solve_args, mesh_fn, mesh
             yield kind, specs[i].index, result
         if stop is not None and stop.is_set():
             raise KeyboardInterrupt
+
+
+def check_workers_see(client, root: Path, timeout: float) -> None:
+    """On an external cluster: wait (at most ``timeout`` s) for a worker, then check that every worker sees the
+    job directory; tiles are exchanged as files there, so the cluster needs a filesystem shared with this
+    machine at the same path."""
+    try:
+        client.wait_for_workers(1, timeout=timeout or None)
+    except TimeoutError:
+        raise ClusterError(f"no worker joined the Dask scheduler within {timeout:g} s") from None
+    seen = client.run(os.path.isdir, str(root))
+    blind = sorted(w for w, ok in seen.items() if not ok)
+    if blind:
+        raise ClusterError(f"{len(blind)} of {len(seen)} Dask worker(s) cannot see the job directory {root} "
+                           f"(e.g. {blind[0]}): the workers need a filesystem shared with this machine at the same "
+                           "path (give --work-dir on it)")
+
+
+class _WorkerWatch:
+    """Raises ClusterError once the cluster has had no worker for ``timeout`` seconds (checked every 2 s)."""
+
+    def __init__(self, client, timeout: float):
+        self.client, self.timeout = client, timeout
+        self.last_seen = self.next_check = time.monotonic()
+
+    def check(self) -> None:
+        now = time.monotonic()
+        if now < self.next_check:
+            return
+        self.next_check = now + 2.0
+        try:
+            workers = self.client.scheduler_info(n_workers=-1).get("workers")
+        except TypeError:  # older distributed: no n_workers argument
+            workers = self.client.scheduler_info().get("workers")
+        if workers:
+            self.last_seen = now
+        elif now - self.last_seen > self.timeout:
+            raise ClusterError(f"the Dask cluster has had no worker for {self.timeout:g} s (workers killed, or "
+                               "none started): the job stops; rerun to resume from the tiles already done")
+
+
+def _killed_worker(exc: BaseException) -> bool:
+    try:
+        from distributed.scheduler import KilledWorker
+    except ImportError:  # pragma: no cover - distributed's layout changed
+        return type(exc).__name__ == "KilledWorker"
+    return isinstance(exc, KilledWorker)
 
 
 def check_memory(specs: list[TileSpec] | None, tiling: TilingConfig, solver: SolverConfig, budget: int,

@@ -284,3 +284,44 @@ def test_costliest_tiles_start_first_within_a_window(window):
         assert costs == sorted(costs, reverse=True), (w, costs)
     if window >= len(specs):
         assert [s.occupied_bricks for s in started] == sorted((s.occupied_bricks for s in specs), reverse=True)
+
+
+def _slow_solve(spec):
+    time.sleep(0.5)
+    return {"tile": spec.name, "status": "solved"}
+
+
+def test_cluster_without_workers_stops_the_job_instead_of_hanging():
+    """Every worker gone (scaled away here; killed in real life): the job stops with a clear error after the
+    no-worker timeout instead of waiting for ever."""
+    from distributed import Client, LocalCluster
+
+    from pipeline.job import run_tiles
+    from tiled_gridpull.errors import ClusterError
+
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=":0") as lc, \
+            Client(lc) as client:
+        events = run_tiles(client, _grid_specs(4, 4, 1), _slow_solve, lambda s: (), _mesh_echo, lambda s: (),
+                           window=2, no_worker_timeout=3)
+        next(events)
+        lc.scale(0)
+        t0 = time.monotonic()
+        with pytest.raises(ClusterError, match="no worker for 3 s"):
+            for _ in events:
+                pass
+        assert time.monotonic() - t0 < 60
+
+
+def test_external_scheduler_without_workers_or_shared_directory(tmp_path):
+    from distributed import Client, LocalCluster
+
+    from pipeline.job import check_workers_see
+    from tiled_gridpull.errors import ClusterError
+
+    with LocalCluster(n_workers=0, processes=False, dashboard_address=":0") as lc, Client(lc) as client:
+        with pytest.raises(ClusterError, match="no worker joined the Dask scheduler within 1 s"):
+            check_workers_see(client, tmp_path, 1)
+        lc.scale(1)
+        check_workers_see(client, tmp_path, 30)
+        with pytest.raises(ClusterError, match="cannot see the job directory .*shared"):
+            check_workers_see(client, tmp_path / "not-on-the-workers", 30)

@@ -180,6 +180,38 @@ def test_worker_killed_mid_job_gives_the_undisturbed_mesh(data, reference, monke
     assert (data / "fault.ply").read_bytes() == reference[0]
 
 
+def test_tile_that_keeps_killing_its_worker_is_a_failed_tile(data, monkeypatch, capsys):
+    """A tile whose solve takes its worker process down on every attempt (Dask's KilledWorker) is reported as a
+    failed tile by name, exit 6, with the rest of the mesh written; it used to end the job as an internal error."""
+    victim = "tile_0_0_0"
+    monkeypatch.setenv("TILED_GRIDPULL_TEST_CRASH", victim)  # inherited by the LocalCluster's workers
+    out = data / "crash.ply"
+    code, err = run_cli(["reconstruct", str(data / "pts.npy"), "-o", str(out), "-q", "--work-dir",
+                         str(data / "crash.job"), *OPTS], capsys)
+    assert code == 6, err
+    assert "Traceback" not in err and "KilledWorker" not in err
+    side = json.loads(out.with_suffix(".json").read_text())
+    failed = {t["tile"]: t["reason"] for t in side["tiles"]["not_solved"] if t["status"] == "failed"}
+    assert "killed the worker process on every attempt" in failed[victim]
+    assert read_mesh(out).faces.shape[0] > 0
+
+
+@pytest.mark.parametrize("address,needle", [
+    ("tcp://127.0.0.1:1", "cannot reach a Dask scheduler (nothing listens there)"),
+    ("tcp://127.0.0.1:99999", "port 99999 is not in 1-65535"),
+    ("http://127.0.0.1:8786", "scheme 'http' is not supported"),
+    ("not an address", "expected tcp://HOST:PORT"),
+])
+def test_bad_scheduler_address_is_refused_before_any_work(data, capsys, address, needle):
+    out = data / "sched.ply"
+    code, err = run_cli(["reconstruct", str(data / "pts.npy"), "-o", str(out), "-q", "--work-dir",
+                         str(data / "sched.job"), *OPTS[:-2], "--scheduler", address], capsys)
+    assert code == 2 and needle in err, err
+    assert len([ln for ln in err.splitlines() if ln.strip()]) == 1
+    # refused before partitioning, and without a client waiting out its 30 s connect timeout
+    assert not out.exists() and not (data / "sched.job" / "points").exists()
+
+
 # ---------------------------------------------------------------------------------------------------- resume
 
 

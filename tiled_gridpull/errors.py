@@ -42,3 +42,10 @@ class TileFailedError(GridPullError):
     """One or more tiles failed for a data reason (reported by name)."""
 
     exit_code = 6
+
+
+class ClusterError(GridPullError):
+    """The Dask cluster cannot run the job (no worker for too long, or workers that cannot see the job
+    directory)."""
+
+    exit_code = 7
