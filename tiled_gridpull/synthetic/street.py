@@ -28,6 +28,7 @@ street, back and forth like a mapping car covering the district (:func:`sensor_p
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -377,16 +378,9 @@ def build_street(scene: StreetScene) -> Mesh:
     crown = sphere(1.0, 2)
     crown_v, crown_f = crown.vertices, crown.faces
     for side in (-1.0, 1.0):
-        x = rng.uniform(5.0, 12.0)
-        while x < L - 3.0:
-            trunk_h = rng.uniform(2.5, 4.0)
-            r = rng.uniform(1.3, 2.2)
-            step = rng.uniform(12.0, 18.0)
-            if all(abs(x - px) > 2.5 or ps != side for px, ps in poles):
-                y = side * 8.2
-                z = float(h(x, y))
-                _add_tree(out, x, y, z, trunk_h, r, crown_v, crown_f)
-            x += step
+        for x, trunk_h, r in _tree_row(rng, L, lambda x: all(abs(x - px) > 2.5 or ps != side for px, ps in poles)):
+            y = side * 8.2
+            _add_tree(out, x, y, float(h(x, y)), trunk_h, r, crown_v, crown_f)
 
     # ---- cars: moving ones in the lanes, parked ones along the curbs, small random yaw
     rng = _rng(scene, 5)
@@ -538,17 +532,13 @@ def _build_grid_scene(scene: StreetScene) -> Mesh:
     crown_v, crown_f = crown.vertices, crown.faces
     for k, (axis, line) in enumerate(streets):
         for side in (-1.0, 1.0):
-            s = rng.uniform(5.0, 12.0)
-            while s < E - 3.0:
-                trunk_h = rng.uniform(2.5, 4.0)
-                r = rng.uniform(1.3, 2.2)
-                step = rng.uniform(12.0, 18.0)
-                if far_from_crossings(s, 12.0) and all(abs(s - ps) > 2.5 for pk, pside, ps in poles
-                                                       if pk == k and pside == side):
-                    x, y = (float(c) for c in _street_to_local(axis, line, s, side * 8.2))
-                    z = float(h(x, y))
-                    _add_tree(out, x, y, z, trunk_h, r, crown_v, crown_f)
-                s += step
+            def keep(s):
+                return far_from_crossings(s, 12.0) and all(abs(s - ps) > 2.5 for pk, pside, ps in poles
+                                                           if pk == k and pside == side)
+
+            for s, trunk_h, r in _tree_row(rng, E, keep):
+                x, y = (float(c) for c in _street_to_local(axis, line, s, side * 8.2))
+                _add_tree(out, x, y, float(h(x, y)), trunk_h, r, crown_v, crown_f)
 
     # ---- cars: moving ones in the lanes, parked ones along the curbs, small random yaw; the crossings stay
     # empty (>= 9 m: a 6 m half-road plus half a car), so no two streets' cars meet
@@ -580,6 +570,20 @@ def _build_grid_scene(scene: StreetScene) -> Mesh:
     meta = {"generator": "tiled_gridpull.synthetic.street", "scene": scene.to_dict(), "face_classes": ranges,
             "units": "m"}
     return Mesh(v + scene.origin_array, f, meta)
+
+
+def _tree_row(rng: np.random.Generator, length: float, keep: Callable[[float], bool]):
+    """Trees along one side of a street of ``length`` m: yields ``(s, trunk height, crown radius)`` at the stations
+    ``s`` that ``keep`` accepts. The random draws (first station, then height, radius and spacing per station) do
+    not depend on ``keep``, so a layout's trees come out the same whatever it rejects."""
+    s = rng.uniform(5.0, 12.0)
+    while s < length - 3.0:
+        trunk_h = rng.uniform(2.5, 4.0)
+        r = rng.uniform(1.3, 2.2)
+        step = rng.uniform(12.0, 18.0)
+        if keep(s):
+            yield s, trunk_h, r
+        s += step
 
 
 def _add_tree(out: _Builder, x: float, y: float, z: float, trunk_h: float, r: float, crown_v: np.ndarray,
