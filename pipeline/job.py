@@ -287,7 +287,7 @@ def _run_job(inputs: list[str], output: str | Path, tiling: TilingConfig, solver
                                     for m in mesh_summaries if m.get("status") == "failed"]
     meta["reused"] = {"partition": bool(scan.get("partition_reused")), "solves": n_solve, "meshes": n_mesh}
     pieces = [paths.piece(by_index[tuple(m["index"])]) for m in mesh_summaries if m.get("status") == "meshed"]
-    mesh = finish_job(pieces, None, meta, float32=options.float32, tile_meshes=options.tile_meshes)
+    mesh = finish_job(pieces, meta, float32=options.float32, tile_meshes=options.tile_meshes)
     mesh.metadata["timings_s"]["merge"] = time.perf_counter() - t_mesh
     mesh.metadata["timings_s"]["total"] = time.perf_counter() - t0
     from tiled_gridpull.io import write_mesh_and_sidecar

@@ -210,15 +210,15 @@ def key_reference(plan: TilePlan) -> np.ndarray:
     return np.asarray(plan.lattice.offset, np.int64) - plan.config.overlap_cells
 
 
-def finish_job(pieces: Iterable[Path], output: str | Path | None, metadata: dict, *,
-               float32: bool = False, tile_meshes: str | Path | None = None) -> Mesh:
-    """Weld the tile pieces into one mesh and, when ``output`` is given, write it and its JSON sidecar as one
-    commit (:func:`~tiled_gridpull.io.write_mesh_and_sidecar`).
+def finish_job(pieces: Iterable[Path], metadata: dict, *, float32: bool = False,
+               tile_meshes: str | Path | None = None) -> Mesh:
+    """Weld the tile pieces into one mesh carrying ``metadata``. The caller writes it, once its timings are in,
+    with its sidecar as one commit (:func:`~tiled_gridpull.io.write_mesh_and_sidecar`).
 
     ``tile_meshes``: also write each tile's piece as ``<dir>/<tile>.ply`` (input coordinates; pieces share their
     border vertices exactly, so they fit together without gaps).
     """
-    from .io import write_mesh, write_mesh_and_sidecar
+    from .io import write_mesh
 
     loaded = [(Path(p), load_piece(p)) for p in pieces]
     if tile_meshes is not None:
@@ -230,8 +230,6 @@ def finish_job(pieces: Iterable[Path], output: str | Path | None, metadata: dict
     mesh = weld_pieces([piece for _, piece in loaded])
     mesh.metadata.update(metadata)
     mesh.metadata["mesh"] = mesh.topology.to_dict()
-    if output is not None:
-        write_mesh_and_sidecar(mesh, output, float32=float32)
     return mesh
 
 
@@ -295,8 +293,7 @@ def _reconstruct_scene(inputs, output, tiling, solver, paths: JobPaths, *, frame
     t_mesh = time.perf_counter()
     meta = job_metadata(plan, tiling, solver, scan, summaries, mesh_summaries,
                         {"partition": t_part - t0, "solve": t_solve - t_part, "mesh": t_mesh - t_solve})
-    mesh = finish_job([paths.piece(s) for s in solved.values()], None, meta, float32=float32,
-                      tile_meshes=tile_meshes)
+    mesh = finish_job([paths.piece(s) for s in solved.values()], meta, float32=float32, tile_meshes=tile_meshes)
     mesh.metadata["timings_s"]["merge"] = time.perf_counter() - t_mesh
     mesh.metadata["timings_s"]["total"] = time.perf_counter() - t0
     if output is not None:
