@@ -22,17 +22,12 @@ GENERATOR_PREFIX = "tiled_gridpull "
 
 
 def _resolved(p: str | Path) -> Path:
-    return Path(os.path.abspath(os.path.realpath(p)))
+    return Path(os.path.realpath(p))
 
 
 def written_by_us(path: str | Path) -> bool:
     """True when ``path`` is a mesh or sidecar written by a reconstruction (see the module's docstring)."""
     path = Path(path)
-    try:
-        with open(path, "rb") as fh:
-            head = fh.read(4096)
-    except OSError:
-        return False
     suffix = path.suffix.lower()
     if suffix == ".json":
         try:
@@ -44,6 +39,11 @@ def written_by_us(path: str | Path) -> bool:
     marker = {".ply": b"comment generator " + GENERATOR_PREFIX.encode(),
               ".obj": b"# generator " + GENERATOR_PREFIX.encode()}.get(suffix)
     if marker is None:
+        return False
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(4096)
+    except OSError:
         return False
     if suffix == ".ply":
         header = head.split(b"end_header", 1)[0]
