@@ -1027,3 +1027,66 @@ def test_extent_float64_cannot_resolve_is_refused(scale):
     pts, _ = sample_shape(sphere(), 500, seed=0)
     with pytest.raises(InputError, match="outside what float64 arithmetic resolves"):
         clean_points(PointCloud(pts * scale))
+
+
+# -- headers that declare fewer points than the file holds: the rest is not read, and the user is told ---------
+
+
+def _declare(path: Path, old: bytes, new: bytes) -> Path:
+    data = path.read_bytes()
+    assert data.count(old) >= 1
+    path.write_bytes(data.replace(old, new, 1))
+    return path
+
+
+@pytest.mark.parametrize("fmt", ["binary_little_endian", "ascii"])
+def test_ply_declaring_fewer_vertices_warns(tmp_path, fmt):
+    xyz = np.random.default_rng(0).normal(size=(100, 3))
+    whole = write_ply(tmp_path / "whole.ply", xyz, fmt=fmt)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert len(read_points(whole, clean=False)) == 100
+    short = _declare(write_ply(tmp_path / "short.ply", xyz, fmt=fmt), b"element vertex 100\n",
+                     b"element vertex 90\n")
+    with pytest.warns(UserWarning, match=r"short\.ply: the file holds 10 more vertex rows than its header "
+                                         r"declares \(90\)"):
+        cloud = read_points(short, clean=False)
+    assert len(cloud) == 90
+    np.testing.assert_allclose(cloud.xyz, xyz[:90])
+
+
+def test_las_declaring_fewer_points_warns(tmp_path):
+    import struct
+
+    xyz = np.random.default_rng(1).uniform(0, 10, size=(1000, 3))
+    whole = write_las(tmp_path / "whole.las", xyz)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert len(read_points(whole, clean=False)) == 1000
+    short = tmp_path / "short.las"
+    data = bytearray(whole.read_bytes())
+    assert struct.unpack_from("<I", data, 107)[0] == 1000  # LAS 1.2 legacy point count
+    struct.pack_into("<I", data, 107, 900)
+    short.write_bytes(bytes(data))
+    with pytest.warns(UserWarning, match=r"short\.las: the file holds 100 more point records than its header "
+                                         r"declares \(900\)"):
+        cloud = read_points(short, clean=False)
+    assert len(cloud) == 900
+
+
+def test_laz_declaring_fewer_points_warns(tmp_path):
+    import struct
+
+    xyz = np.random.default_rng(2).uniform(0, 100, size=(120_000, 3))
+    whole = write_las(tmp_path / "whole.laz", xyz)  # lazrs writes chunks of 50,000 points: 3 chunks
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert len(read_points(whole, clean=False)) == 120_000
+    short = tmp_path / "short.laz"
+    data = bytearray(whole.read_bytes())
+    struct.pack_into("<I", data, 107, 40_000)
+    short.write_bytes(bytes(data))
+    with pytest.warns(UserWarning, match=r"short\.laz: the LAZ chunk table holds 3 chunks of 50000 points but "
+                                         r"the header declares 40000 points"):
+        cloud = read_points(short, clean=False)
+    assert len(cloud) == 40_000

@@ -855,6 +855,7 @@ def _ply_vertex_columns(p: Path) -> tuple[dict, int]:
     idx = hdr.elements.index(vertex)
     before = hdr.elements[:idx]
     n = vertex.count
+    _warn_undeclared_vertices(p, hdr, vertex, available - needed)
     cols: dict
     if n == 0:
         cols = {a: np.zeros(0) for a in names}
@@ -888,6 +889,27 @@ def _ply_vertex_columns(p: Path) -> tuple[dict, int]:
     if offset is not None:
         cols["__offset__"] = offset
     return cols, n
+
+
+def _warn_undeclared_vertices(p: Path, hdr: _PlyHeader, vertex: _PlyElement, spare: int) -> None:
+    """Warn when a PLY whose last element is its vertices holds more vertex rows than the header declares
+    (readers stop at the declared count: the rest would be dropped without a word).
+
+    ``spare``: bytes past the declared elements. Binary files are judged by those bytes (every element must be
+    of fixed size), ASCII files by counting their remaining non-blank lines."""
+    if hdr.elements[-1] is not vertex or not all(el.scalar for el in hdr.elements):
+        return
+    if hdr.fmt != "ascii":
+        extra = spare // max(_ply_min_bytes(vertex, False), 1)
+    else:
+        rows = sum(el.count for el in hdr.elements)
+        with open(p, "rb") as fh:
+            fh.seek(hdr.data_offset)
+            lines = sum(1 for line in fh if line.strip())
+        extra = lines - rows
+    if extra > 0:
+        warnings.warn(f"{p}: the file holds {extra} more vertex rows than its header declares ({vertex.count}): "
+                      f"they are not read", stacklevel=2)
 
 
 def _ply_vertex_plyfile(p: Path, n: int) -> dict:
@@ -1056,17 +1078,20 @@ def _laz_backend():
     return laspy.LazBackend.Lazrs
 
 
-def _las_precheck(p: Path) -> None:
+def _las_precheck(p: Path) -> int | None:
     """Check the LAS header's record counts against the file size before laspy sees them.
 
     laspy loops over the declared number of (E)VLRs without checking for end of file: one flipped byte in the
     count makes it spin for hours on an empty stream. Each VLR header is 54 bytes, each EVLR header 60.
+
+    Returns the number of chunks of a LAZ file's chunk table (None: not LAZ, or no usable table).
     """
     size = p.stat().st_size
+    n_chunks = None
     with open(p, "rb") as fh:
         head = fh.read(375)
         if head[:4] == b"LASF" and len(head) >= 227 and head[104] & 0xC0:
-            _laz_chunk_table_check(p, fh, int.from_bytes(head[96:100], "little"), size)
+            n_chunks = _laz_chunk_table_check(p, fh, int.from_bytes(head[96:100], "little"), size)
     if head[:4] != b"LASF":
         raise InputError(f"{p}: not a LAS/LAZ file (no LASF signature)")
     if len(head) < 227:
@@ -1080,6 +1105,7 @@ def _las_precheck(p: Path) -> None:
         if n_evlrs and start_evlr + n_evlrs * 60 > size:
             raise InputError(f"{p}: corrupted LAS header (declares {n_evlrs} extended VLRs beyond the end "
                              f"of the {size}-byte file)")
+    return n_chunks
 
 
 def _laszip_items_check(p: Path, header) -> None:
@@ -1097,7 +1123,7 @@ def _laszip_items_check(p: Path, header) -> None:
             return
 
 
-def _laz_chunk_table_check(p: Path, fh, data_start: int, size: int) -> None:
+def _laz_chunk_table_check(p: Path, fh, data_start: int, size: int) -> int | None:
     """Refuse a LAZ chunk table whose chunk count cannot fit in the file.
 
     lazrs reserves memory for the declared number of chunks before reading them; a corrupted count aborts the
@@ -1113,19 +1139,61 @@ def _laz_chunk_table_check(p: Path, fh, data_start: int, size: int) -> None:
         fh.seek(size - 8)
         table = int.from_bytes(fh.read(8), "little", signed=True)
     if table <= data_start or table + 8 > size:
-        return  # no usable chunk table: lazrs fails cleanly (or streams without one)
+        return None  # no usable chunk table: lazrs fails cleanly (or streams without one)
     fh.seek(table)
     n_chunks = int.from_bytes(fh.read(8)[4:8], "little")
     # every chunk holds at least one raw point record (>= 20 bytes) of compressed data
     if n_chunks * 8 > size:
         raise InputError(f"{p}: corrupted LAZ file (chunk table declares {n_chunks} chunks in a "
                          f"{size}-byte file)")
+    return n_chunks
+
+
+def _laszip_chunk_size(header) -> int | None:
+    """Points per chunk of a LAZ file written with fixed-size chunks (None: variable chunks, or no laszip VLR).
+
+    The laszip VLR's record data holds it as a uint32 at byte 12; 0xFFFFFFFF marks variable chunks."""
+    for vlr in header.vlrs:
+        if vlr.user_id.rstrip("\0") == "laszip encoded" and vlr.record_id == 22204:
+            data = bytes(getattr(vlr, "record_data", b"") or b"")
+            if len(data) < 16:
+                return None
+            size = int.from_bytes(data[12:16], "little")
+            return None if size in (0, 0xFFFFFFFF) else size
+    return None
+
+
+def _warn_undeclared_points(p: Path, header, n_chunks: int | None, size: int) -> None:
+    """Warn when a LAS/LAZ file holds more point records than its header declares: readers stop at the declared
+    count, so the rest would be dropped without a word (a header written before the writer finished, or a
+    32-bit legacy count that wrapped)."""
+    total = int(header.point_count)
+    if header.are_points_compressed:
+        chunk = _laszip_chunk_size(header)
+        if chunk is None or n_chunks is None:
+            return
+        needed = -(-total // chunk)
+        if n_chunks > needed:
+            warnings.warn(f"{p}: the LAZ chunk table holds {n_chunks} chunks of {chunk} points but the header "
+                          f"declares {total} points (at most {needed} chunks): points past the declared count "
+                          f"are not read", stacklevel=2)
+        return
+    record = int(header.point_format.size)
+    end = int(header.offset_to_point_data) + total * record
+    limit = size
+    start_evlr = int(getattr(header, "start_of_first_evlr", 0) or 0)
+    if header.version.minor >= 4 and getattr(header, "number_of_evlrs", 0) and start_evlr > 0:
+        limit = min(size, start_evlr)
+    extra = (limit - end) // record
+    if extra > 0:
+        warnings.warn(f"{p}: the file holds {extra} more point records than its header declares ({total}): "
+                      f"they are not read", stacklevel=2)
 
 
 def _las_chunks(p: Path, chunk_size: int) -> Iterator[PointCloud]:
     import laspy
 
-    _las_precheck(p)
+    n_chunks = _las_precheck(p)
     sel = laspy.DecompressionSelection
     # LAS 1.4 point formats 6-10 are compressed in layers: skip decoding the fields we do not keep (RGB, GPS
     # time, classification, ...), which makes the decode about 40% faster. Older formats decode everything.
@@ -1142,6 +1210,7 @@ def _las_chunks(p: Path, chunk_size: int) -> Iterator[PointCloud]:
                                  f"{needed} bytes, but the file has {size})")
         if header.are_points_compressed:
             _laszip_items_check(p, header)
+        _warn_undeclared_points(p, header, n_chunks, p.stat().st_size)
         crs = _las_crs(header)
         normal_dims = _las_normal_dims(header.point_format)
         has_intensity = "intensity" in header.point_format.dimension_names
