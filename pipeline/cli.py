@@ -165,6 +165,10 @@ def _setup_logging(args) -> None:
     logging.basicConfig(level=level, format="%(message)s", stream=sys.stderr)
     logging.captureWarnings(True)
     if getattr(args, "verbose", 0) < 2:
+        # libraries' own log lines (laspy: "Could only read 3 of 5 points", lazrs errors; distributed) repeat
+        # what our one-line errors say: -vv shows them
+        for name in ("laspy", "distributed"):
+            logging.getLogger(name).setLevel(logging.CRITICAL)
         # one line per warning, like errors: Python's default adds the source path and the line of code
         import warnings
 

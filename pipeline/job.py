@@ -131,6 +131,11 @@ def make_client(options: JobOptions, n_tiles: int):
     """A Dask client: connected to ``options.scheduler``, or to a new LocalCluster sized to the machine."""
     from distributed import Client, LocalCluster
 
+    # The scheduler of a LocalCluster lives in this process and its workers write to our stderr: their
+    # messages ("Couldn't gather keys", "marked as failed because 4 workers died", worker tracebacks) are about
+    # tiles this driver reports itself, one line each; -vv shows them.
+    quiet = logging.ERROR if log.isEnabledFor(logging.DEBUG) else logging.CRITICAL
+    _set_dask_log_level(quiet)
     if options.scheduler:
         address = check_scheduler_address(options.scheduler)
         try:
@@ -138,9 +143,6 @@ def make_client(options: JobOptions, n_tiles: int):
         except (OSError, TimeoutError) as exc:
             raise ConfigError(f"--scheduler {options.scheduler}: no Dask scheduler answered "
                               f"({exc.__class__.__name__})") from None
-    if not log.isEnabledFor(logging.DEBUG):
-        # the scheduler of a LocalCluster lives in this process: keep its chatter out of the user's terminal
-        logging.getLogger("distributed").setLevel(logging.ERROR)
     cores = os.cpu_count() or 1
     workers = options.workers or max(1, min(cores, n_tiles))
     threads = _threads_for(workers)
@@ -149,9 +151,24 @@ def make_client(options: JobOptions, n_tiles: int):
     # one and refuses ("Cannot set NUMBA_NUM_THREADS ..."; a cold cache broke `make demo`). The worker caps
     # its threads with numba.set_num_threads(TILED_GRIDPULL_THREADS) instead (_configure_worker_threads).
     env = {"OMP_NUM_THREADS": str(threads), "OMP_WAIT_POLICY": "PASSIVE", "TILED_GRIDPULL_THREADS": str(threads)}
-    cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0",
-                           silence_logs=logging.ERROR, env=env)
+    # One task per worker at a time (Dask's default saturation 1.1 hands a one-thread worker two): a worker
+    # killed by one tile's solve then takes no queued bystander down with it, which Dask would count as a death
+    # of that tile too and, after four, report it as failed though it never ran.
+    import dask
+
+    with dask.config.set({"distributed.scheduler.worker-saturation": 1.0}):
+        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0",
+                               silence_logs=quiet, env=env)
     return Client(cluster), cluster
+
+
+def _set_dask_log_level(level: int) -> None:
+    """``level`` for distributed's loggers in this process: its import configures several of them
+    (``distributed.client``, ``distributed.scheduler``, ...) with levels of their own, so the parent's is not
+    enough."""
+    names = [n for n in logging.root.manager.loggerDict if n == "distributed" or n.startswith("distributed.")]
+    for name in ["distributed", *names]:
+        logging.getLogger(name).setLevel(level)
 
 
 def _configure_worker_threads() -> None:
@@ -568,7 +585,8 @@ def _collect(events, n_tiles: int, options: JobOptions) -> tuple[list, list]:
             if kind == "solve":
                 bar.set_postfix_str(f"{res['tile']} {res['status']}", refresh=False)
                 if res["status"] == "failed":
-                    log.warning("%s failed: %s", res["tile"], res.get("reason"))
+                    # said now for a live view; the closing summary repeats it as a warning
+                    log.info("%s failed: %s", res["tile"], res.get("reason"))
                     if options.fail_fast:
                         raise TileFailedError(f"{res['tile']} failed: {res.get('reason')}")
     finally:

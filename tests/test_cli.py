@@ -169,3 +169,26 @@ def test_warnings_are_one_line_without_source_paths(tmp_path, sphere_xyz):
     lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
     assert any(ln.startswith("warning: ") and "dropped 5 of 5000 points" in ln for ln in lines), proc.stderr
     assert ".py:" not in proc.stderr and "UserWarning" not in proc.stderr
+
+
+def test_truncated_laz_is_one_line_without_laspy_log(tmp_path):
+    """laspy logs lazrs's error ("IoError: failed to fill whole buffer") before raising; our one-line error says
+    it already, so the library's line must not reach stderr."""
+    import laspy
+
+    xyz = np.random.default_rng(0).uniform(0, 50, size=(60_000, 3))
+    header = laspy.LasHeader(point_format=3, version="1.2")
+    header.scales = np.array([0.001] * 3)
+    header.offsets = np.zeros(3)
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = xyz.T
+    whole = tmp_path / "whole.laz"
+    las.write(str(whole))
+    cut = tmp_path / "cut.laz"
+    cut.write_bytes(whole.read_bytes()[: whole.stat().st_size * 2 // 3])
+    cmd = [sys.executable, "-m", "tiled_gridpull", "reconstruct", str(cut), "-o", str(tmp_path / "m.ply")]
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    assert proc.returncode == 3, proc.stderr
+    lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: ") and "cut.laz: truncated" in lines[0], proc.stderr
+    assert not (tmp_path / "m.ply").exists()

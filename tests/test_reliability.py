@@ -196,6 +196,26 @@ def test_tile_that_keeps_killing_its_worker_is_a_failed_tile(data, monkeypatch, 
     assert read_mesh(out).faces.shape[0] > 0
 
 
+def test_killed_worker_job_prints_only_its_own_lines_and_fails_no_bystander(data):
+    """Run as a user would (a process of its own, whose LocalCluster workers share its stderr): Dask's chatter
+    ("Couldn't gather keys", "marked as failed because 4 workers died") stays out of the terminal, and a tile
+    queued on the same worker as the crashing one is not counted as failed with it (Dask handed a one-thread
+    worker two tasks, so every death took the queued one down too)."""
+    victim = "tile_0_0_0"
+    out = data / "crash_cli.ply"
+    env = dict(os.environ, TILED_GRIDPULL_TEST_CRASH=victim)
+    proc = subprocess.run([sys.executable, "-m", "tiled_gridpull", "reconstruct", str(data / "pts.npy"), "-o",
+                           str(out), "-q", "--work-dir", str(data / "crash_cli.job"), *OPTS],
+                          cwd=REPO, env=env, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 6, proc.stderr
+    lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+    assert lines and all(ln.startswith("tile ") for ln in lines), proc.stderr
+    side = json.loads(out.with_suffix(".json").read_text())
+    failed = {t["tile"] for t in side["tiles"]["not_solved"]
+              if t["status"] == "failed" and "too few points" not in (t["reason"] or "")}
+    assert failed == {victim}, side["tiles"]["not_solved"]
+
+
 @pytest.mark.parametrize("address,needle", [
     ("tcp://127.0.0.1:1", "cannot reach a Dask scheduler (nothing listens there)"),
     ("tcp://127.0.0.1:99999", "port 99999 is not in 1-65535"),
