@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from tiled_gridpull.mesh import Mesh, boundary_loops, close_holes
 from tiled_gridpull.metrics import sample_surface
@@ -22,6 +23,20 @@ def open_cube(offset=(0.0, 0.0, 0.0), drop=(10, 11)) -> Mesh:
 def test_cube_is_closed_and_outward():
     cube = Mesh(CUBE_V, CUBE_F)
     assert cube.topology.watertight and cube.signed_volume() > 0.99
+
+
+@pytest.mark.parametrize("scale", [1e-150, 1e110, 1e150])
+def test_orientation_sign_survives_extents_past_float_cubes(scale):
+    """The one-shape driver flips a mesh whose signed volume is negative: at 1e110 the triple products overflow
+    (inf - inf = NaN, never < 0), so an inside-out mesh was kept as it was."""
+    with np.errstate(all="raise"):
+        out = Mesh(CUBE_V * scale, CUBE_F)
+        inv = Mesh(CUBE_V * scale, CUBE_F[:, ::-1])
+        assert out.signed_volume(normalized=True) > 0 > inv.signed_volume(normalized=True)
+        if scale > 1:
+            assert out.signed_volume() == np.inf and inv.signed_volume() == -np.inf
+        else:
+            assert out.signed_volume() == 0.0  # 1e-450 underflows: hence the normalized sign
 
 
 def test_loops_of_a_cube_missing_two_sides():

@@ -10,7 +10,7 @@ import pytest
 from tiled_gridpull import reconstruct
 from tiled_gridpull.config import SolverConfig, load_config_file
 from tiled_gridpull.errors import ConfigError
-from tiled_gridpull.noise import estimate_noise
+from tiled_gridpull.noise import estimate_noise, project_to_local_planes
 from tiled_gridpull.synthetic import sample_shape, sphere
 
 from conftest import REPO
@@ -160,3 +160,20 @@ def test_robust_projection_still_denoises_a_single_sheet():
     assert np.std(radial(out)) < 0.35 * np.std(radial(pts))
     with pytest.raises(ConfigError, match="denoise_bandwidth"):
         SolverConfig(denoise_bandwidth=-1.0)
+
+
+@pytest.mark.parametrize("scale", [1e-300, 1e160, 1e300])
+def test_noise_estimate_and_denoising_at_float_extremes(scale):
+    """Squared distances of a cloud 1e160 across overflow: pykdtree answered "no neighbour" (index 2^32 - 1)
+    and the estimate indexed past the cloud. Scale-free now: the same answer, scaled."""
+    rng = np.random.default_rng(0)
+    pts = rng.normal(size=(3000, 3))
+    pts /= np.linalg.norm(pts, axis=1)[:, None]
+    pts += rng.normal(scale=0.01, size=pts.shape)
+    ref = estimate_noise(pts)
+    with np.errstate(over="raise", invalid="raise"):
+        est = estimate_noise(pts * scale)
+        moved = project_to_local_planes(pts * scale, iterations=1)
+    assert est.sigma == pytest.approx(ref.sigma * scale, rel=1e-9)
+    assert est.spacing == pytest.approx(ref.spacing * scale, rel=1e-9)
+    np.testing.assert_allclose(moved / scale, project_to_local_planes(pts, iterations=1), atol=1e-9)

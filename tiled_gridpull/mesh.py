@@ -100,11 +100,24 @@ class Mesh:
         """Total surface area (world units squared)."""
         return float(self.face_normals()[1].sum())
 
-    def signed_volume(self) -> float:
-        """Signed enclosed volume (positive for a closed mesh with outward normals)."""
-        # centred first: with georeferenced coordinates the triple products would cancel catastrophically
-        tri = self.triangles() - self.vertices.mean(axis=0)
-        return float(np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])).sum() / 6.0)
+    def signed_volume(self, *, normalized: bool = False) -> float:
+        """Signed enclosed volume (positive for a closed mesh with outward normals).
+
+        ``normalized``: the volume of the mesh scaled to a largest centred coordinate of 1, whose sign is
+        the orientation at any extent (a mesh 1e-150 across has a volume that underflows to 0, one 1e110
+        across one that overflows to inf)."""
+        if not self.n_faces:
+            return 0.0
+        # centred first: with georeferenced coordinates the triple products would cancel catastrophically;
+        # scaled to unit extent: cubes of extents past 1e102 overflow, and inf - inf would make the sign NaN
+        centred = self.vertices - self.vertices.mean(axis=0)
+        scale = float(np.abs(centred).max()) or 1.0
+        tri = (centred / scale)[self.faces]
+        unit = float(np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])).sum() / 6.0)
+        if normalized:
+            return unit
+        with np.errstate(over="ignore", under="ignore"):
+            return float(np.float64(unit) * np.float64(scale) ** 3)
 
     # ------------------------------------------------------------------ topology
     @cached_property

@@ -59,8 +59,7 @@ def estimate_noise(points: np.ndarray, k: int = 64, sample: int = 10_000, seed: 
     NoiseEstimate
         ``sigma`` (same units as ``points``) and the median nearest-neighbour distance ``spacing``.
     """
-    pts = np.asarray(points, dtype=np.float64)
-    pts = pts - pts.mean(axis=0)
+    pts, scale = _unit_frame(points)
     n = len(pts)
     k = int(min(k, n))
     if k < 4:
@@ -83,7 +82,23 @@ def estimate_noise(points: np.ndarray, k: int = 64, sample: int = 10_000, seed: 
         if np.median(dist[:, -1]) >= 3.0 * sigma or k >= max_k or k >= n:
             break
         k = min(2 * k, max_k, n)
-    return NoiseEstimate(sigma, spacing)
+    return NoiseEstimate(sigma * scale, spacing * scale)
+
+
+def _unit_frame(points: np.ndarray) -> tuple[np.ndarray, float]:
+    """Points centred and divided by a power of two near their extent, and that power.
+
+    Centring keeps georeferenced values' precision; the power-of-two scale (exact in binary floating point, so
+    ordinary clouds give the same bits as unscaled) keeps squared distances and covariances finite for extents
+    up to float64's limit: past about 1e154 they overflow, and pykdtree then answers "no neighbour" with index
+    2^32 - 1."""
+    pts = np.asarray(points, dtype=np.float64)
+    pts = pts - pts.mean(axis=0)
+    extent = float(np.abs(pts).max()) if pts.size else 0.0
+    if not (np.isfinite(extent) and extent > 0.0):
+        return pts, 1.0
+    scale = float(2.0 ** np.round(np.log2(extent)))
+    return pts / scale, scale
 
 
 def project_to_local_planes(points: np.ndarray, k: int = 64, iterations: int = 2, bandwidth: float = 0.0,
@@ -122,7 +137,7 @@ def project_to_local_planes(points: np.ndarray, k: int = 64, iterations: int = 2
     """
     pts = np.asarray(points, dtype=np.float64)
     centre = pts.mean(axis=0)
-    cur = pts - centre
+    cur, scale = _unit_frame(pts)
     n = len(cur)
     k = int(min(k, n))
     if k < 4 or iterations <= 0:
@@ -134,4 +149,4 @@ def project_to_local_planes(points: np.ndarray, k: int = 64, iterations: int = 2
             p = cur[a:b]
             out[a:b] = p - np.sum((p - centroid) * normal, axis=1)[:, None] * normal
         cur = out
-    return cur + centre
+    return cur * scale + centre

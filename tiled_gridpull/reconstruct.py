@@ -191,7 +191,7 @@ def reconstruct(points: Any, *, config: SolverConfig | None = None, normals: np.
     # centre lies in the hole of a torus or a mug's handle and ends up *outside*. A closed surface whose enclosed
     # volume comes out negative is therefore inside out; flip it (nested shells keep their relative orientation).
     flipped = False
-    if cfg.mode == "sdf" and mesh.n_faces and mesh.signed_volume() < 0:
+    if cfg.mode == "sdf" and mesh.n_faces and mesh.signed_volume(normalized=True) < 0:
         mesh = Mesh(mesh.vertices, mesh.faces[:, ::-1].copy(), mesh.metadata)
         flipped = True
     removed = 0
