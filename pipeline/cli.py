@@ -8,6 +8,7 @@ Exit codes: 0 success; 2 bad option or config value; 3 bad input file; 4 missing
 from __future__ import annotations
 
 import argparse
+import errno
 import json
 import logging
 import os
@@ -477,6 +478,11 @@ COMMANDS = {"reconstruct": cmd_reconstruct, "evaluate": cmd_evaluate, "sample": 
             "report": cmd_report}
 
 
+#: OSError numbers that name a storage problem of the machine (exit 3, one line), not a bug.
+_STORAGE_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM, errno.EIO,
+                   errno.ENAMETOOLONG, errno.EMFILE, errno.ENFILE, errno.EFBIG}
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``tiled-gridpull``; returns the exit code."""
     parser = build_parser()
@@ -498,13 +504,25 @@ def main(argv: list[str] | None = None) -> int:
     except MemoryError:
         print("error: out of memory (reduce --resolution or the tile size, or set --max-memory)", file=sys.stderr)
         return 5
+    except OSError as exc:
+        # the machine, not the data or a bug: a full disk, a read-only or foreign directory met mid-job
+        if exc.errno not in _STORAGE_ERRNOS or getattr(args, "verbose", 0) >= 2:
+            return _internal_error(exc, args)
+        where = f"{exc.filename}: " if exc.filename else ""
+        print(f"error: {where}{exc.strerror or os.strerror(exc.errno)}", file=sys.stderr)
+        return 3
     except Exception as exc:  # a bug: one line unless asked for the traceback
-        if getattr(args, "verbose", 0) >= 2:
-            raise
-        print(f"internal error: {exc.__class__.__name__}: {exc} (rerun with -vv for the traceback)", file=sys.stderr)
-        return 1
+        return _internal_error(exc, args)
     log.debug("done in %.1f s", time.perf_counter() - t0)
     return code
+
+
+def _internal_error(exc: Exception, args) -> int:
+    """A bug: one line, or the traceback with -vv (re-raised from inside the handler that called this)."""
+    if getattr(args, "verbose", 0) >= 2:
+        raise exc
+    print(f"internal error: {exc.__class__.__name__}: {exc} (rerun with -vv for the traceback)", file=sys.stderr)
+    return 1
 
 
 if __name__ == "__main__":  # pragma: no cover

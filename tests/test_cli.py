@@ -192,3 +192,26 @@ def test_truncated_laz_is_one_line_without_laspy_log(tmp_path):
     lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
     assert len(lines) == 1 and lines[0].startswith("error: ") and "cut.laz: truncated" in lines[0], proc.stderr
     assert not (tmp_path / "m.ply").exists()
+
+
+def test_disk_full_while_writing_is_one_line_exit_3_and_leaves_no_file(tmp_path, capsys, monkeypatch, sphere_xyz):
+    """A full disk is the machine's problem, not a bug: one line naming the file, exit 3, no partial output
+    (it was 'internal error', exit 1)."""
+    import errno
+
+    import tiled_gridpull.io.meshes as meshes
+
+    real = meshes._write_to
+
+    def full(fh, mesh, path, float32, offset):
+        real(fh, mesh, path, float32, offset)
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    monkeypatch.setattr(meshes, "_write_to", full)
+    out = tmp_path / "m.ply"
+    code = main(["reconstruct", str(sphere_xyz), "-o", str(out), "-q", "--resolution", "32", "--iterations", "30",
+                 "--set", "coarse_iterations=30"])
+    err = capsys.readouterr().err
+    assert code == 3, err
+    assert err.strip() == f"error: {out}: No space left on device"
+    assert sorted(p.name for p in tmp_path.iterdir()) == [sphere_xyz.name]  # no mesh, sidecar or temporary
