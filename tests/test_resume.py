@@ -144,3 +144,28 @@ def test_solve_result_reused_only_while_its_field_is_intact(tmp_path, ground):
     # other settings: solved again
     fourth = solve_tile_resumable(s, TILING, SOLVER.replace(iterations=20), field, summary)
     assert fourth["reused"] is False and fourth["field_sha256"] != first["field_sha256"]
+
+
+def test_kitti_partition_key_ignores_outputs_written_inside_the_sequence(tmp_path):
+    """A job whose mesh, sidecar and job directory lie inside the KITTI sequence directory reuses its partition:
+    the key covers the files the reader reads (scans, poses, calib), not whatever else the directory holds."""
+    from test_io_points import make_sequence
+
+    from tiled_gridpull.resume import partition_key
+
+    seq = tmp_path / "seq"
+    make_sequence(seq, calib=True, subdir=True)
+    tiling = TilingConfig(voxel_size=0.2, tile_size=6.4, overlap=1.6)
+    before = partition_key([seq], tiling)
+    (seq / "mesh.ply").write_text("ply\n")
+    (seq / "mesh.job" / "points").mkdir(parents=True)
+    (seq / "mesh.job" / "points" / "tile_0_0_0.bin").write_bytes(b"\0" * 64)
+    assert partition_key([seq], tiling) == before
+    # what the reader reads still counts
+    scan = seq / "velodyne" / "000001.bin"
+    scan.write_bytes(scan.read_bytes()[:-16])
+    assert partition_key([seq], tiling) != before
+    os.utime(seq / "poses.txt", ns=(0, 0))
+    changed = partition_key([seq], tiling)
+    (seq / "calib.txt").write_text((seq / "calib.txt").read_text() + "\n")
+    assert partition_key([seq], tiling) != changed

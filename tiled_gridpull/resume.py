@@ -38,6 +38,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ._version import __version__
+from .errors import InputError
 from .io.atomic import _json_default, write_json
 
 if TYPE_CHECKING:
@@ -80,12 +81,16 @@ def input_fingerprint(inputs: list) -> list[dict]:
         p = Path(raw).resolve()
         try:
             if p.is_dir():
-                files = sorted(f for f in p.rglob("*") if f.is_file())
+                from .io.points import kitti_sequence_files
+
+                # only what the reader reads: a job writing its output inside the sequence would change the key
+                # of its own partition and never reuse it
+                files = kitti_sequence_files(p)
                 out.append({"path": str(p),
                             "files": [[str(f.relative_to(p)), *_stat(f).values()] for f in files]})
             else:
                 out.append({"path": str(p), **_stat(p)})
-        except OSError:  # missing or unreadable: the scan reports it (InputError); the key is never reused
+        except (OSError, InputError):  # missing, unreadable or not a sequence: the scan reports it; never reused
             out.append({"path": str(p), "unreadable": os.urandom(8).hex()})
     return out
 

@@ -1270,6 +1270,16 @@ def _kitti_layout(root: Path) -> tuple[Path, dict[int, Path]]:
     return scans, files
 
 
+def kitti_sequence_files(root: str | os.PathLike) -> list[Path]:
+    """The files a KITTI sequence's reader reads: its scans (ordered by frame), ``poses.txt`` and ``calib.txt``
+    where present; nothing else in the directory (an output or job directory written inside it is not part of
+    the input)."""
+    root = Path(root)
+    _, files = _kitti_layout(root)
+    side = [root / name for name in ("poses.txt", "calib.txt") if (root / name).is_file()]
+    return [files[k] for k in sorted(files)] + side
+
+
 def _read_matrix_lines(p: Path) -> np.ndarray:
     """poses.txt -> (n, 12) float64, one row per line; any malformed line is an error naming it."""
     rows = []
