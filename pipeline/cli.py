@@ -89,6 +89,8 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--work-dir", help="job directory for intermediate files (default: OUTPUT with .job suffix)")
     t.add_argument("--frames", metavar="START:STOP", help="KITTI sequences: frame range, e.g. 3000:4000")
     t.add_argument("--fail-fast", action="store_true", help="stop at the first tile that fails")
+    t.add_argument("--drop-outliers", action="store_true", default=None,
+                   help="drop points far from the rest of the input (a stray (0,0,0) in a UTM cloud) before planning")
     t.add_argument("--tile-meshes", metavar="DIR", help="also write one PLY per tile into DIR")
     t.add_argument("--max-memory", metavar="SIZE",
                    help="memory one worker may use for one tile, e.g. 2GB or 1500MB: tiles estimated to need more "
@@ -181,7 +183,8 @@ def _setup_logging(args) -> None:
 NORMALS_WEIGHT = 1.0
 
 _CLI_KEYS = {"resolution": "resolution", "iterations": "iterations", "seed": "seed", "mode": "mode",
-             "voxel_size": "voxel_size", "tile_size": "tile_size", "overlap": "overlap"}
+             "voxel_size": "voxel_size", "tile_size": "tile_size", "overlap": "overlap",
+             "drop_outliers": "drop_outliers"}
 
 
 def _shown_key(key) -> str:

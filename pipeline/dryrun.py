@@ -22,8 +22,8 @@ def plan_job(inputs: list[str], tiling: TilingConfig, solver: SolverConfig, work
     """Everything the dry run reports (see :func:`format_plan`)."""
     from tiled_gridpull.memory import estimate_tiles
     from tiled_gridpull.resume import load_partition, partition_key
-    from tiled_gridpull.scene import JobPaths, _chunks, scan_inputs
-    from tiled_gridpull.tile import check_compatible, partition, plan_tiles
+    from tiled_gridpull.scene import JobPaths, plan_inputs
+    from tiled_gridpull.tile import check_compatible, partition
 
     check_compatible(tiling, solver)
     paths = JobPaths(work_dir)
@@ -32,11 +32,9 @@ def plan_job(inputs: list[str], tiling: TilingConfig, solver: SolverConfig, work
     if reused is not None:
         plan, specs, scan = reused
     else:
-        scan = scan_inputs(inputs, chunk_size, frames)
-        plan = plan_tiles(scan["bounds"], scan["points"], tiling)
+        plan, scan, chunks = plan_inputs(inputs, tiling, chunk_size=chunk_size, frames=frames)
         occupancy = {}
-        specs = partition(_chunks(inputs, chunk_size, frames), plan, None, scan["has_sensor"],
-                          occupancy=occupancy)
+        specs = partition(chunks(), plan, None, scan["has_sensor"], occupancy=occupancy)
     est = estimate_tiles(specs, solver, tiling, occupancy)
     counts = np.array([s.n_points for s in specs], dtype=np.int64)
     cores = os.cpu_count() or 1

@@ -216,6 +216,34 @@ def test_killed_worker_job_prints_only_its_own_lines_and_fails_no_bystander(data
     assert failed == {victim}, side["tiles"]["not_solved"]
 
 
+def test_far_stray_point_is_counted_at_planning_and_dropped_on_request(data, capsys):
+    """A point far from the rest (a (0, 0, 0) in a UTM cloud; here 1e6 away) stretches the lattice past what it
+    can hold: refused at planning with how many points are far and how to drop them. With --drop-outliers the
+    job equals, mesh for mesh, the job on the cloud without them."""
+    pts = scene_points()
+    np.save(data / "stray.npy", np.vstack([pts, [[1e6, 1e6, 0.0]]]))
+    out = data / "stray.ply"
+    code, err = run_cli(["reconstruct", str(data / "stray.npy"), "-o", str(out), "-q", *OPTS], capsys)
+    assert code == 3, err
+    assert "more than the lattice can hold" in err and "lie far from the rest" in err and "e.g. (1e+06, 1e+06, 0)" \
+        in err and "--drop-outliers" in err
+    assert len([ln for ln in err.splitlines() if ln.strip()]) == 1
+    assert not out.exists() and not (data / "stray.job" / "points").exists()
+
+    with pytest.warns(UserWarning, match=r"drop_outliers: 1 of 6,007 points lie far from the rest .*e\.g\. \(1e\+06"):
+        code, err = run_cli(["reconstruct", str(data / "stray.npy"), "-o", str(out), "-q", *OPTS,
+                             "--drop-outliers"], capsys)
+    assert code == 6, err  # as without the far point: the 6-point cluster's tile has too few points to solve
+    side = json.loads(out.with_suffix(".json").read_text())
+    ref = data / "kept.ply"
+    code, err = run_cli(["reconstruct", str(data / "pts.npy"), "-o", str(ref), "-q", *OPTS], capsys)
+    assert code == 6, err
+    assert read_mesh(out).faces.shape[0] > 0
+    assert np.array_equal(read_mesh(out).vertices, read_mesh(ref).vertices)
+    assert np.array_equal(read_mesh(out).faces, read_mesh(ref).faces)
+    assert side["lattice"] == json.loads(ref.with_suffix(".json").read_text())["lattice"]
+
+
 @pytest.mark.parametrize("address,needle", [
     ("tcp://127.0.0.1:1", "cannot reach a Dask scheduler (nothing listens there)"),
     ("tcp://127.0.0.1:99999", "port 99999 is not in 1-65535"),

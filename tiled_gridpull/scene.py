@@ -14,6 +14,7 @@ import contextlib
 import json
 import os
 import time
+import warnings
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 
@@ -89,9 +90,12 @@ def scan_inputs(inputs: list[str], chunk_size: int = 2_000_000, frames=None) -> 
     """One streaming pass: bounds, point count and whether sensor origins are known."""
     from .io.points import iter_point_chunks
 
+    from .outliers import SAMPLE_STRIDE
+
     lo = np.full(3, np.inf)
     hi = np.full(3, -np.inf)
     n = 0
+    sample = []
     has_sensor = True
     crs = crs_source = None
     for chunk in _chunks(inputs, chunk_size, frames):
@@ -109,9 +113,41 @@ def scan_inputs(inputs: list[str], chunk_size: int = 2_000_000, frames=None) -> 
         hi = np.maximum(hi, chunk.xyz.max(axis=0))
         n += len(chunk)
         has_sensor &= chunk.sensor is not None
+        sample.append(chunk.xyz[::SAMPLE_STRIDE])
     if n == 0:
         raise InputError(f"{', '.join(map(str, inputs))}: no points")
-    return {"bounds": np.stack([lo, hi]), "points": n, "has_sensor": bool(has_sensor), "crs": crs}
+    return {"bounds": np.stack([lo, hi]), "points": n, "has_sensor": bool(has_sensor), "crs": crs,
+            "sample": np.concatenate(sample)}
+
+
+def _far_points(inputs, chunk_size, frames, box) -> tuple[np.ndarray, np.ndarray | None, int]:
+    """One pass: up to 1,000 of the points outside ``box`` (for the message), the bounds of the points inside it
+    (None when none), and how many lie outside."""
+    from .outliers import far_mask
+
+    lo = np.full(3, np.inf)
+    hi = np.full(3, -np.inf)
+    examples, n_far = [], 0
+    for chunk in _chunks(inputs, chunk_size, frames):
+        far = far_mask(chunk.xyz, box)
+        n_far += int(far.sum())
+        if far.any() and sum(map(len, examples)) < 1000:
+            examples.append(chunk.xyz[far][:1000])
+        near = chunk.xyz[~far]
+        if len(near):
+            lo = np.minimum(lo, near.min(axis=0))
+            hi = np.maximum(hi, near.max(axis=0))
+    inside = np.stack([lo, hi]) if np.all(np.isfinite(lo)) else None
+    return (np.concatenate(examples) if examples else np.zeros((0, 3))), inside, n_far
+
+
+def _without_far(chunks, box):
+    """The chunks without their points outside ``box``."""
+    from .outliers import far_mask
+
+    for chunk in chunks:
+        far = far_mask(chunk.xyz, box)
+        yield chunk.take(np.flatnonzero(~far)) if far.any() else chunk
 
 
 def _crs_text(crs: str) -> str:
@@ -152,6 +188,53 @@ def _chunks(inputs, chunk_size, frames):
             yield from iter_point_chunks([p], chunk_size)
 
 
+def plan_inputs(inputs: list[str], tiling: TilingConfig, *, chunk_size: int = 2_000_000,
+                frames=None) -> tuple[TilePlan, dict, Callable[[], Iterator]]:
+    """Scan the inputs and lay the tile plan over them (the job's and ``--dry-run``'s first step).
+
+    Points far from the rest (:mod:`tiled_gridpull.outliers`) are dropped when ``tiling.drop_outliers`` is set
+    (a warning says how many); otherwise, when they stretch the lattice past what it can hold, the refusal says
+    how many there are and how to drop them.
+
+    Returns
+    -------
+    plan : TilePlan
+    scan : dict
+        Bounds, point count (both without the dropped points), sensor and CRS facts, ``far_points_dropped``.
+    chunks : callable
+        ``chunks()`` streams the input's points again (without the dropped ones), for the partition.
+    """
+    from .outliers import body_box, describe
+    from .tile import LatticeSpanError
+
+    scan = scan_inputs(inputs, chunk_size, frames)
+    box = body_box(scan.pop("sample"), pad=tiling.tile_size)
+
+    def chunks():
+        raw = _chunks(inputs, chunk_size, frames)
+        return _without_far(raw, box) if tiling.drop_outliers else raw
+
+    if tiling.drop_outliers:
+        examples, inside, n_far = _far_points(inputs, chunk_size, frames, box)
+        scan["far_points_dropped"] = n_far
+        if n_far:
+            if inside is None:
+                raise InputError(f"{', '.join(map(str, inputs))}: drop_outliers would drop every point")
+            warnings.warn(f"drop_outliers: {describe(n_far, scan['points'], box, examples[0])}: dropped",
+                          stacklevel=2)
+            scan["bounds"], scan["points"] = inside, scan["points"] - n_far
+    try:
+        plan = plan_tiles(scan["bounds"], scan["points"], tiling)
+    except LatticeSpanError as exc:
+        examples, _, n_far = _far_points(inputs, chunk_size, frames, box)
+        if not n_far:
+            raise
+        span = str(exc).split(": stray points")[0]
+        raise LatticeSpanError(f"{span}: {describe(n_far, scan['points'], box, examples[0])}; drop them with "
+                               "--drop-outliers (drop_outliers: true)") from None
+    return plan, scan, chunks
+
+
 def prepare_job(inputs: list[str], tiling: TilingConfig, paths: JobPaths, *, frames=None,
                 chunk_size: int = 2_000_000,
                 check: Callable[[list[TileSpec], dict], None] | None = None) -> tuple[TilePlan, list[TileSpec], dict]:
@@ -171,13 +254,11 @@ def prepare_job(inputs: list[str], tiling: TilingConfig, paths: JobPaths, *, fra
     if reused is not None:
         return reused
     paths.manifest.unlink(missing_ok=True)  # the manifest commits a partition: none while one is under way
-    scan = scan_inputs(inputs, chunk_size, frames)
-    plan = plan_tiles(scan["bounds"], scan["points"], tiling)
+    plan, scan, chunks = plan_inputs(inputs, tiling, chunk_size=chunk_size, frames=frames)
     if check is not None:
         occupancy: dict = {}
-        check(partition(_chunks(inputs, chunk_size, frames), plan, None, scan["has_sensor"], occupancy=occupancy),
-              occupancy)
-    specs = partition(_chunks(inputs, chunk_size, frames), plan, paths.points(), scan["has_sensor"])
+        check(partition(chunks(), plan, None, scan["has_sensor"], occupancy=occupancy), occupancy)
+    specs = partition(chunks(), plan, paths.points(), scan["has_sensor"])
     write_manifest(paths.manifest, plan, specs, {"inputs": [str(Path(p).resolve()) for p in inputs],
                                                  "crs": scan["crs"], "version": __version__,
                                                  "partition_key": key, "scan": scan_record(scan)})

@@ -63,6 +63,9 @@ class TilingConfig:
         can disagree). ``auto`` picks sensor when sensor origins are known, else up.
     normal_neighbors : int
         Neighbours used to estimate point normals for the initial field.
+    drop_outliers : bool
+        Drop the points far from the rest of the input before planning (:mod:`tiled_gridpull.outliers`: outside
+        the box of all but 0.1 % of a sample per axis, widened by half its size and at least a tile).
     """
 
     voxel_size: float = 0.1
@@ -72,6 +75,7 @@ class TilingConfig:
     trim_distance: float = 3.0
     orientation: str = "auto"
     normal_neighbors: int = 16
+    drop_outliers: bool = False
 
     def __post_init__(self) -> None:
         from .config import finite_number
@@ -91,6 +95,8 @@ class TilingConfig:
             if isinstance(v, bool) or not isinstance(v, int) or v < 1 or v >= 1 << 62:
                 shown = f"an integer of {v.bit_length()} bits" if isinstance(v, int) and v >= 1 << 62 else repr(v)
                 raise ConfigError(f"{name} must be a positive integer, got {shown}")
+        if not isinstance(self.drop_outliers, bool):
+            raise ConfigError(f"drop_outliers must be true or false, got {self.drop_outliers!r}")
         if self.orientation not in ORIENTATIONS:
             raise ConfigError(f"orientation must be one of {', '.join(ORIENTATIONS)}; got {self.orientation!r}")
         for name in ("tile_size", "overlap"):
@@ -301,6 +307,10 @@ class TilePlan:
                 "tile_range": list(self.tile_range), "bounds": self.bounds.tolist(), "n_points": self.n_points}
 
 
+class LatticeSpanError(InputError):
+    """Bounds too wide for the global lattice (usually a few stray points: see :mod:`tiled_gridpull.outliers`)."""
+
+
 def check_lattice_span(lo: np.ndarray, hi: np.ndarray, cell: float) -> None:
     """Refuse, when planning, bounds whose global lattice marching cubes cannot key (2^21 x 2^21 x 2^19
     vertices: 64-bit edge keys), before any point is partitioned or solved.
@@ -315,7 +325,7 @@ def check_lattice_span(lo: np.ndarray, hi: np.ndarray, cell: float) -> None:
         return
     size = " x ".join(f"{v:.4g}" for v in np.asarray(hi) - np.asarray(lo))
     cells = " x ".join(f"{v:.3g}" for v in span)
-    raise InputError(f"the points span {size} (units of the input) = {cells} cells of {cell:g}, more than the "
+    raise LatticeSpanError(f"the points span {size} (units of the input) = {cells} cells of {cell:g}, more than the "
                      f"lattice can hold (2^{KEY_BITS_X} x 2^{KEY_BITS_Y} x 2^{KEY_BITS_Z}): stray points far "
                      f"from the rest? Remove them, or use a larger voxel_size")
 

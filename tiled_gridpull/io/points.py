@@ -99,6 +99,10 @@ class PointCloud:
     def __len__(self) -> int:
         return len(self.xyz)
 
+    def take(self, idx) -> "PointCloud":
+        """The rows ``idx`` (index or boolean array, or slice) of every per-point array."""
+        return _take(self, idx)
+
 
 # ------------------------------------------------------------------------------------------------------------
 # public entry points

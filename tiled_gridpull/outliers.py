@@ -1,0 +1,57 @@
+"""Points far from the rest of a cloud: a stray ``(0, 0, 0)`` in a UTM survey, a GPS glitch, a return from a bird.
+
+A handful of such points stretches the bounds of a cloud: the tiled lattice then spans a continent (and is
+refused, or plans empty tiles), and a one-shape lattice fitted to the bounds leaves the real object a few cells
+wide. The rule here is coarse on purpose and cheap in a streaming pass: the *body* of the cloud is the box
+holding all but the outermost 0.1 % of a sample on each axis, widened on every side by half its size (and at
+least ``pad``); a point outside it is *far*. It finds points that are far from everything, not noise on a
+surface (that is the solve's business), and it never judges a point by its neighbours, so the same points are
+far whatever the tiling.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["body_box", "far_mask", "describe", "TAIL", "SAMPLE_STRIDE"]
+
+#: Share of a sample's points left out of the body's box at each end of each axis.
+TAIL = 0.001
+#: The streaming scan keeps every SAMPLE_STRIDE-th point of each chunk for :func:`body_box`.
+SAMPLE_STRIDE = 16
+
+
+def body_box(sample: np.ndarray, pad: float = 0.0) -> np.ndarray:
+    """Box of a cloud's body, from a sample of its points.
+
+    Parameters
+    ----------
+    sample : (M, 3) float64
+        Points of the cloud (all of them, or an even sample), world units.
+    pad : float
+        Least widening on every side (world units; e.g. one tile, so a sparse edge of the scan stays in).
+
+    Returns
+    -------
+    (2, 3) float64
+        Low and high corners; the quantiles ``TAIL`` and ``1 - TAIL`` of each axis, each side moved out by
+        ``max(pad, half the box's size on that axis)``.
+    """
+    sample = np.asarray(sample, dtype=np.float64)
+    lo = np.quantile(sample, TAIL, axis=0)
+    hi = np.quantile(sample, 1.0 - TAIL, axis=0)
+    widen = np.maximum(0.5 * (hi - lo), float(pad))
+    return np.stack([lo - widen, hi + widen])
+
+
+def far_mask(xyz: np.ndarray, box: np.ndarray) -> np.ndarray:
+    """(N,) bool: the points of ``xyz`` (N, 3) outside ``box`` (2, 3)."""
+    xyz = np.asarray(xyz)
+    return np.any((xyz < box[0]) | (xyz > box[1]), axis=1)
+
+
+def describe(n_far: int, total: int, box: np.ndarray, example: np.ndarray) -> str:
+    """One phrase: how many of ``total`` points are far, where the body is, and one far point ``example`` (3,)."""
+    point = ", ".join(f"{v:.6g}" for v in np.asarray(example))
+    body = " x ".join(f"{a:.6g}..{b:.6g}" for a, b in zip(box[0], box[1]))
+    return f"{n_far:,} of {total:,} points lie far from the rest (outside {body}; e.g. ({point}))"
