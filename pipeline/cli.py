@@ -293,8 +293,9 @@ def _reconstruct_tiled(args, out: Path, solver, tiling) -> int:
     from pipeline.job import JobOptions, run_job
     from tiled_gridpull.errors import ConfigError, InputError
 
-    if args.workers is not None and args.workers < 1:
-        raise ConfigError(f"--workers must be >= 1, got {args.workers}")
+    if args.workers is not None and not 1 <= args.workers <= MAX_WORKERS:
+        shown = args.workers if abs(args.workers) < 1 << 62 else f"an integer of {args.workers.bit_length()} bits"
+        raise ConfigError(f"--workers must be between 1 and {MAX_WORKERS}, got {shown}")
     if out.suffix.lower() != ".ply":
         raise ConfigError(f"output {out}: tiled mode writes PLY")
     frames = _parse_frames(args.frames)
@@ -480,6 +481,9 @@ def cmd_report(args) -> int:
 COMMANDS = {"reconstruct": cmd_reconstruct, "evaluate": cmd_evaluate, "sample": cmd_sample, "render": cmd_render,
             "report": cmd_report}
 
+
+#: Most worker processes a local cluster may start (each holds a Python process and a tile's arrays).
+MAX_WORKERS = 1024
 
 #: OSError numbers that name a storage problem of the machine (exit 3, one line), not a bug.
 _STORAGE_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM, errno.EIO,

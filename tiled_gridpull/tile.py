@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .errors import ConfigError, InputError
-from .io.atomic import atomic_open, open_no_follow, write_json
+from .io.atomic import atomic_open, open_no_follow, replace_file, write_json
 from .kernels import BRICK
 from .lattice import Lattice
 
@@ -459,7 +459,7 @@ def partition(chunks: Iterable, plan: TilePlan, out_dir: str | Path | None, has_
         path = ""
         if write:
             final = out / f"{spec.name}.points"
-            tmp_paths[t].replace(final)
+            replace_file(tmp_paths[t], final)
             path = str(final)
             with atomic_open(final.with_suffix(".occ.npy")) as fh:
                 np.save(fh, np.packbits(grid.ravel()))

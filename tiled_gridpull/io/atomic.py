@@ -15,6 +15,8 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import IO
 
+from ..errors import InputError
+
 
 def _umask() -> int:
     mask = os.umask(0)
@@ -32,6 +34,16 @@ def open_no_follow(path: str | os.PathLike, mode: str = "ab") -> IO:
     return os.fdopen(os.open(path, flags, 0o666), mode)
 
 
+def replace_file(src: str | os.PathLike, target: str | os.PathLike) -> None:
+    """``os.replace`` of a finished temporary file; a directory at ``target`` (damage in a job directory, or a
+    user's directory named like an output: never removed for them) is one clear :class:`InputError`."""
+    try:
+        os.replace(src, target)
+    except IsADirectoryError:
+        raise InputError(f"{target}: a directory stands where this file is to be written; remove it "
+                         "and rerun") from None
+
+
 @contextlib.contextmanager
 def atomic_path(target: str | os.PathLike) -> Iterator[Path]:
     """Yield a temporary path to write; on success it replaces ``target`` atomically, on error it is removed."""
@@ -44,7 +56,7 @@ def atomic_path(target: str | os.PathLike) -> Iterator[Path]:
         # mkstemp makes the file private (0600); outputs get the permissions any new file would
         os.chmod(tmp, 0o666 & ~_UMASK)
         yield tmp
-        os.replace(tmp, target)
+        replace_file(tmp, target)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             tmp.unlink()
