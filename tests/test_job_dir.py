@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from pipeline.cli import main
-from tiled_gridpull.errors import ConfigError
+from tiled_gridpull.errors import ConfigError, InputError
 from tiled_gridpull.io import PointCloud, read_mesh, write_mesh_and_sidecar
 from tiled_gridpull.io.atomic import atomic_open
 from tiled_gridpull.scene import job_lock
@@ -66,7 +66,7 @@ def test_mesh_and_sidecar_are_committed_together(tmp_path):
     m.metadata["generator"] = "tiled_gridpull 0"
     out = tmp_path / "m.ply"
     (tmp_path / "m.json").mkdir()  # the sidecar cannot be written
-    with pytest.raises(OSError):
+    with pytest.raises(InputError, match=r"m\.json: a directory stands where this file is to be written"):
         write_mesh_and_sidecar(m, out)
     assert not out.exists()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["m.json"]  # no temporary files left either
