@@ -35,7 +35,7 @@ TILED = ["--voxel-size", "0.1"]
     ([*TILED, "--set", "trim_distance=40"], "trim_distance"),
     ([*TILED, "--set", "min_points=0"], "min_points must be a positive integer"),
     ([*TILED, "--set", "orientation=left"], "orientation must be one of"),
-    ([*TILED, "--workers", "0"], "--workers must be >= 1"),
+    ([*TILED, "--workers", "0"], "--workers must be between 1 and 1024"),
     ([*TILED, "--max-memory", "lots"], "--max-memory expects a size"),
     ([*TILED, "--max-memory", "0MB"], "--max-memory must be at least"),
     ([*TILED, "--frames", "9:3"], "--frames"),
