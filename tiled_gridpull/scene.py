@@ -89,7 +89,6 @@ def job_lock(root: str | Path) -> Iterator[None]:
 def scan_inputs(inputs: list[str], chunk_size: int = 2_000_000, frames=None) -> dict:
     """One streaming pass: bounds, point count and whether sensor origins are known."""
     from .io.points import iter_point_chunks
-
     from .outliers import SAMPLE_STRIDE
 
     lo = np.full(3, np.inf)
@@ -113,32 +112,33 @@ def scan_inputs(inputs: list[str], chunk_size: int = 2_000_000, frames=None) -> 
         hi = np.maximum(hi, chunk.xyz.max(axis=0))
         n += len(chunk)
         has_sensor &= chunk.sensor is not None
-        sample.append(chunk.xyz[::SAMPLE_STRIDE])
+        # a copy: a strided view would keep every whole chunk alive, i.e. the whole input in memory
+        sample.append(chunk.xyz[::SAMPLE_STRIDE].copy())
     if n == 0:
         raise InputError(f"{', '.join(map(str, inputs))}: no points")
     return {"bounds": np.stack([lo, hi]), "points": n, "has_sensor": bool(has_sensor), "crs": crs,
             "sample": np.concatenate(sample)}
 
 
-def _far_points(inputs, chunk_size, frames, box) -> tuple[np.ndarray, np.ndarray | None, int]:
-    """One pass: up to 1,000 of the points outside ``box`` (for the message), the bounds of the points inside it
-    (None when none), and how many lie outside."""
+def _far_points(inputs, chunk_size, frames, box) -> tuple[np.ndarray | None, np.ndarray | None, int]:
+    """One pass: the first point outside ``box`` (for the message; None when none), the bounds of the points
+    inside it (None when none), and how many lie outside."""
     from .outliers import far_mask
 
     lo = np.full(3, np.inf)
     hi = np.full(3, -np.inf)
-    examples, n_far = [], 0
+    example, n_far = None, 0
     for chunk in _chunks(inputs, chunk_size, frames):
         far = far_mask(chunk.xyz, box)
         n_far += int(far.sum())
-        if far.any() and sum(map(len, examples)) < 1000:
-            examples.append(chunk.xyz[far][:1000])
+        if example is None and far.any():
+            example = chunk.xyz[np.argmax(far)].copy()
         near = chunk.xyz[~far]
         if len(near):
             lo = np.minimum(lo, near.min(axis=0))
             hi = np.maximum(hi, near.max(axis=0))
     inside = np.stack([lo, hi]) if np.all(np.isfinite(lo)) else None
-    return (np.concatenate(examples) if examples else np.zeros((0, 3))), inside, n_far
+    return example, inside, n_far
 
 
 def _without_far(chunks, box):
@@ -208,29 +208,32 @@ def plan_inputs(inputs: list[str], tiling: TilingConfig, *, chunk_size: int = 2_
     from .tile import LatticeSpanError
 
     scan = scan_inputs(inputs, chunk_size, frames)
-    box = body_box(scan.pop("sample"), pad=tiling.tile_size)
+    sample = scan.pop("sample")
+    # the body is only needed to drop far points or to explain a refused span: no quantiles on a plain job
+    box = body_box(sample, pad=tiling.tile_size) if tiling.drop_outliers else None
 
     def chunks():
         raw = _chunks(inputs, chunk_size, frames)
-        return _without_far(raw, box) if tiling.drop_outliers else raw
+        return _without_far(raw, box) if scan.get("far_points_dropped") else raw
 
     if tiling.drop_outliers:
-        examples, inside, n_far = _far_points(inputs, chunk_size, frames, box)
+        example, inside, n_far = _far_points(inputs, chunk_size, frames, box)
         scan["far_points_dropped"] = n_far
         if n_far:
             if inside is None:
                 raise InputError(f"{', '.join(map(str, inputs))}: drop_outliers would drop every point")
-            warnings.warn(f"drop_outliers: {describe(n_far, scan['points'], box, examples[0])}: dropped",
+            warnings.warn(f"drop_outliers: {describe(n_far, scan['points'], box, example)}: dropped",
                           stacklevel=2)
             scan["bounds"], scan["points"] = inside, scan["points"] - n_far
     try:
         plan = plan_tiles(scan["bounds"], scan["points"], tiling)
     except LatticeSpanError as exc:
-        examples, _, n_far = _far_points(inputs, chunk_size, frames, box)
+        box = body_box(sample, pad=tiling.tile_size)
+        example, _, n_far = _far_points(inputs, chunk_size, frames, box)
         if not n_far:
             raise
         span = str(exc).split(": stray points")[0]
-        raise LatticeSpanError(f"{span}: {describe(n_far, scan['points'], box, examples[0])}; drop them with "
+        raise LatticeSpanError(f"{span}: {describe(n_far, scan['points'], box, example)}; drop them with "
                                "--drop-outliers (drop_outliers: true)") from None
     return plan, scan, chunks
 
