@@ -1117,14 +1117,21 @@ def _laszip_items_check(p: Path, header) -> None:
 
     The VLR's record data holds the item count as a uint16 at byte 32, followed by 6 bytes per item.
     """
+    data = _laszip_vlr_data(header)
+    if data is None:
+        return
+    n_items = int.from_bytes(data[32:34], "little") if len(data) >= 34 else 0
+    if n_items == 0 or len(data) < 34 + 6 * n_items:
+        raise InputError(f"{p}: corrupted LAZ file (the laszip VLR declares {n_items} compressed items "
+                         f"in {len(data)} bytes)")
+
+
+def _laszip_vlr_data(header) -> bytes | None:
+    """Record data of the laszip VLR (user "laszip encoded", record 22204), or None when the file has none."""
     for vlr in header.vlrs:
         if vlr.user_id.rstrip("\0") == "laszip encoded" and vlr.record_id == 22204:
-            data = bytes(getattr(vlr, "record_data", b"") or b"")
-            n_items = int.from_bytes(data[32:34], "little") if len(data) >= 34 else 0
-            if n_items == 0 or len(data) < 34 + 6 * n_items:
-                raise InputError(f"{p}: corrupted LAZ file (the laszip VLR declares {n_items} compressed items "
-                                 f"in {len(data)} bytes)")
-            return
+            return bytes(getattr(vlr, "record_data", b"") or b"")
+    return None
 
 
 def _laz_chunk_table_check(p: Path, fh, data_start: int, size: int) -> int | None:
@@ -1157,14 +1164,11 @@ def _laszip_chunk_size(header) -> int | None:
     """Points per chunk of a LAZ file written with fixed-size chunks (None: variable chunks, or no laszip VLR).
 
     The laszip VLR's record data holds it as a uint32 at byte 12; 0xFFFFFFFF marks variable chunks."""
-    for vlr in header.vlrs:
-        if vlr.user_id.rstrip("\0") == "laszip encoded" and vlr.record_id == 22204:
-            data = bytes(getattr(vlr, "record_data", b"") or b"")
-            if len(data) < 16:
-                return None
-            size = int.from_bytes(data[12:16], "little")
-            return None if size in (0, 0xFFFFFFFF) else size
-    return None
+    data = _laszip_vlr_data(header)
+    if data is None or len(data) < 16:
+        return None
+    size = int.from_bytes(data[12:16], "little")
+    return None if size in (0, 0xFFFFFFFF) else size
 
 
 def _warn_undeclared_points(p: Path, header, n_chunks: int | None, size: int) -> None:
