@@ -168,10 +168,10 @@ def _setup_logging(args) -> None:
     logging.basicConfig(level=level, format="%(message)s", stream=sys.stderr)
     logging.captureWarnings(True)
     if getattr(args, "verbose", 0) < 2:
-        # libraries' own log lines (laspy: "Could only read 3 of 5 points", lazrs errors; distributed) repeat
-        # what our one-line errors say: -vv shows them
-        for name in ("laspy", "distributed"):
-            logging.getLogger(name).setLevel(logging.CRITICAL)
+        # laspy's own log lines ("Could only read 3 of 5 points", lazrs errors) repeat what our one-line errors
+        # say: -vv shows them (distributed's are quieted by pipeline.job.make_client, after its import has set
+        # their levels)
+        logging.getLogger("laspy").setLevel(logging.CRITICAL)
         # one line per warning, like errors: Python's default adds the source path and the line of code
         import warnings
 
