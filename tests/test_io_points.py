@@ -1055,19 +1055,26 @@ def test_ply_declaring_fewer_vertices_warns(tmp_path, fmt):
     np.testing.assert_allclose(cloud.xyz, xyz[:90])
 
 
-def test_las_declaring_fewer_points_warns(tmp_path):
+def _las_declaring(tmp_path, name: str, xyz, declared: int) -> Path:
+    """A LAS/LAZ of ``xyz`` (read back without a warning) and a copy ``short.<ext>`` whose LAS 1.2 legacy point
+    count (uint32 at byte 107) says ``declared``."""
     import struct
 
-    xyz = np.random.default_rng(1).uniform(0, 10, size=(1000, 3))
-    whole = write_las(tmp_path / "whole.las", xyz)
+    whole = write_las(tmp_path / name, xyz)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        assert len(read_points(whole, clean=False)) == 1000
-    short = tmp_path / "short.las"
+        assert len(read_points(whole, clean=False)) == len(xyz)
     data = bytearray(whole.read_bytes())
-    assert struct.unpack_from("<I", data, 107)[0] == 1000  # LAS 1.2 legacy point count
-    struct.pack_into("<I", data, 107, 900)
+    assert struct.unpack_from("<I", data, 107)[0] == len(xyz)
+    struct.pack_into("<I", data, 107, declared)
+    short = tmp_path / f"short{whole.suffix}"
     short.write_bytes(bytes(data))
+    return short
+
+
+def test_las_declaring_fewer_points_warns(tmp_path):
+    xyz = np.random.default_rng(1).uniform(0, 10, size=(1000, 3))
+    short = _las_declaring(tmp_path, "whole.las", xyz, 900)
     with pytest.warns(UserWarning, match=r"short\.las: the file holds 100 more point records than its header "
                                          r"declares \(900\)"):
         cloud = read_points(short, clean=False)
@@ -1075,17 +1082,9 @@ def test_las_declaring_fewer_points_warns(tmp_path):
 
 
 def test_laz_declaring_fewer_points_warns(tmp_path):
-    import struct
-
     xyz = np.random.default_rng(2).uniform(0, 100, size=(120_000, 3))
-    whole = write_las(tmp_path / "whole.laz", xyz)  # lazrs writes chunks of 50,000 points: 3 chunks
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")
-        assert len(read_points(whole, clean=False)) == 120_000
-    short = tmp_path / "short.laz"
-    data = bytearray(whole.read_bytes())
-    struct.pack_into("<I", data, 107, 40_000)
-    short.write_bytes(bytes(data))
+    # lazrs writes chunks of 50,000 points: 3 chunks
+    short = _las_declaring(tmp_path, "whole.laz", xyz, 40_000)
     with pytest.warns(UserWarning, match=r"short\.laz: the LAZ chunk table holds 3 chunks of 50000 points but "
                                          r"the header declares 40000 points"):
         cloud = read_points(short, clean=False)
