@@ -39,7 +39,7 @@ def tile_work(spec, solver, occupancy=None) -> dict:
 def main(argv: list[str]) -> None:
     import argparse
 
-    from pipeline.cli import resolve_settings
+    from tiled_gridpull.pipeline.cli import resolve_settings
     from tiled_gridpull import memory as m
     from tiled_gridpull.tile import read_manifest
 

@@ -207,7 +207,7 @@ def dask_section(rows: list[dict]) -> str:
                                      ("per_tile_ms", "median ms per tile", ".2f"),
                                      ("driver_peak_rss_mb", "driver peak MB", ".0f")])
     return "\n".join(["## Dask graph overhead (no-op solve and mesh)", "",
-                      "The job's own graph (`pipeline.job.run_tiles`: a solve task per tile, a mesh task per tile "
+                      "The job's own graph (`tiled_gridpull.pipeline.job.run_tiles`: a solve task per tile, a mesh task per tile "
                       "reading the solve summaries of its neighbours) on a LocalCluster of 2 single-threaded worker "
                       "processes, with functions that do nothing: what the pipeline costs per tile before any work. "
                       "Submitting the whole graph at once (the first rows) lost the client's connection to the "
@@ -215,7 +215,7 @@ def dask_section(rows: list[dict]) -> str:
                       "the job now submits tiles as a sliding window in tile order. In the last variant a mesh task "
                       "gets its neighbours' summaries as plain arguments (no futures as dependencies), tasks go to "
                       "the scheduler in batches, and each task carries the job's real arguments "
-                      "(`pipeline.job.task_arguments`).", "", table, ""])
+                      "(`tiled_gridpull.pipeline.job.task_arguments`).", "", table, ""])
 
 
 def main() -> None:

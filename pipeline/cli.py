@@ -169,7 +169,7 @@ def _setup_logging(args) -> None:
     logging.captureWarnings(True)
     if getattr(args, "verbose", 0) < 2:
         # laspy's own log lines ("Could only read 3 of 5 points", lazrs errors) repeat what our one-line errors
-        # say: -vv shows them (distributed's are quieted by pipeline.job.make_client, after its import has set
+        # say: -vv shows them (distributed's are quieted by tiled_gridpull.pipeline.job.make_client, after its import has set
         # their levels)
         logging.getLogger("laspy").setLevel(logging.CRITICAL)
         # one line per warning, like errors: Python's default adds the source path and the line of code
@@ -290,7 +290,7 @@ def _parse_frames(text):
 
 
 def _reconstruct_tiled(args, out: Path, solver, tiling) -> int:
-    from pipeline.job import JobOptions, run_job
+    from tiled_gridpull.pipeline.job import JobOptions, run_job
     from tiled_gridpull.errors import ConfigError, InputError
 
     if args.workers is not None and not 1 <= args.workers <= MAX_WORKERS:
@@ -309,12 +309,12 @@ def _reconstruct_tiled(args, out: Path, solver, tiling) -> int:
 
         max_memory = parse_size(args.max_memory)
     if args.dry_run:
-        from pipeline.dryrun import format_plan, plan_job
+        from tiled_gridpull.pipeline.dryrun import format_plan, plan_job
 
         info = plan_job(args.inputs, tiling, solver, work, frames=frames, workers=args.workers)
         print(format_plan(info, max_memory))
         if max_memory is not None:
-            from pipeline.job import check_memory
+            from tiled_gridpull.pipeline.job import check_memory
 
             check_memory(None, tiling, solver, max_memory, estimates=info["estimates"])
         return 0

@@ -7,7 +7,7 @@ import sys
 import numpy as np
 import pytest
 
-from pipeline.cli import main
+from tiled_gridpull.pipeline.cli import main
 from tiled_gridpull.synthetic import sample_shape, sphere
 
 

@@ -7,7 +7,7 @@ overlap larger than the tile and a negative voxel size; these are the rest.
 import numpy as np
 import pytest
 
-from pipeline.cli import main
+from tiled_gridpull.pipeline.cli import main
 from tiled_gridpull.config import SolverConfig
 from tiled_gridpull.errors import ConfigError
 from tiled_gridpull.tile import TilingConfig

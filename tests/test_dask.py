@@ -58,7 +58,7 @@ def test_job_on_separately_started_scheduler_and_workers(tmp_path, cluster):
     pts = terrain(19.2, 40)
     np.save(tmp_path / "ground.npy", pts)
     out = tmp_path / "ground.ply"
-    from pipeline.cli import main
+    from tiled_gridpull.pipeline.cli import main
 
     code = main(["reconstruct", str(tmp_path / "ground.npy"), "-o", str(out), "--voxel-size", "0.2",
                  "--tile-size", "6.4", "--overlap", "1.6", "--set", "m2=8", "--set", "refine_m2=6", "--set", "coarse_iterations=100",
@@ -73,7 +73,7 @@ def test_job_on_separately_started_scheduler_and_workers(tmp_path, cluster):
 
 
 def test_worker_memory_does_not_grow_with_tile_count(tmp_path):
-    from pipeline.job import JobOptions, run_job
+    from tiled_gridpull.pipeline.job import JobOptions, run_job
 
     peaks = {}
     for extent in (12.8, 25.6):  # 2 x 2 and 4 x 4 tiles, same density
@@ -131,7 +131,7 @@ class _CountingClient:
 def test_sliding_window_keeps_the_graph_and_bounds_tasks_in_flight(window):
     from distributed import Client
 
-    from pipeline.job import run_tiles
+    from tiled_gridpull.pipeline.job import run_tiles
     from tiled_gridpull.scene import neighbors_of
 
     specs = _grid_specs(5, 4, 3)
@@ -156,7 +156,7 @@ def test_sliding_window_keeps_the_graph_and_bounds_tasks_in_flight(window):
 
 
 def test_sliding_window_rejects_an_empty_window():
-    from pipeline.job import run_tiles
+    from tiled_gridpull.pipeline.job import run_tiles
 
     with pytest.raises(ValueError, match="window"):
         next(run_tiles(None, _grid_specs(1, 1, 1), _solve_echo, lambda s: (), _mesh_echo, lambda s: (), window=0))
@@ -169,7 +169,7 @@ def test_task_arguments_do_not_grow_with_the_tile_count():
 
     import numpy as np
 
-    from pipeline.job import task_arguments
+    from tiled_gridpull.pipeline.job import task_arguments
     from tiled_gridpull.config import SolverConfig
     from tiled_gridpull.scene import JobPaths, neighbors_of
     from tiled_gridpull.tile import TilingConfig
@@ -198,7 +198,7 @@ def _solve_fails_on_one(spec):
 def test_sliding_window_raises_a_task_error():
     from distributed import Client
 
-    from pipeline.job import run_tiles
+    from tiled_gridpull.pipeline.job import run_tiles
 
     with Client(processes=False, n_workers=1, threads_per_worker=1, dashboard_address=":0") as client:
         with pytest.raises(RuntimeError, match="worker crashed on tile_1_1_0"):
@@ -212,7 +212,7 @@ import numba  # imported by the main module, as the CLI does: spawned workers re
 from numba import njit, prange
 import numpy as np
 
-from pipeline.job import JobOptions, make_client, _configure_worker_threads
+from tiled_gridpull.pipeline.job import JobOptions, make_client, _configure_worker_threads
 
 
 def fresh_compile(seed):
@@ -269,7 +269,7 @@ def test_costliest_tiles_start_first_within_a_window(window):
 
     from distributed import Client
 
-    from pipeline.job import run_tiles
+    from tiled_gridpull.pipeline.job import run_tiles
 
     specs = _grid_specs(3, 3, 1)
     # costs unrelated to tile order: occupied bricks from a fixed permutation
@@ -299,7 +299,7 @@ def test_cluster_without_workers_stops_the_job_instead_of_hanging():
     no-worker timeout instead of waiting for ever."""
     from distributed import Client, LocalCluster
 
-    from pipeline.job import run_tiles
+    from tiled_gridpull.pipeline.job import run_tiles
     from tiled_gridpull.errors import ClusterError
 
     with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=":0") as lc, \
@@ -318,7 +318,7 @@ def test_cluster_without_workers_stops_the_job_instead_of_hanging():
 def test_external_scheduler_without_workers_or_shared_directory(tmp_path):
     from distributed import Client, LocalCluster
 
-    from pipeline.job import check_workers_see
+    from tiled_gridpull.pipeline.job import check_workers_see
     from tiled_gridpull.errors import ClusterError
 
     with LocalCluster(n_workers=0, processes=False, dashboard_address=":0") as lc, Client(lc) as client:

@@ -993,7 +993,7 @@ def test_rust_panics_become_one_line_input_errors(tmp_path):
 
 
 def test_kitti_frame_range_past_the_end_refused_without_listing_it(tmp_path, capsys):
-    from pipeline.cli import main
+    from tiled_gridpull.pipeline.cli import main
 
     make_sequence(tmp_path / "seq", n_frames=3)
     # refused before range() is listed (a billion-entry list takes gigabytes)

@@ -6,7 +6,7 @@ import os
 import numpy as np
 import pytest
 
-from pipeline.cli import main
+from tiled_gridpull.pipeline.cli import main
 from tiled_gridpull.errors import ConfigError, InputError
 from tiled_gridpull.io import PointCloud, read_mesh, write_mesh_and_sidecar
 from tiled_gridpull.io.atomic import atomic_open

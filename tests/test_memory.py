@@ -7,7 +7,7 @@ import time
 import numpy as np
 import pytest
 
-from pipeline.cli import main
+from tiled_gridpull.pipeline.cli import main
 from tiled_gridpull.config import SolverConfig
 from tiled_gridpull.errors import ConfigError
 from tiled_gridpull.memory import MB, estimate_tiles, parse_size
@@ -49,7 +49,7 @@ def street(tmp_path_factory):
 @pytest.fixture(scope="module")
 def street_job(street):
     """The street solved on a LocalCluster (2 workers) under a budget it fits, with estimates made beforehand."""
-    from pipeline.job import JobOptions, run_job
+    from tiled_gridpull.pipeline.job import JobOptions, run_job
     from tiled_gridpull.scene import JobPaths, prepare_job
 
     work = street / "job"
@@ -179,7 +179,7 @@ def test_time_estimate_follows_the_points_with_content_scaled_queries():
 
 
 def test_wall_estimate_schedules_the_costliest_tiles_first():
-    from pipeline.dryrun import job_wall_time
+    from tiled_gridpull.pipeline.dryrun import job_wall_time
     from tiled_gridpull import memory as m
 
     assert m.makespan([5, 4, 3, 3, 3], 2) == 10  # LPT: 5+3+... on one worker, 4+3+3 on the other

@@ -6,7 +6,7 @@ import os
 import numpy as np
 import pytest
 
-from pipeline.cli import main
+from tiled_gridpull.pipeline.cli import main
 from tiled_gridpull.io import check_outputs, write_mesh, written_by_us
 from tiled_gridpull.mesh import Mesh
 from tiled_gridpull.synthetic import sample_shape, sphere

@@ -201,7 +201,7 @@ _yaml_values = st.one_of(st.none(), st.booleans(), st.integers(-10 ** 6, 10 ** 6
                                  st.integers(-3, 3)), _yaml_values, max_size=6))
 def test_config_files_accept_or_raise_config_error(d):
     """The command line's loading path: YAML file -> resolve_settings (what ``--config`` runs)."""
-    from pipeline.cli import resolve_settings
+    from tiled_gridpull.pipeline.cli import resolve_settings
 
     with tempfile.TemporaryDirectory() as tmp:
         p = Path(tmp) / "c.yaml"
@@ -217,7 +217,7 @@ def test_config_files_accept_or_raise_config_error(d):
                           st.builds(lambda k, v: f"{k}={v}", st.sampled_from(SOLVER_KEYS + TILING_KEYS),
                                     st.text(max_size=10))), max_size=4))
 def test_set_overrides_accept_or_raise_config_error(items):
-    from pipeline.cli import resolve_settings
+    from tiled_gridpull.pipeline.cli import resolve_settings
 
     try:
         parse_overrides(items)
@@ -228,7 +228,7 @@ def test_set_overrides_accept_or_raise_config_error(items):
 
 def test_config_file_damaged_bytes_raise_config_error(tmp_path):
     """Not hypothesis: a config file that is not text at all."""
-    from pipeline.cli import resolve_settings
+    from tiled_gridpull.pipeline.cli import resolve_settings
 
     p = tmp_path / "c.yaml"
     p.write_bytes(bytes(range(256)) + b"\xff\xfe")

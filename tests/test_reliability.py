@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.cli import main
+from tiled_gridpull.pipeline.cli import main
 from tiled_gridpull.config import SolverConfig
 from tiled_gridpull.io import read_mesh
 from tiled_gridpull.tile import TilingConfig
@@ -61,7 +61,7 @@ def shared(data):
     """``OPTS`` plus ``--scheduler`` of one LocalCluster made by ``make_client`` (2 workers, as a job's own) that
     the undisturbed runs share: it saves starting a cluster per run. The fault and interruption tests start
     their own."""
-    from pipeline.job import JobOptions, make_client
+    from tiled_gridpull.pipeline.job import JobOptions, make_client
 
     client, cluster = make_client(JobOptions(workers=2), 8)
     try:
@@ -145,7 +145,7 @@ def test_solver_result_does_not_depend_on_thread_count(data, tmp_path):
 def test_worker_killed_mid_job_gives_the_undisturbed_mesh(data, reference, monkeypatch):
     """SIGKILL a worker process while it solves a tile: Dask reschedules its tasks and the job's mesh equals
     the undisturbed run's, array for array."""
-    from pipeline.job import JobOptions, run_job
+    from tiled_gridpull.pipeline.job import JobOptions, run_job
 
     marks = data / "marks"
     marks.mkdir()

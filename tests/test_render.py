@@ -7,7 +7,7 @@ import re
 import numpy as np
 import pytest
 
-from pipeline.cli import main
+from tiled_gridpull.pipeline.cli import main
 from tiled_gridpull.errors import ConfigError, InputError
 from tiled_gridpull.io import read_sidecar, write_mesh
 from tiled_gridpull.mesh import Mesh

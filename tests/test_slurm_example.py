@@ -6,7 +6,7 @@ import pytest
 
 pytest.importorskip("dask_jobqueue")
 
-from pipeline.examples.slurm_job import build_cluster  # noqa: E402
+from tiled_gridpull.pipeline.examples.slurm_job import build_cluster  # noqa: E402
 
 
 @pytest.mark.parametrize("system", ["slurm", "pbs"])

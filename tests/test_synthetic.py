@@ -500,7 +500,7 @@ def test_make_sample_bad_layout(tmp_path):
 
 
 def test_cli_sample_grid(tmp_path, capsys):
-    from pipeline.cli import main
+    from tiled_gridpull.pipeline.cli import main
 
     assert main(["sample", "street", str(tmp_path / "g"), "--layout", "grid", "--points", "20000"]) == 0
     meta = json.loads((tmp_path / "g" / "street.json").read_text())

@@ -1,7 +1,8 @@
 """tiled_gridpull: GridPull surface reconstruction for very large point clouds.
 
 The core (this package) runs without Dask: :func:`reconstruct` turns one cloud into a mesh with the banded
-GridPull solver. The tiled, out-of-core pipeline on Dask lives in the ``pipeline`` package.
+GridPull solver. The tiled, out-of-core pipeline on Dask lives in :mod:`tiled_gridpull.pipeline` (the
+``pipeline/`` folder of the source tree), which imports the core and never the other way round.
 """
 
 import os as _os

@@ -2,6 +2,6 @@
 
 import sys
 
-from pipeline.cli import main
+from tiled_gridpull.pipeline.cli import main
 
 sys.exit(main())

@@ -12,10 +12,10 @@ from types import ModuleType
 from .errors import MissingDependencyError
 
 _HINTS = {
-    "pyvista": "pip install pyvista",
-    "manifold3d": "pip install manifold3d",
+    "pyvista": "pip install 'tiled-gridpull[viz]'",
+    "manifold3d": "pip install 'tiled-gridpull[manifold]'",
     "open3d": "pip install 'tiled-gridpull[bench]'",
-    "matplotlib": "pip install matplotlib",
+    "matplotlib": "pip install 'tiled-gridpull[viz]'",
     "PIL.Image": "pip install pillow",
 }
 

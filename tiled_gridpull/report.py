@@ -1,6 +1,6 @@
 """The report of a tiled job, and a view of a finished job's files for inspection.
 
-Every tiled job (:func:`tiled_gridpull.scene.reconstruct_scene`, :func:`pipeline.job.run_job`) ends by writing,
+Every tiled job (:func:`tiled_gridpull.scene.reconstruct_scene`, :func:`tiled_gridpull.pipeline.job.run_job`) ends by writing,
 in its job directory:
 
 * ``report.json``: the job's settings, lattice, one row per tile (points, solve and mesh time, peak memory,

@@ -1,6 +1,6 @@
 """The tiled workflow without Dask: scan, partition, solve, blend + mesh, weld.
 
-``pipeline.job`` runs the same steps as Dask tasks; this module holds the steps and a sequential driver
+``tiled_gridpull.pipeline.job`` runs the same steps as Dask tasks; this module holds the steps and a sequential driver
 (:func:`reconstruct_scene`) so the core runs, and is tested, without a cluster.
 
 A job directory holds everything a run produces, so a finished or interrupted job can be inspected:

@@ -2,7 +2,7 @@
 
 Run it from a login node (it submits the worker jobs itself and waits for them)::
 
-    python -m pipeline.examples.slurm_job /data/seq/*.laz -o /scratch/$USER/street.ply \
+    python -m tiled_gridpull.pipeline.examples.slurm_job /data/seq/*.laz -o /scratch/$USER/street.ply \
         --voxel-size 0.1 --jobs 8 --cores 8 --memory 32GB --queue normal --walltime 04:00:00
 
 Each SLURM job runs one Dask worker process *per core*, each with one thread (numba's parallel kernels must not
@@ -59,7 +59,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--work-dir", help="shared job directory (default: OUTPUT.job)")
     a = ap.parse_args(argv)
 
-    from pipeline.job import JobOptions, run_job
+    from tiled_gridpull.pipeline.job import JobOptions, run_job
     from tiled_gridpull.config import SolverConfig, load_config_file
     from tiled_gridpull.tile import TilingConfig, check_compatible
 
