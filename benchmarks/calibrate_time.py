@@ -20,7 +20,7 @@ import numpy as np
 def tile_work(spec, solver, occupancy=None) -> dict:
     """The work counts of one tile's solve as the estimate sees them, and its band bounds per level."""
     from tiled_gridpull import memory as m
-    from tiled_gridpull.tile import read_occupancy
+    from tiled_gridpull.partition import read_occupancy
 
     occ = read_occupancy(spec) if occupancy is None else occupancy
     bricks = m.band_bricks_bound(occ, spec.block.shape, solver)
@@ -41,7 +41,7 @@ def main(argv: list[str]) -> None:
 
     from tiled_gridpull.pipeline.cli import resolve_settings
     from tiled_gridpull import memory as m
-    from tiled_gridpull.tile import read_manifest
+    from tiled_gridpull.jobdir import read_manifest
 
     rows, names = [], ["query", "nn", "slot", "iteration", "point", "one"]
     for arg in argv:

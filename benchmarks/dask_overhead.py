@@ -31,7 +31,7 @@ def noop_mesh(spec, own, nbs, nb_summaries, *args):
 
 def make_specs(n: int):
     from tiled_gridpull.lattice import Lattice
-    from tiled_gridpull.tile import TileSpec
+    from tiled_gridpull.tile_plan import TileSpec
 
     side = math.ceil(math.sqrt(n))
     block = Lattice(origin=(500000.0, 4000000.0, 100.0), cell_size=0.1, shape=(321, 321, 321))
@@ -52,8 +52,8 @@ def run(n: int, workers: int = 2) -> dict:
 
     from tiled_gridpull.pipeline.job import DEFAULT_WINDOW, run_tiles, task_arguments
     from tiled_gridpull.config import SolverConfig
-    from tiled_gridpull.scene import JobPaths
-    from tiled_gridpull.tile import TilingConfig
+    from tiled_gridpull.jobdir import JobPaths
+    from tiled_gridpull.tiling import TilingConfig
 
     specs = make_specs(n)
     solve_args, mesh_args = task_arguments(specs, TilingConfig(), SolverConfig(), JobPaths("/job"),

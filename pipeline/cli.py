@@ -199,7 +199,7 @@ def resolve_settings(args) -> tuple:
     """
     from tiled_gridpull.config import SolverConfig, load_config_file, parse_overrides
     from tiled_gridpull.errors import ConfigError
-    from tiled_gridpull.tile import TilingConfig
+    from tiled_gridpull.tiling import TilingConfig
 
     settings: dict = {}
     if args.config:
@@ -222,7 +222,7 @@ def resolve_settings(args) -> tuple:
     tiling_settings = {k: v for k, v in settings.items() if k in tiling_keys}
     tiling = None
     if "voxel_size" in tiling_settings:
-        from tiled_gridpull.tile import check_compatible
+        from tiled_gridpull.tiling import check_compatible
 
         tiling = TilingConfig(**tiling_settings)
         check_compatible(tiling, solver)
@@ -314,7 +314,7 @@ def _reconstruct_tiled(args, out: Path, solver, tiling) -> int:
         info = plan_job(args.inputs, tiling, solver, work, frames=frames, workers=args.workers)
         print(format_plan(info, max_memory))
         if max_memory is not None:
-            from tiled_gridpull.pipeline.job import check_memory
+            from tiled_gridpull.memory import check_memory
 
             check_memory(None, tiling, solver, max_memory, estimates=info["estimates"])
         return 0

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from tiled_gridpull.config import SolverConfig
-from tiled_gridpull.tile import TilingConfig
+from tiled_gridpull.tiling import TilingConfig
 
 __all__ = ["plan_job", "format_plan"]
 
@@ -22,8 +22,10 @@ def plan_job(inputs: list[str], tiling: TilingConfig, solver: SolverConfig, work
     """Everything the dry run reports (see :func:`format_plan`)."""
     from tiled_gridpull.memory import estimate_tiles
     from tiled_gridpull.resume import load_partition, partition_key
-    from tiled_gridpull.scene import JobPaths, plan_inputs
-    from tiled_gridpull.tile import check_compatible, partition
+    from tiled_gridpull.jobdir import JobPaths
+    from tiled_gridpull.prepare import plan_inputs
+    from tiled_gridpull.partition import partition
+    from tiled_gridpull.tiling import check_compatible
 
     check_compatible(tiling, solver)
     paths = JobPaths(work_dir)

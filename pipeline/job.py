@@ -1,7 +1,7 @@
-"""A tiled reconstruction as a Dask job: the same steps as :func:`tiled_gridpull.scene.reconstruct_scene`, with
-tiles solved and meshed as tasks on a cluster.
+"""The Dask executor of a tiled job (:mod:`tiled_gridpull.tiled_job`): tiles solved and meshed as tasks on a
+cluster. This is the one module that imports ``distributed``.
 
-* Tasks carry small :class:`~tiled_gridpull.tile.TileSpec` descriptions (paths, bounds) and settings, never
+* Tasks carry small :class:`~tiled_gridpull.tile_plan.TileSpec` descriptions (paths, bounds) and settings, never
   arrays; each writes its result to the job directory and returns a small summary.
 * A tile's mesh task depends on the solve tasks of itself and its 26 neighbours (the blend needs their fields).
 * By default a :class:`distributed.LocalCluster` sized to the machine runs the job: one thread per worker
@@ -10,11 +10,9 @@ tiles solved and meshed as tasks on a cluster.
   on an existing cluster.
 * Failed tasks are retried (a worker that dies costs only its tiles in flight); a tile that fails for a data
   reason is reported by name and the rest of the mesh is still produced.
-* Every field and mesh piece is recorded with a key of what produced it (:mod:`tiled_gridpull.resume`): running
-  the same job again in the same job directory reuses the partition and every tile result whose inputs and
-  settings are unchanged, and recomputes only the rest.
-* ``max_memory`` refuses, before anything is solved, a job whose tiles are estimated
-  (:mod:`tiled_gridpull.memory`) to need more than that much memory on a worker.
+* Resume (every result keyed on what produced it), fail-fast, the memory budget, the report and the mesh's
+  metadata are the driver's (:func:`tiled_gridpull.tiled_job.run_tiled_job`), the same whichever executor runs
+  the tiles.
 """
 
 from __future__ import annotations
@@ -25,19 +23,21 @@ import os
 import signal
 import threading
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from tiled_gridpull.config import SolverConfig
-from tiled_gridpull.errors import ClusterError, ConfigError, TileFailedError
+from tiled_gridpull.errors import ClusterError, ConfigError
+from tiled_gridpull.jobdir import JobPaths, neighbors_of
 from tiled_gridpull.mesh import Mesh
-from tiled_gridpull.scene import (JobPaths, check_some_tile_solvable, check_some_tile_solved, finish_job,
-                                  job_lock, job_metadata, key_reference, neighbors_of, plan_centre, prepare_job)
-from tiled_gridpull.tile import TileSpec, TilingConfig, check_compatible
+from tiled_gridpull.tile_plan import TileSpec
+from tiled_gridpull.tiled_job import TileEvent, mesh_step, run_tiled_job, solve_step
+from tiled_gridpull.tiling import TilingConfig
 
 log = logging.getLogger("tiled_gridpull")
 
-__all__ = ["JobOptions", "run_job", "run_tiles", "task_arguments", "make_client"]
+__all__ = ["JobOptions", "DaskExecutor", "run_job", "run_tiles", "task_arguments", "make_client"]
 
 #: Tasks in flight at once: enough to keep any cluster busy (a task is a whole tile, seconds to minutes of work)
 #: and to cover a slab of tiles, so mesh tasks follow their solves closely.
@@ -191,16 +191,10 @@ def _configure_worker_threads() -> None:
 
 def solve_task(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig, field_path: str, centre,
                summary_path: str | None = None) -> dict:
-    """Dask task: solve one tile (see :func:`tiled_gridpull.tile.solve_tile`), or reuse its recorded result."""
-    from tiled_gridpull.resume import solve_tile_resumable
-    from tiled_gridpull.tile import solve_tile
-
+    """Dask task: solve one tile, or reuse its recorded result (:func:`tiled_gridpull.tiled_job.solve_step`)."""
     _configure_worker_threads()
-    if summary_path is None:
-        out = solve_tile(spec, tiling, solver, field_path, centre=centre)
-    else:
-        out = solve_tile_resumable(spec, tiling, solver, field_path, summary_path, centre,
-                                   before_solve=lambda: _test_hooks(spec.name))
+    out = solve_step(spec, tiling, solver, field_path, centre, summary_path,
+                     before_solve=lambda: _test_hooks(spec.name))
     if not out.get("reused"):
         out["worker"] = _worker_address()
     return out
@@ -235,86 +229,60 @@ def _worker_address() -> str:
 
 def mesh_task(spec: TileSpec, own: dict, neighbor_specs: list, neighbor_summaries: list, tiling: TilingConfig,
               key_ref, field_paths: dict, piece_path: str, summary_path: str | None = None) -> dict:
-    """Dask task: blend with the solved neighbours and mesh the tile's core (or reuse its recorded piece)."""
-    from tiled_gridpull.resume import mesh_tile_resumable
-    from tiled_gridpull.stitch import mesh_tile
-
-    if own.get("status") != "solved":
-        return {"tile": spec.name, "status": "not solved", "faces": 0}
-    _configure_worker_threads()
-    solved = [(s, summ) for s, summ in zip(neighbor_specs, neighbor_summaries) if summ.get("status") == "solved"]
-    if summary_path is None:
-        out = mesh_tile(spec, [(s, field_paths[s.name]) for s, _ in solved], tiling, key_ref,
-                        field_paths[spec.name], piece_path)
-        out["status"] = "meshed"
-        return out
-    return mesh_tile_resumable(spec, own, [(s, summ, field_paths[s.name]) for s, summ in solved], tiling, key_ref,
-                               field_paths[spec.name], piece_path, summary_path)
+    """Dask task: blend with the solved neighbours and mesh the tile's core, or reuse its recorded piece
+    (:func:`tiled_gridpull.tiled_job.mesh_step`)."""
+    if own.get("status") == "solved":
+        _configure_worker_threads()
+    return mesh_step(spec, own, neighbor_specs, neighbor_summaries, tiling, key_ref, field_paths, piece_path,
+                     summary_path)
 
 
 def run_job(inputs: list[str], output: str | Path, tiling: TilingConfig, solver: SolverConfig, work_dir: str | Path,
             options: JobOptions = JobOptions(), *, frames=None) -> Mesh:
-    """Tiled reconstruction on Dask; writes ``output`` and its sidecar, returns the welded mesh."""
-    check_compatible(tiling, solver)
-    if options.scheduler:
-        check_scheduler_address(options.scheduler)  # before the partition, not after it
-    work_dir = Path(work_dir).resolve()  # workers of an external cluster do not share this process's cwd
-    with job_lock(work_dir):
-        return _run_job(inputs, output, tiling, solver, JobPaths(work_dir), options, frames=frames)
+    """Tiled reconstruction on Dask (:func:`tiled_gridpull.tiled_job.run_tiled_job` with a :class:`DaskExecutor`);
+    writes ``output`` and its sidecar, returns the welded mesh."""
+    return run_tiled_job(inputs, output, tiling, solver, work_dir, DaskExecutor(options), frames=frames,
+                         float32=options.float32, tile_meshes=options.tile_meshes, fail_fast=options.fail_fast,
+                         max_memory=options.max_memory, progress=options.progress)
 
 
-def _run_job(inputs: list[str], output: str | Path, tiling: TilingConfig, solver: SolverConfig, paths: JobPaths,
-             options: JobOptions, *, frames) -> Mesh:
-    t0 = time.perf_counter()
-    check = None
-    if options.max_memory is not None:
-        # refuse before the partition writes anything
-        def check(planned, occupancy):
-            check_some_tile_solvable(planned, tiling)
-            check_memory(planned, tiling, solver, options.max_memory, occupancy=occupancy)
-    plan, specs, scan = prepare_job(inputs, tiling, paths, frames=frames, check=check)
-    t_part = time.perf_counter()
-    log.info("%s %d points into %d tiles (%d planned) in %.1f s",
-             "reused the partition of" if scan.get("partition_reused") else "partitioned", scan["points"],
-             len(specs), int(plan.tile_range[0] * plan.tile_range[1] * plan.tile_range[2]), t_part - t0)
-    check_some_tile_solvable(specs, tiling)
-    if options.max_memory is not None and scan.get("partition_reused"):
-        check_memory(specs, tiling, solver, options.max_memory)
-    with _deferred_interrupt() as interrupted:
-        solve_summaries, mesh_summaries = _run_tasks(specs, tiling, solver, paths, plan, options, interrupted)
-    for s in solve_summaries + mesh_summaries:
-        if s.get("redone"):
-            log.warning("%s: %s; computed again", s["tile"], s["redone"])
-    check_some_tile_solved(solve_summaries)
-    t_mesh = time.perf_counter()
-    by_index = {s.index: s for s in specs}
-    n_solve = sum(1 for s in solve_summaries if s.get("reused"))
-    n_mesh = sum(1 for m in mesh_summaries if m.get("reused"))
-    log.info("reused %d of %d tile solves and %d of %d mesh pieces from %s", n_solve, len(solve_summaries), n_mesh,
-             sum(1 for m in mesh_summaries if m.get("status") == "meshed"), paths.root)
-    failed = [s for s in solve_summaries if s["status"] == "failed"]
-    if failed and options.fail_fast:
-        raise TileFailedError(f"{len(failed)} tile(s) failed: " + "; ".join(f"{s['tile']}: {s.get('reason')}"
-                                                                          for s in failed[:5]))
-    meta = job_metadata(plan, tiling, solver, scan, solve_summaries, mesh_summaries,
-                        {"partition": t_part - t0, "solve_and_mesh": t_mesh - t_part})
-    meta["engine"] = {"scheduler": options.scheduler or "LocalCluster", "workers": options.workers}
-    # a mesh task that failed (it killed its worker) leaves its tile out of the mesh: report it like a solve
-    meta["tiles"]["not_solved"] += [{"tile": m["tile"], "status": "failed", "reason": m.get("reason")}
-                                    for m in mesh_summaries if m.get("status") == "failed"]
-    meta["reused"] = {"partition": bool(scan.get("partition_reused")), "solves": n_solve, "meshes": n_mesh}
-    pieces = [paths.piece(by_index[tuple(m["index"])]) for m in mesh_summaries if m.get("status") == "meshed"]
-    mesh = finish_job(pieces, meta, float32=options.float32, tile_meshes=options.tile_meshes)
-    mesh.metadata["timings_s"]["merge"] = time.perf_counter() - t_mesh
-    mesh.metadata["timings_s"]["total"] = time.perf_counter() - t0
-    from tiled_gridpull.io import write_mesh_and_sidecar
+class DaskExecutor:
+    """Runs a job's tiles as tasks on a Dask cluster (:func:`run_tiles`): a new LocalCluster sized to the machine,
+    or the cluster at ``options.scheduler``; the cluster is closed when the run ends.
 
-    # one commit: a sidecar that cannot be written leaves no mesh behind
-    write_mesh_and_sidecar(mesh, output, float32=options.float32)
-    from tiled_gridpull.report import write_report
+    Parameters
+    ----------
+    options : JobOptions
+        ``workers``, ``scheduler``, ``retries``, ``window`` and ``no_worker_timeout`` are read here.
+    """
 
-    write_report(paths.root, mesh.metadata, output=output)  # report.json + tiles.png in the job directory
-    return mesh
+    def __init__(self, options: JobOptions = JobOptions()):
+        self.options = options
+        self.engine = {"scheduler": options.scheduler or "LocalCluster", "workers": options.workers}
+
+    def check(self) -> None:
+        if self.options.scheduler:
+            check_scheduler_address(self.options.scheduler)
+
+    def run(self, specs: list[TileSpec], tiling: TilingConfig, solver: SolverConfig, paths: JobPaths, centre,
+            key_ref) -> Iterator[TileEvent]:
+        """Start the cluster, submit every tile's solve and mesh task, yield their summaries, close the cluster."""
+        options = self.options
+        with _deferred_interrupt() as interrupted:
+            client, cluster = make_client(options, len(specs))
+            if client.dashboard_link:
+                log.info("Dask dashboard: %s", client.dashboard_link)
+            try:
+                if options.scheduler:
+                    check_workers_see(client, paths.root, options.no_worker_timeout)
+                solve_args, mesh_args = task_arguments(specs, tiling, solver, paths, centre, key_ref)
+                yield from run_tiles(client, specs, solve_task, solve_args, mesh_task, mesh_args, options.retries,
+                                     window=options.window, stop=interrupted,
+                                     no_worker_timeout=options.no_worker_timeout)
+            finally:
+                client.close()
+                if cluster is not None:
+                    cluster.close()
 
 
 @contextlib.contextmanager
@@ -344,25 +312,6 @@ def _deferred_interrupt():
         signal.signal(signal.SIGINT, previous)
     if interrupted.is_set():
         raise KeyboardInterrupt
-
-
-def _run_tasks(specs: list[TileSpec], tiling: TilingConfig, solver: SolverConfig, paths: JobPaths, plan,
-               options: JobOptions, interrupted: threading.Event) -> tuple[list, list]:
-    """Start the cluster, submit every tile's solve and mesh task, collect their summaries, close the cluster."""
-    client, cluster = make_client(options, len(specs))
-    if client.dashboard_link:
-        log.info("Dask dashboard: %s", client.dashboard_link)
-    try:
-        if options.scheduler:
-            check_workers_see(client, paths.root, options.no_worker_timeout)
-        solve_args, mesh_args = task_arguments(specs, tiling, solver, paths, plan_centre(plan), key_reference(plan))
-        events = run_tiles(client, specs, solve_task, solve_args, mesh_task, mesh_args, options.retries,
-                           window=options.window, stop=interrupted, no_worker_timeout=options.no_worker_timeout)
-        return _collect(events, len(specs), options)
-    finally:
-        client.close()
-        if cluster is not None:
-            cluster.close()
 
 
 def task_arguments(specs: list[TileSpec], tiling: TilingConfig, solver: SolverConfig, paths: JobPaths,
@@ -545,53 +494,3 @@ def _killed_worker(exc: BaseException) -> bool:
     except ImportError:  # pragma: no cover - distributed's layout changed
         return type(exc).__name__ == "KilledWorker"
     return isinstance(exc, KilledWorker)
-
-
-def check_memory(specs: list[TileSpec] | None, tiling: TilingConfig, solver: SolverConfig, budget: int,
-                 occupancy: dict | None = None, estimates: list[dict] | None = None) -> list[dict]:
-    """Refuse (one line, before any solve) tiles whose estimated peak memory exceeds ``budget`` bytes.
-
-    ``estimates`` (from :func:`tiled_gridpull.memory.estimate_tiles`) are computed from ``specs`` if not given.
-    """
-    from tiled_gridpull.errors import MemoryBudgetError
-    from tiled_gridpull.memory import estimate_tiles, format_size
-
-    est = estimates if estimates is not None else estimate_tiles(specs, solver, tiling, occupancy)
-    over = sorted((e for e in est if e["peak"] > budget), key=lambda e: -e["peak"])
-    if over:
-        names = ", ".join(f"{e['tile']} ({format_size(e['peak'])})" for e in over[:5])
-        more = f" and {len(over) - 5} more" if len(over) > 5 else ""
-        raise MemoryBudgetError(
-            f"{len(over)} of {len(est)} tiles would exceed --max-memory {format_size(budget)}: {names}{more}; "
-            f"use a smaller --tile-size (now {tiling.tile_size:g}) or a larger budget")
-    if est:
-        top = max(est, key=lambda e: e["peak"])
-        log.info("largest tile memory estimate: %s (%s), within --max-memory %s", format_size(top["peak"]),
-                 top["tile"], format_size(budget))
-    return est
-
-
-def _collect(events, n_tiles: int, options: JobOptions) -> tuple[list, list]:
-    """Consume :func:`run_tiles` with a progress bar (tasks done / total, ETA); summaries in tile order."""
-    from tqdm import tqdm
-
-    bar = tqdm(total=2 * n_tiles, unit="task", desc="tiles", disable=not options.progress, dynamic_ncols=True)
-    results: dict = {}
-    try:
-        for kind, idx, res in events:
-            res["index"] = list(idx)
-            results[(kind, idx)] = res
-            bar.update(1)
-            if kind == "solve":
-                bar.set_postfix_str(f"{res['tile']} {res['status']}", refresh=False)
-                if res["status"] == "failed":
-                    # said now for a live view; the closing summary repeats it as a warning
-                    log.info("%s failed: %s", res["tile"], res.get("reason"))
-                    if options.fail_fast:
-                        raise TileFailedError(f"{res['tile']} failed: {res.get('reason')}")
-    finally:
-        bar.close()
-    ordered = sorted(results.items())  # by (kind, tile index)
-    solve = [v for (kind, _), v in ordered if kind == "solve"]
-    mesh = [v for (kind, _), v in ordered if kind == "mesh"]
-    return solve, mesh

@@ -10,7 +10,7 @@ import pytest
 from tiled_gridpull.pipeline.cli import main
 from tiled_gridpull.config import SolverConfig
 from tiled_gridpull.errors import ConfigError
-from tiled_gridpull.tile import TilingConfig
+from tiled_gridpull.tiling import TilingConfig
 
 
 @pytest.fixture

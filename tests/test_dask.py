@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from tiled_gridpull.config import SolverConfig
-from tiled_gridpull.tile import TilingConfig
+from tiled_gridpull.tiling import TilingConfig
 from conftest import terrain
 
 BIN = Path(sys.executable).parent
@@ -92,7 +92,7 @@ def test_worker_memory_does_not_grow_with_tile_count(tmp_path):
 
 def _grid_specs(nx: int, ny: int, nz: int):
     from tiled_gridpull.lattice import Lattice
-    from tiled_gridpull.tile import TileSpec
+    from tiled_gridpull.tile_plan import TileSpec
 
     block = Lattice(origin=(0.0, 0.0, 0.0), cell_size=0.1, shape=(41, 41, 41))
     return [TileSpec(index=(i, j, k), core_lo=(0, 0, 0), core_hi=(32, 32, 32), block=block, n_points=100,
@@ -132,7 +132,7 @@ def test_sliding_window_keeps_the_graph_and_bounds_tasks_in_flight(window):
     from distributed import Client
 
     from tiled_gridpull.pipeline.job import run_tiles
-    from tiled_gridpull.scene import neighbors_of
+    from tiled_gridpull.jobdir import neighbors_of
 
     specs = _grid_specs(5, 4, 3)
     by_index = {s.index: s for s in specs}
@@ -171,8 +171,8 @@ def test_task_arguments_do_not_grow_with_the_tile_count():
 
     from tiled_gridpull.pipeline.job import task_arguments
     from tiled_gridpull.config import SolverConfig
-    from tiled_gridpull.scene import JobPaths, neighbors_of
-    from tiled_gridpull.tile import TilingConfig
+    from tiled_gridpull.jobdir import JobPaths, neighbors_of
+    from tiled_gridpull.tiling import TilingConfig
 
     def mesh_arg_bytes(specs, spec):
         _, mesh_args = task_arguments(specs, TilingConfig(), SolverConfig(), JobPaths("/job"), (0.0, 0.0, 0.0),

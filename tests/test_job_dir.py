@@ -10,9 +10,11 @@ from tiled_gridpull.pipeline.cli import main
 from tiled_gridpull.errors import ConfigError, InputError
 from tiled_gridpull.io import PointCloud, read_mesh, write_mesh_and_sidecar
 from tiled_gridpull.io.atomic import atomic_open
-from tiled_gridpull.scene import job_lock
+from tiled_gridpull.jobdir import job_lock
 from tiled_gridpull.synthetic import sphere
-from tiled_gridpull.tile import TilingConfig, partition, plan_tiles
+from tiled_gridpull.partition import partition
+from tiled_gridpull.tile_plan import plan_tiles
+from tiled_gridpull.tiling import TilingConfig
 
 
 def test_atomic_write_replaces_a_symlink_instead_of_writing_through_it(tmp_path):

@@ -11,7 +11,7 @@ from tiled_gridpull.pipeline.cli import main
 from tiled_gridpull.config import SolverConfig
 from tiled_gridpull.errors import ConfigError
 from tiled_gridpull.memory import MB, estimate_tiles, parse_size
-from tiled_gridpull.tile import TilingConfig
+from tiled_gridpull.tiling import TilingConfig
 
 from conftest import shared_file
 
@@ -50,7 +50,8 @@ def street(tmp_path_factory):
 def street_job(street):
     """The street solved on a LocalCluster (2 workers) under a budget it fits, with estimates made beforehand."""
     from tiled_gridpull.pipeline.job import JobOptions, run_job
-    from tiled_gridpull.scene import JobPaths, prepare_job
+    from tiled_gridpull.jobdir import JobPaths
+    from tiled_gridpull.prepare import prepare_job
 
     work = street / "job"
     _, specs, _ = prepare_job([str(street / "street.npy")], TILING, JobPaths(work))
@@ -101,7 +102,8 @@ def test_max_memory_refuses_before_solving(street, capsys):
 
 
 def test_dry_run_prints_the_plan_and_writes_nothing(street, tmp_path, capsys):
-    from tiled_gridpull.scene import JobPaths, prepare_job
+    from tiled_gridpull.jobdir import JobPaths
+    from tiled_gridpull.prepare import prepare_job
 
     out = street / "dry.ply"
     code = main(["reconstruct", str(street / "street.npy"), "-o", str(out), "-q", *TILE_ARGS, "--dry-run",

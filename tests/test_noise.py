@@ -72,7 +72,7 @@ def test_noisy_preset_beats_the_default_on_a_noisy_sphere():
 
 
 def test_noise_cells_refused_in_tiled_mode():
-    from tiled_gridpull.tile import TilingConfig, check_compatible
+    from tiled_gridpull.tiling import check_compatible, TilingConfig
 
     with pytest.raises(ConfigError, match="noise_cells"):
         check_compatible(TilingConfig(voxel_size=0.1), SolverConfig(noise_cells=1.5))
@@ -96,7 +96,7 @@ def test_plane_projection_removes_scatter_across_the_surface_only():
 
 
 def test_denoise_is_recorded_checked_and_refused_in_tiled_mode():
-    from tiled_gridpull.tile import TilingConfig, check_compatible
+    from tiled_gridpull.tiling import check_compatible, TilingConfig
 
     with pytest.raises(ConfigError, match="denoise"):
         check_compatible(TilingConfig(voxel_size=0.1), SolverConfig(denoise=2))

@@ -153,8 +153,8 @@ def test_no_tile_with_enough_points_is_refused_before_solving(tmp_path, capsys):
 def test_job_with_no_solved_tile_writes_nothing(tmp_path, case):
     from tiled_gridpull.config import SolverConfig
     from tiled_gridpull.errors import InputError, TileFailedError
-    from tiled_gridpull.scene import reconstruct_scene
-    from tiled_gridpull.tile import TilingConfig
+    from tiled_gridpull.tiled_job import reconstruct_scene
+    from tiled_gridpull.tiling import TilingConfig
 
     rng = np.random.default_rng(1)
     if case == "duplicates":

@@ -27,7 +27,7 @@ from hypothesis import strategies as st
 from tiled_gridpull.config import SolverConfig, parse_overrides
 from tiled_gridpull.errors import ConfigError, InputError
 from tiled_gridpull.io import iter_point_chunks, point_count, read_mesh, read_points
-from tiled_gridpull.tile import TilingConfig
+from tiled_gridpull.tiling import TilingConfig
 
 from conftest import SHARED
 

@@ -22,7 +22,7 @@ import pytest
 from tiled_gridpull.pipeline.cli import main
 from tiled_gridpull.config import SolverConfig
 from tiled_gridpull.io import read_mesh
-from tiled_gridpull.tile import TilingConfig
+from tiled_gridpull.tiling import TilingConfig
 
 REPO = Path(__file__).resolve().parents[1]
 OFFSET = np.array([500000.0, 4000000.0, 50.0])
@@ -120,8 +120,9 @@ def test_solver_result_does_not_depend_on_thread_count(data, tmp_path):
     """The documented claim: numba's thread count changes no field value (bitwise)."""
     import numba
 
-    from tiled_gridpull.tile import solve_tile
-    from tiled_gridpull.scene import JobPaths, prepare_job
+    from tiled_gridpull.tile_solve import solve_tile
+    from tiled_gridpull.jobdir import JobPaths
+    from tiled_gridpull.prepare import prepare_job
 
     most = numba.config.NUMBA_NUM_THREADS
     if most < 2:

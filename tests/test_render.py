@@ -12,7 +12,8 @@ from tiled_gridpull.errors import ConfigError, InputError
 from tiled_gridpull.io import read_sidecar, write_mesh
 from tiled_gridpull.mesh import Mesh
 from tiled_gridpull.render import render_mesh, render_meshes_image, render_tile_layout_image, save_png
-from tiled_gridpull.report import build_report, format_report_table, load_job, read_report, write_report
+from tiled_gridpull.jobview import load_job
+from tiled_gridpull.report import build_report, format_report_table, read_report, write_report
 from tiled_gridpull.synthetic import sample_shape, sphere
 from conftest import terrain
 

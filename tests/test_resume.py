@@ -15,8 +15,10 @@ import pytest
 
 from tiled_gridpull.config import SolverConfig
 from tiled_gridpull.resume import mesh_key, solve_key, solve_tile_resumable
-from tiled_gridpull.scene import JobPaths, prepare_job
-from tiled_gridpull.tile import TilingConfig, read_occupancy
+from tiled_gridpull.jobdir import JobPaths
+from tiled_gridpull.prepare import prepare_job
+from tiled_gridpull.partition import read_occupancy
+from tiled_gridpull.tiling import TilingConfig
 
 TILING = TilingConfig(voxel_size=0.2, tile_size=6.4, overlap=1.6)
 SOLVER = SolverConfig(m2=6, refine_m2=6, iterations=30, coarse_iterations=30, queries=3000)
@@ -79,21 +81,21 @@ def test_damaged_spill_file_forces_a_new_partition(tmp_path, ground):
 
 
 def test_interrupted_partition_is_never_taken_for_a_finished_one(tmp_path, ground, monkeypatch):
-    import tiled_gridpull.scene as scene
+    import tiled_gridpull.prepare as prepare
 
     paths = JobPaths(tmp_path / "job")
     prepare_job([str(ground)], TILING, paths)
-    real = scene.partition
+    real = prepare.partition
 
     def dies(*a, **k):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(scene, "partition", dies)
+    monkeypatch.setattr(prepare, "partition", dies)
     other = TilingConfig(voxel_size=0.2, tile_size=8.0, overlap=1.6)
     with pytest.raises(KeyboardInterrupt):
         prepare_job([str(ground)], other, paths)
     assert not paths.manifest.exists()  # the old commit record is gone before new spill files are written
-    monkeypatch.setattr(scene, "partition", real)
+    monkeypatch.setattr(prepare, "partition", real)
     assert prepare_job([str(ground)], TILING, paths)[2]["partition_reused"] is False
 
 

@@ -183,7 +183,7 @@ def test_udf_signs_follow_input_normals():
 
 def test_tiled_mode_refuses_udf():
     from tiled_gridpull.config import SolverConfig
-    from tiled_gridpull.tile import TilingConfig, check_compatible
+    from tiled_gridpull.tiling import check_compatible, TilingConfig
 
     with pytest.raises(ConfigError, match="mode udf"):
         check_compatible(TilingConfig(voxel_size=0.1), SolverConfig(mode="udf", m2=25))

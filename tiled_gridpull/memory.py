@@ -27,21 +27,26 @@ single-threaded on the project's 2-core test machine (off by 2x either way elsew
 
 from __future__ import annotations
 
+import heapq
+import logging
 import math
 import re
-from typing import TYPE_CHECKING
+import sys
 
 import numpy as np
 
-from .errors import ConfigError
+from .config import SolverConfig
+from .errors import ConfigError, MemoryBudgetError
 from .kernels import BRICK
-
-if TYPE_CHECKING:
-    from .config import SolverConfig
-    from .tile import TileSpec, TilingConfig
+from .partition import read_occupancy
+from .tile_plan import TileSpec
+from .tiling import TilingConfig
 
 __all__ = ["parse_size", "band_bricks_bound", "tile_memory", "tile_time", "mesh_time", "makespan", "level_points",
-           "format_size", "estimate_tiles", "MB"]
+           "format_size", "estimate_tiles", "MB", "peak_rss_mb", "reset_peak_rss",
+           "check_memory"]
+
+log = logging.getLogger("tiled_gridpull")
 
 MB = 1024 * 1024
 BASE_MB = 260.0  # resident size of a Dask worker that has imported and compiled everything (measured 220 MB
@@ -119,7 +124,7 @@ def _dilate(grid: np.ndarray, r: int) -> np.ndarray:
     return out
 
 
-def band_bricks_bound(occupancy: np.ndarray, block_shape, solver: "SolverConfig") -> list[int]:
+def band_bricks_bound(occupancy: np.ndarray, block_shape, solver: SolverConfig) -> list[int]:
     """Upper bound of the bricks of each level's band (coarsest first): the candidate bricks ``build_band``
     allocates, i.e. occupied bricks (coarsened to the level) dilated by ``ceil((m2 + 1) / 8)`` bricks."""
     cells = max(int(s) - 1 for s in block_shape)
@@ -140,12 +145,12 @@ def band_bricks_bound(occupancy: np.ndarray, block_shape, solver: "SolverConfig"
     return out
 
 
-def _knn_bound(n_points: int, solver: "SolverConfig") -> int:
+def _knn_bound(n_points: int, solver: SolverConfig) -> int:
     """The solver's candidate-list size: a power of two in [knn, 64], at most the point count."""
     return int(min(max(KNN_MAX, solver.knn), max(n_points, 1)))
 
 
-def tile_memory(spec: "TileSpec", occupancy: np.ndarray, solver: "SolverConfig", tiling: "TilingConfig",
+def tile_memory(spec: TileSpec, occupancy: np.ndarray, solver: SolverConfig, tiling: TilingConfig,
                 neighbor_bricks: list[int] | None = None) -> dict:
     """Estimated peak resident memory (bytes) of a worker solving and meshing one tile.
 
@@ -153,7 +158,7 @@ def tile_memory(spec: "TileSpec", occupancy: np.ndarray, solver: "SolverConfig",
     ----------
     spec : TileSpec
     occupancy : (BX, BY, BZ) bool
-        Occupied bricks of the block (:func:`tiled_gridpull.tile.read_occupancy`).
+        Occupied bricks of the block (:func:`tiled_gridpull.partition.read_occupancy`).
     neighbor_bricks : list of int, optional
         Finest-level band bound of each neighbour (for the mesh step).
 
@@ -185,7 +190,7 @@ def tile_memory(spec: "TileSpec", occupancy: np.ndarray, solver: "SolverConfig",
             "points": n}
 
 
-def level_points(spec: "TileSpec", level: int, levels: int) -> int:
+def level_points(spec: TileSpec, level: int, levels: int) -> int:
     """Points a level of the tile's solve holds, estimated from the partition alone.
 
     The finest level holds them all; a coarser level keeps at most ``COARSE_POINTS_PER_CELL`` per cell
@@ -203,7 +208,7 @@ def level_points(spec: "TileSpec", level: int, levels: int) -> int:
     return int(min(n, COARSE_POINTS_PER_CELL * cells))
 
 
-def tile_time(spec: "TileSpec", bricks: list[int], solver: "SolverConfig") -> float:
+def tile_time(spec: TileSpec, bricks: list[int], solver: SolverConfig) -> float:
     """Rough seconds (one thread of a 2-worker job) to solve one tile: per level, iterations x (queries + band
     slots) with the queries the level's points give (``queries_per_point``), plus the nearest-point searches
     (the query pool's batches once, or every iteration's), and the points' set-up."""
@@ -225,23 +230,19 @@ def mesh_time(bricks: int) -> float:
 
 def makespan(durations: list[float], workers: int) -> float:
     """Finish time of ``durations`` on ``workers`` when the longest start first (the job's order)."""
-    import heapq
-
     load = [0.0] * max(1, int(workers))
     for d in sorted(durations, reverse=True):
         heapq.heapreplace(load, load[0] + d)
     return max(load)
 
 
-def estimate_tiles(specs: list["TileSpec"], solver: "SolverConfig", tiling: "TilingConfig",
+def estimate_tiles(specs: list[TileSpec], solver: SolverConfig, tiling: TilingConfig,
                    occupancy: dict | None = None) -> list[dict]:
     """Memory and rough time estimates of every tile (in ``specs`` order), from the partition alone.
 
     ``occupancy`` maps tile index -> occupied-brick mask (a dry run's in-memory partition); by default each
     tile's mask is read from beside its spill file.
     """
-    from .tile import read_occupancy
-
     bricks = {}
     for s in specs:
         occ = occupancy[s.index] if occupancy is not None else read_occupancy(s)
@@ -258,3 +259,50 @@ def estimate_tiles(specs: list["TileSpec"], solver: "SolverConfig", tiling: "Til
         est["mesh_time_s"] = mesh_time(est["bricks"][-1])
         out.append(est)
     return out
+
+
+def check_memory(specs: list[TileSpec] | None, tiling: TilingConfig, solver: SolverConfig, budget: int,
+                 occupancy: dict | None = None, estimates: list[dict] | None = None) -> list[dict]:
+    """Refuse (one line, before any solve) tiles whose estimated peak memory exceeds ``budget`` bytes.
+
+    ``estimates`` (from :func:`tiled_gridpull.memory.estimate_tiles`) are computed from ``specs`` if not given.
+    """
+    est = estimates if estimates is not None else estimate_tiles(specs, solver, tiling, occupancy)
+    over = sorted((e for e in est if e["peak"] > budget), key=lambda e: -e["peak"])
+    if over:
+        names = ", ".join(f"{e['tile']} ({format_size(e['peak'])})" for e in over[:5])
+        more = f" and {len(over) - 5} more" if len(over) > 5 else ""
+        raise MemoryBudgetError(
+            f"{len(over)} of {len(est)} tiles would exceed --max-memory {format_size(budget)}: {names}{more}; "
+            f"use a smaller --tile-size (now {tiling.tile_size:g}) or a larger budget")
+    if est:
+        top = max(est, key=lambda e: e["peak"])
+        log.info("largest tile memory estimate: %s (%s), within --max-memory %s", format_size(top["peak"]),
+                 top["tile"], format_size(budget))
+    return est
+
+
+def peak_rss_mb() -> float:
+    """Peak resident memory of this process (MB) since :func:`reset_peak_rss` (Linux), else since it started."""
+    import resource  # POSIX only: imported where it is used
+
+    try:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024.0
+    except (OSError, ValueError, IndexError):
+        pass
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return peak / (1024.0 * 1024.0) if sys.platform == "darwin" else peak / 1024.0
+
+
+def reset_peak_rss() -> bool:
+    """Restart the peak-memory count of this process at its current size (Linux ``clear_refs``), so that the
+    peak a task reports is its own and not that of an earlier task of the same worker. False if unsupported."""
+    try:
+        with open("/proc/self/clear_refs", "w") as fh:
+            fh.write("5")
+        return True
+    except OSError:
+        return False

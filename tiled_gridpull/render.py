@@ -402,7 +402,7 @@ def render_tile_layout_image(report: dict, *, points: np.ndarray | None = None,
         (world, ``[[x0, y0, z0], [x1, y1, z1]]``), ``points``, ``solve_time_s``, ``mesh_time_s``, ``status``;
         ``lattice`` (its ``origin`` is subtracted from the axes).
     points : (N, 3) float, optional
-        World coordinates of points to draw (e.g. :func:`tiled_gridpull.report.sample_job_points`).
+        World coordinates of points to draw (e.g. :func:`tiled_gridpull.jobdir.sample_job_points`).
     size : (W, H) int
         Pixels.
     max_labels : int

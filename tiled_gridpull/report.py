@@ -1,17 +1,16 @@
-"""The report of a tiled job, and a view of a finished job's files for inspection.
+"""The report of a tiled job.
 
-Every tiled job (:func:`tiled_gridpull.scene.reconstruct_scene`, :func:`tiled_gridpull.pipeline.job.run_job`) ends by writing,
-in its job directory:
+Every tiled job (:func:`tiled_gridpull.tiled_job.run_tiled_job`, whichever executor runs its tiles) ends by
+writing, in its job directory:
 
 * ``report.json``: the job's settings, lattice, one row per tile (points, solve and mesh time, peak memory,
   first and last loss, faces) and totals. It is built from the same record as the mesh's ``.json`` sidecar
-  (:func:`tiled_gridpull.scene.job_metadata`), arranged per tile; nothing is measured twice.
+  (:func:`tiled_gridpull.tiled_job.job_metadata`), arranged per tile; nothing is measured twice.
 * ``tiles.png``: the tile layout seen from above with per-tile timings (only when matplotlib is importable;
   a picture that cannot be drawn is logged and never fails the job).
 
 Both are written atomically. ``tiled-gridpull report JOBDIR`` prints the report as a table.
-:func:`load_job` opens a job directory (finished or not) for the notebooks: tile points, fields, slices of the
-SDF band, meshed pieces and neighbours.
+:func:`tiled_gridpull.jobview.load_job` opens a job directory (finished or not) for the notebooks.
 """
 
 from __future__ import annotations
@@ -19,19 +18,18 @@ from __future__ import annotations
 import json
 import logging
 import math
-from dataclasses import fields as dc_fields
 from pathlib import Path
 
 import numpy as np
 
 from .errors import InputError
 from .io.atomic import write_json
-from .mesh import Mesh
+from .jobdir import sample_job_points
 
 log = logging.getLogger("tiled_gridpull")
 
 __all__ = ["REPORT_NAME", "LAYOUT_NAME", "build_report", "write_report", "read_report", "format_report_table",
-           "tile_core_bounds", "sample_job_points", "load_job", "JobView"]
+           "tile_core_bounds", "TIMING_PHASES"]
 
 REPORT_NAME = "report.json"
 LAYOUT_NAME = "tiles.png"
@@ -74,7 +72,7 @@ def build_report(metadata: dict, *, job_dir: str | Path | None = None, output: s
     Parameters
     ----------
     metadata : dict
-        ``mesh.metadata`` of a tiled job (:func:`tiled_gridpull.scene.job_metadata` plus ``mesh`` topology and
+        ``mesh.metadata`` of a tiled job (:func:`tiled_gridpull.tiled_job.job_metadata` plus ``mesh`` topology and
         final ``timings_s``).
     job_dir, output : str or Path, optional
         Recorded as given (absolute paths).
@@ -254,7 +252,8 @@ def _num(v, fmt: str) -> str:
     return format(v, fmt)
 
 
-_PHASES = ("partition", "solve", "mesh", "solve_and_mesh", "merge", "total")
+#: Wall-clock phases of a tiled job (``timings_s``), in the order the table shows them.
+TIMING_PHASES = ("partition", "solve_and_mesh", "merge", "total")
 
 
 def format_report_table(report: dict) -> str:
@@ -311,7 +310,7 @@ def format_report_table(report: dict) -> str:
     lines.append("")
     tim = {k: v for k, v in (report.get("timings_s") or {}).items() if isinstance(v, (int, float))}
     if tim:
-        order = [k for k in _PHASES if k in tim] + sorted(k for k in tim if k not in _PHASES)
+        order = [k for k in TIMING_PHASES if k in tim] + sorted(k for k in tim if k not in TIMING_PHASES)
         lines.append("wall time: " + ", ".join(f"{k} {tim[k]:.2f} s" for k in order))
     lines.append(f"mesh: {tot.get('vertices')} vertices, {tot.get('faces')} faces, "
                  f"{tot.get('boundary_edges')} boundary edges; input: {tot.get('points')} points "
@@ -324,207 +323,3 @@ def format_report_table(report: dict) -> str:
     if report.get("picture"):
         lines.append(f"picture: {report['picture']}")
     return "\n".join(lines)
-
-
-# ---------------------------------------------------------------------------------------------------------------
-# reading a job directory
-
-
-def _spill_dtype(has_sensor: bool) -> np.dtype:
-    from .tile import _RECORD, _RECORD_SENSOR
-
-    return _RECORD_SENSOR if has_sensor else _RECORD
-
-
-def sample_job_points(job_dir: str | Path, max_points: int = 50_000) -> np.ndarray:
-    """About ``max_points`` input points of a job, read from its tile spill files (each point once).
-
-    Every tile contributes a regular stride of its file (memory-mapped, so a huge job reads only the pages it
-    samples), keeping the points inside its own core.
-
-    Parameters
-    ----------
-    job_dir : str or Path
-    max_points : int
-
-    Returns
-    -------
-    (N, 3) float64
-        World coordinates.
-    """
-    view = load_job(job_dir)
-    total = sum(s.n_points for s in view.specs.values())
-    if total == 0:
-        return np.zeros((0, 3))
-    step = max(1, int(math.ceil(total / max(int(max_points), 1))))
-    out = []
-    for spec in view.specs.values():
-        p = Path(spec.points_path)
-        if spec.n_points == 0 or not p.is_file() or p.stat().st_size == 0:
-            continue
-        rec = np.memmap(p, dtype=_spill_dtype(spec.has_sensor), mode="r")
-        xyz = np.asarray(rec["xyz"][::step], dtype=np.float64) + spec.block.low_corner
-        lo, hi = view.core_bounds(spec.name)
-        out.append(xyz[np.all((xyz >= lo) & (xyz < hi), axis=1)])
-    return np.concatenate(out) if out else np.zeros((0, 3))
-
-
-class JobView:
-    """Read access to a job directory (see :mod:`tiled_gridpull.scene` for its layout).
-
-    Parameters
-    ----------
-    job_dir : str or Path
-        Holds at least ``manifest.json``; fields and pieces exist for the tiles that were solved and meshed.
-
-    Attributes
-    ----------
-    root : Path
-    manifest : dict
-        The raw manifest (plan, tiles, inputs).
-    specs : dict[str, TileSpec]
-        Tiles by name (``tile_i_j_k``), in tile order.
-    tiling : TilingConfig
-    lattice : Lattice
-        The job lattice.
-    report : dict or None
-        ``report.json`` when the job finished.
-    """
-
-    def __init__(self, job_dir: str | Path):
-        from .lattice import Lattice
-        from .scene import JobPaths
-        from .tile import TilingConfig, read_manifest
-
-        self.root = Path(job_dir)
-        self.paths = JobPaths(self.root)
-        if not self.paths.manifest.is_file():
-            raise InputError(f"{job_dir}: no manifest.json (not a tiled job directory)")
-        self.manifest, specs = read_manifest(self.paths.manifest)
-        self.specs = {s.name: s for s in sorted(specs, key=lambda s: s.index)}
-        plan = self.manifest["plan"]
-        names = {f.name for f in dc_fields(TilingConfig)}
-        self.tiling = TilingConfig(**{k: v for k, v in plan["config"].items() if k in names})
-        self.lattice = Lattice.from_dict(plan["lattice"])
-        rp = self.root / REPORT_NAME
-        self.report = read_report(rp) if rp.is_file() else None
-
-    def __repr__(self) -> str:
-        return f"JobView({str(self.root)!r}, {len(self.specs)} tiles)"
-
-    def _spec(self, name: str):
-        try:
-            return self.specs[name]
-        except KeyError:
-            raise InputError(f"{self.root}: no tile named {name!r}") from None
-
-    def core_bounds(self, name: str) -> tuple[np.ndarray, np.ndarray]:
-        """World corners ``(lo, hi)`` (3,) float64 of a tile's core."""
-        s = self._spec(name)
-        cell = self.lattice.cell_size
-        origin = np.asarray(self.lattice.origin)
-        return origin + np.asarray(s.core_lo) * cell, origin + np.asarray(s.core_hi) * cell
-
-    def busiest_tile(self) -> str:
-        """Name of the tile with the most points."""
-        return max(self.specs.values(), key=lambda s: s.n_points).name
-
-    def tile_points(self, name: str) -> np.ndarray:
-        """A tile's points (its whole block: core plus overlap), (N, 3) float64 world coordinates."""
-        from .tile import read_tile_points
-
-        s = self._spec(name)
-        xyz, _ = read_tile_points(s)
-        return xyz.astype(np.float64) + s.block.low_corner
-
-    def neighbours(self, name: str, *, meshed: bool = True) -> list[str]:
-        """Names of the (up to 26) tiles around ``name``; with ``meshed`` only those whose piece exists."""
-        from .scene import neighbors_of
-
-        s = self._spec(name)
-        out = [n.name for n in neighbors_of(s, {t.index: t for t in self.specs.values()})]
-        return [n for n in out if not meshed or self.paths.piece(self.specs[n]).is_file()]
-
-    def tile_mesh(self, name: str) -> Mesh:
-        """The piece of the final mesh a tile produced (its core, blended with its neighbours)."""
-        from .stitch import load_piece
-
-        p = self.paths.piece(self._spec(name))
-        if not p.is_file():
-            raise InputError(f"{name}: no mesh piece ({p} missing: tile not solved or not meshed yet)")
-        piece = load_piece(p)
-        return Mesh(piece.vertices, piece.faces, {"tile": name})
-
-    def welded(self, names: list[str]) -> Mesh:
-        """The pieces of several tiles welded by edge key, as the job does (shared border vertices merged)."""
-        from .stitch import load_piece, weld_pieces
-
-        return weld_pieces([load_piece(self.paths.piece(self._spec(n))) for n in names])
-
-    def shared_vertices(self, a: str, b: str) -> int:
-        """Vertices the pieces of tiles ``a`` and ``b`` share (same lattice edge key): welded along their seam."""
-        from .stitch import load_piece
-
-        ka = load_piece(self.paths.piece(self._spec(a))).keys
-        kb = load_piece(self.paths.piece(self._spec(b))).keys
-        return int(len(np.intersect1d(ka[ka >= 0], kb[kb >= 0])))
-
-    def tile_field(self, name: str):
-        """A solved tile's field (:class:`~tiled_gridpull.blend.TileField`, values in cells, unblended)."""
-        from .tile import load_tile_field
-
-        s = self._spec(name)
-        p = self.paths.field(s)
-        if not p.is_file():
-            raise InputError(f"{name}: no solved field ({p} missing)")
-        return load_tile_field(p, s, self.tiling.overlap_cells)
-
-    def field_slice(self, name: str, axis: int = 2, position: float | None = None
-                    ) -> tuple[np.ndarray, tuple[float, float, float, float], float]:
-        """One plane of a tile's solved field across its whole block (the SDF band, unblended).
-
-        Parameters
-        ----------
-        name : str
-            Tile name.
-        axis : {0, 1, 2}
-            Normal of the plane (2: a horizontal slice).
-        position : float, optional
-            World coordinate of the plane along ``axis`` (snapped to the lattice); default: the median of the
-            tile's points.
-
-        Returns
-        -------
-        values : (n_a, n_b) float64
-            Signed distance in world units (cells x cell size) at the block's lattice vertices of the plane,
-            NaN where the vertex is not a parameter of the band; rows follow the first remaining axis, columns
-            the second (``imshow(values.T, origin="lower", extent=extent)`` draws it the usual way up).
-        extent : (a0, a1, b0, b1)
-            World extent along the two remaining axes.
-        position : float
-            World coordinate of the plane actually used.
-        """
-        if axis not in (0, 1, 2):
-            raise InputError(f"axis must be 0, 1 or 2, got {axis!r}")
-        fld = self.tile_field(name)
-        lat = self.lattice
-        if position is None:
-            position = float(np.median(self.tile_points(name)[:, axis]))
-        k = int(round((position - lat.origin[axis]) / lat.cell_size))
-        k = int(np.clip(k, fld.block_lo[axis], fld.block_hi[axis]))
-        a, b = [ax for ax in (0, 1, 2) if ax != axis]
-        ga = np.arange(fld.block_lo[a], fld.block_hi[a] + 1)
-        gb = np.arange(fld.block_lo[b], fld.block_hi[b] + 1)
-        A, B = np.meshgrid(ga, gb, indexing="ij")
-        g = np.empty((A.size, 3), np.int64)
-        g[:, a], g[:, b], g[:, axis] = A.ravel(), B.ravel(), k
-        vals, mask = fld.lookup(g)
-        out = np.where(mask, vals.astype(np.float64) * lat.cell_size, np.nan).reshape(A.shape)
-        o, c = lat.origin, lat.cell_size
-        extent = (o[a] + ga[0] * c, o[a] + ga[-1] * c, o[b] + gb[0] * c, o[b] + gb[-1] * c)
-        return out, extent, o[axis] + k * c
-
-
-def load_job(job_dir: str | Path) -> JobView:
-    """Open a job directory for inspection (see :class:`JobView`)."""
-    return JobView(job_dir)

@@ -1,6 +1,6 @@
 """Resuming a tiled job: every result is keyed on what produced it, and reused only when that is unchanged.
 
-A job directory (see :class:`tiled_gridpull.scene.JobPaths`) keeps three kinds of results, each written
+A job directory (see :mod:`tiled_gridpull.jobdir`) keeps three kinds of results, each written
 atomically (a killed run leaves at most a hidden temporary file, never a result that looks complete):
 
 * the **partition** (``points/*.points`` spill files, ``points/*.occ.npy`` occupancy masks and
@@ -33,18 +33,18 @@ import hashlib
 import json
 import os
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ._version import __version__
-from .errors import InputError
+from .config import SolverConfig
+from .errors import ConfigError, InputError
 from .io.atomic import _json_default, write_json
-
-if TYPE_CHECKING:
-    from .config import SolverConfig
-    from .scene import JobPaths
-    from .tile import TileSpec, TilingConfig
+from .jobdir import JobPaths, spill_record
+from .stitch import mesh_tile
+from .tile_plan import TileSpec, plan_tiles
+from .tile_solve import orientation_rule, solve_tile
+from .tiling import TilingConfig
 
 __all__ = ["partition_key", "load_partition", "solve_key", "mesh_key", "solve_tile_resumable",
            "mesh_tile_resumable", "input_fingerprint"]
@@ -110,8 +110,6 @@ def load_partition(paths: "JobPaths", key: str, tiling: "TilingConfig"):
 
     Each tile's spill file must exist with the size its point count implies, and its occupancy mask must exist.
     """
-    from .tile import _RECORD, _RECORD_SENSOR, TileSpec, plan_tiles
-
     try:
         data = json.loads(paths.manifest.read_text())
     except (OSError, ValueError):
@@ -128,7 +126,7 @@ def load_partition(paths: "JobPaths", key: str, tiling: "TilingConfig"):
         for d in data["tiles"]:
             spec = TileSpec.from_dict(d)
             spill = paths.points() / f"{spec.name}.points"
-            size = (_RECORD_SENSOR if spec.has_sensor else _RECORD).itemsize * spec.n_points
+            size = spill_record(spec.has_sensor).itemsize * spec.n_points
             spec = dataclasses.replace(spec, points_path=str(spill))
             if (not spec.points_sha256 or not spill.is_file() or spill.stat().st_size != size
                     or not Path(spec.occupancy_path).is_file()):
@@ -156,11 +154,8 @@ def scan_record(scan: dict) -> dict:
 
 def solve_key(spec: "TileSpec", tiling: "TilingConfig", solver: "SolverConfig", centre=None) -> str:
     """Key of a tile's solve: its points (content hash), block, and the settings a tile solve reads."""
-    from .errors import ConfigError
-    from .tile import _orientation_rule
-
     try:
-        rule = _orientation_rule(tiling, spec.has_sensor)
+        rule = orientation_rule(tiling, spec.has_sensor)
     except ConfigError:
         rule = tiling.orientation
     settings = {k: v for k, v in solver.to_dict().items() if k not in SOLVE_SETTINGS_IGNORED}
@@ -218,13 +213,11 @@ def _record(summary: dict, summary_path: str | Path, key: str, output: str | Pat
 
 def solve_tile_resumable(spec: "TileSpec", tiling: "TilingConfig", solver: "SolverConfig", field_path: str | Path,
                          summary_path: str | Path, centre=None, before_solve=None) -> dict:
-    """:func:`tiled_gridpull.tile.solve_tile`, unless its summary shows the same key and the field is intact.
+    """:func:`tiled_gridpull.tile_solve.solve_tile`, unless its summary shows the same key and the field is intact.
 
     Solved and skipped tiles are recorded (skipping depends only on the key too); failed tiles are not, so a
     rerun tries them again. ``before_solve()`` runs only when the tile is actually solved (a test hook).
     """
-    from .tile import solve_tile
-
     key = solve_key(spec, tiling, solver, centre)
     prev, why = _reusable(Path(summary_path), key, ("solved", "skipped"), field_path)
     if prev is not None:
@@ -249,8 +242,6 @@ def mesh_tile_resumable(spec: "TileSpec", own: dict, neighbors: list[tuple["Tile
                         summary_path: str | Path) -> dict:
     """Blend and mesh a solved tile (:func:`tiled_gridpull.stitch.mesh_tile`) unless an intact piece with the
     same key exists. ``neighbors`` are ``(spec, solve summary, field path)`` of the solved neighbours."""
-    from .stitch import mesh_tile
-
     key = mesh_key(spec, own["field_sha256"], [(s.name, summ["field_sha256"]) for s, summ, _ in neighbors],
                    tiling, key_ref)
     prev, why = _reusable(Path(summary_path), key, ("meshed",), piece_path)

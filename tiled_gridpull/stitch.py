@@ -141,7 +141,9 @@ def mesh_tile(spec, neighbors: list, tiling, key_ref: np.ndarray, field_path: st
     from .kernels import BRICK
     from .kernels.band import brick_neighbors
     from .mesh import extract_mesh
-    from .tile import load_tile_field, peak_rss_mb, read_tile_points, reset_peak_rss
+    from .memory import peak_rss_mb, reset_peak_rss
+    from .partition import read_tile_points
+    from .tile_field import load_tile_field
 
     t0 = time.perf_counter()
     reset_peak_rss()

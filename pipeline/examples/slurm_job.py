@@ -61,7 +61,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from tiled_gridpull.pipeline.job import JobOptions, run_job
     from tiled_gridpull.config import SolverConfig, load_config_file
-    from tiled_gridpull.tile import TilingConfig, check_compatible
+    from tiled_gridpull.tiling import check_compatible, TilingConfig
 
     settings = load_config_file(a.config)
     if a.voxel_size:

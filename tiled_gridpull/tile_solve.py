@@ -1,0 +1,115 @@
+"""Solving one tile: its points in, its field written (run alike by the serial and the Dask executor)."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .config import SolverConfig
+from .errors import ConfigError, GridPullError
+from .kernels import BRICK
+from .lattice import Lattice
+from .memory import peak_rss_mb, reset_peak_rss
+from .orient import estimate_normals, orient_normals, orientation_score, plane_distance_init
+from .partition import read_tile_points
+from .solver import solve
+from .tile_field import save_tile_field
+from .tile_plan import TileSpec
+from .tiling import TilingConfig
+
+__all__ = ["solve_tile", "orientation_rule"]
+
+def orientation_rule(tiling: TilingConfig, has_sensor: bool) -> str:
+    """The orientation rule a tile applies: ``tiling.orientation`` with ``auto`` resolved (sensor when the tile
+    has sensor origins, else up).
+
+    Raises
+    ------
+    ConfigError
+        ``sensor`` asked for a tile without sensor origins.
+    """
+    if tiling.orientation == "auto":
+        return "sensor" if has_sensor else "up"
+    if tiling.orientation == "sensor" and not has_sensor:
+        raise ConfigError("orientation 'sensor' needs sensor origins (KITTI sequences); use 'up' or 'auto'")
+    return tiling.orientation
+
+
+def solve_tile(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig, field_path: str | Path,
+               centre: tuple[float, float, float] | None = None) -> dict:
+    """Solve one tile and write its field; returns a small summary (never raises for data reasons).
+
+    The field is solved in a tile-local frame (metres from the block's low corner) so float32 is exact, and
+    written with global brick coordinates for the blend pass. Orientation follows ``tiling.orientation``; after
+    the solve the field is flipped if it disagrees with the oriented normals (the loss is sign-blind, so the
+    initial orientation could in principle be lost; every tile applies the same rule, so tiles agree).
+    ``centre`` (world) is the input's bounding-box centre, used by the ``outward`` rule.
+    """
+    t0 = time.perf_counter()
+    reset_peak_rss()
+    summary: dict = {"tile": spec.name, "index": list(spec.index), "points": spec.n_points}
+    try:
+        xyz32, sensor32 = read_tile_points(spec)
+        xyz = xyz32.astype(np.float64)
+        keep = np.unique(xyz32.view(np.dtype((np.void, 12))).ravel(), return_index=True)[1]
+        if len(keep) < len(xyz):
+            keep.sort()
+            summary["duplicates_dropped"] = int(len(xyz) - len(keep))
+            xyz = xyz[keep]
+            sensor32 = sensor32[keep] if sensor32 is not None else None
+        summary["points_used"] = int(len(xyz))
+        if len(xyz) < tiling.min_points:
+            summary.update(status="skipped", reason=f"{len(xyz)} points (< min_points {tiling.min_points})")
+            summary["time_s"] = time.perf_counter() - t0
+            summary["peak_rss_mb"] = peak_rss_mb()
+            return summary
+        local = Lattice((0.0, 0.0, 0.0), spec.block.cell_size, spec.block.shape)
+        rule = orientation_rule(tiling, sensor32 is not None)
+        init = None
+        normals = None
+        if rule != "sphere":
+            normals = estimate_normals(xyz, tiling.normal_neighbors)
+            away = None
+            if rule == "outward":
+                if centre is None:
+                    raise ConfigError("orientation 'outward' needs the centre of the input")
+                away = np.asarray(centre, np.float64) - spec.block.low_corner
+            normals = orient_normals(normals, xyz, sensor32.astype(np.float64) if rule == "sensor" else None,
+                                     away_from=away)
+            init = lambda band: plane_distance_init(band, xyz / band.lattice.cell_size, normals)  # noqa: E731
+        fld = solve(xyz, local, solver, init=init, history_every=100)
+        flipped = False
+        if normals is not None:
+            _, grads = fld.sample(xyz)
+            if orientation_score(grads, normals) < 0:
+                fld.values *= -1
+                flipped = True
+        off_bricks = np.asarray(spec.block.offset, np.int64) // BRICK
+        field_sha = save_tile_field(field_path, fld.band.brick_coords.astype(np.int64) + off_bricks, fld.values,
+                                    fld.band.flags)
+        hist = fld.info.get("history", [])
+        summary.update(status="solved", flipped=flipped, orientation=rule, field_sha256=field_sha,
+                       band_params=int(fld.band.n_params), bricks=int(fld.band.n_bricks),
+                       level_bricks=[lv["band"]["bricks"] for lv in fld.info.get("levels", [])],
+                       final_pull=hist[-1]["pull"] if hist else None,
+                       loss_first=_loss_point(hist[0], fld.info) if hist else None,
+                       loss_last=_loss_point(hist[-1], fld.info) if hist else None,
+                       loss_curve=[(h["iteration"], h["pull"], h["tv"]) for h in hist],
+                       field_path=str(field_path))
+    except GridPullError as exc:
+        summary.update(status="failed", reason=str(exc))
+    summary["time_s"] = time.perf_counter() - t0
+    summary["peak_rss_mb"] = peak_rss_mb()
+    return summary
+
+
+def _loss_point(record: dict, info: dict) -> dict:
+    """The part of a solver history record kept in a tile summary: pull and TV losses in cells of the record's
+    level, that level's ``cell_size`` (world units) and the pull loss in world units (``pull_world``)."""
+    level = int(record["level"])
+    levels = info.get("levels", [])
+    cell = float(levels[level]["cell_size"]) if level < len(levels) else float("nan")
+    return {"iteration": int(record["iteration"]), "level": level, "pull": float(record["pull"]),
+            "tv": float(record["tv"]), "cell_size": cell, "pull_world": float(record["pull"]) * cell}

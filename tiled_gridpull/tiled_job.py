@@ -1,0 +1,359 @@
+"""The tiled job: one driver (partition, solve and mesh every tile, weld, report) with interchangeable executors.
+
+:func:`run_tiled_job` does everything a tiled job does whatever runs its tiles: the job lock, the memory budget
+(``max_memory``), the partition (reused when unchanged), tile results reused by content key
+(:mod:`tiled_gridpull.resume`), fail-fast, the weld, the mesh's sidecar metadata and the job's report. An
+executor only runs the tiles' solve and mesh steps and yields their summaries:
+
+* :class:`SerialExecutor` (here): every tile in this process, one after the other; no Dask needed;
+* ``tiled_gridpull.pipeline.job.DaskExecutor``: tiles as tasks on a Dask cluster.
+
+:func:`reconstruct_scene` is the serial entry point. The files of a job directory are described in
+:mod:`tiled_gridpull.jobdir`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import time
+from collections.abc import Callable, Iterable, Iterator
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+from tqdm import tqdm
+
+from ._version import __version__
+from .config import SolverConfig
+from .errors import InputError, TileFailedError
+from .io import write_mesh, write_mesh_and_sidecar
+from .jobdir import JobPaths, job_lock, neighbors_of
+from .memory import check_memory, peak_rss_mb
+from .mesh import Mesh
+from .report import write_report
+from .resume import mesh_tile_resumable, solve_tile_resumable
+from .prepare import prepare_job
+from .stitch import load_piece, mesh_tile, weld_pieces
+from .tile_plan import TilePlan, TileSpec
+from .tile_solve import solve_tile
+from .tiling import TilingConfig, check_compatible
+
+log = logging.getLogger("tiled_gridpull")
+
+__all__ = ["run_tiled_job", "reconstruct_scene", "TileExecutor", "SerialExecutor", "solve_step", "mesh_step",
+           "collect_summaries", "finish_job", "job_metadata", "plan_centre", "key_reference",
+           "check_some_tile_solvable", "check_some_tile_solved"]
+
+#: One finished tile step from an executor: ``(kind, tile index, summary)``, ``kind`` "solve" or "mesh".
+TileEvent = tuple[str, tuple[int, int, int], dict]
+
+
+class TileExecutor(Protocol):
+    """What runs a job's tile steps (:class:`SerialExecutor`, ``tiled_gridpull.pipeline.job.DaskExecutor``).
+
+    Attributes
+    ----------
+    engine : dict
+        Recorded as the job metadata's ``engine`` (``scheduler``, ``workers``).
+    """
+
+    engine: dict
+
+    def check(self) -> None:
+        """Refuse, before the partition, a job this executor cannot run (e.g. an unreachable scheduler)."""
+
+    def run(self, specs: list[TileSpec], tiling: TilingConfig, solver: SolverConfig, paths: JobPaths,
+            centre: tuple[float, float, float], key_ref: np.ndarray) -> Iterator[TileEvent]:
+        """Run every tile's :func:`solve_step` and then, once it and its neighbours are solved, its
+        :func:`mesh_step`, with the job directory's field, piece and summary paths; yield each summary as it
+        comes. Closing the iterator releases what the executor holds (a cluster)."""
+
+
+def solve_step(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig, field_path: str, centre,
+               summary_path: str | None = None, before_solve: Callable[[], None] | None = None) -> dict:
+    """Solve one tile (:func:`tiled_gridpull.tile_solve.solve_tile`), or reuse its recorded result when
+    ``summary_path`` is given (:func:`tiled_gridpull.resume.solve_tile_resumable`; ``before_solve()`` runs only
+    when the tile is actually solved)."""
+    if summary_path is None:
+        return solve_tile(spec, tiling, solver, field_path, centre=centre)
+    return solve_tile_resumable(spec, tiling, solver, field_path, summary_path, centre, before_solve=before_solve)
+
+
+def mesh_step(spec: TileSpec, own: dict, neighbor_specs: list, neighbor_summaries: list, tiling: TilingConfig,
+              key_ref, field_paths: dict, piece_path: str, summary_path: str | None = None) -> dict:
+    """Blend a solved tile with its solved neighbours and mesh its core (or reuse its recorded piece when
+    ``summary_path`` is given). ``own`` and ``neighbor_summaries`` are solve summaries; ``field_paths`` maps the
+    tile's and its neighbours' names to their fields."""
+    if own.get("status") != "solved":
+        return {"tile": spec.name, "status": "not solved", "faces": 0}
+    solved = [(s, summ) for s, summ in zip(neighbor_specs, neighbor_summaries) if summ.get("status") == "solved"]
+    if summary_path is None:
+        out = mesh_tile(spec, [(s, field_paths[s.name]) for s, _ in solved], tiling, key_ref,
+                        field_paths[spec.name], piece_path)
+        out["status"] = "meshed"
+        return out
+    return mesh_tile_resumable(spec, own, [(s, summ, field_paths[s.name]) for s, summ in solved], tiling, key_ref,
+                               field_paths[spec.name], piece_path, summary_path)
+
+
+class SerialExecutor:
+    """Runs a job's tiles in this process, one after the other: every solve in tile order, then every mesh.
+
+    Parameters
+    ----------
+    log : callable, optional
+        Called with one line per solved tile (``tile_0_0_0: solved (12.3 s)``).
+    """
+
+    engine = {"scheduler": "serial", "workers": 1}
+
+    def __init__(self, log: Callable[[str], None] | None = None):
+        self.log = log
+
+    def check(self) -> None:
+        return None
+
+    def run(self, specs: list[TileSpec], tiling: TilingConfig, solver: SolverConfig, paths: JobPaths,
+            centre: tuple[float, float, float], key_ref: np.ndarray) -> Iterator[TileEvent]:
+        specs = sorted(specs, key=lambda s: s.index)
+        by_index = {s.index: s for s in specs}
+        summaries: dict[tuple, dict] = {}
+        for s in specs:
+            out = solve_step(s, tiling, solver, str(paths.field(s)), centre, str(paths.summary("solve", s)))
+            if not out.get("reused"):
+                out["worker"] = "local"
+            summaries[s.index] = out
+            if self.log:
+                self.log(f"{s.name}: {out['status']} ({out.get('reason', '')}{out['time_s']:.1f} s)")
+            yield "solve", s.index, out
+        for s in specs:
+            nbs = neighbors_of(s, by_index)
+            fields = {t.name: str(paths.field(t)) for t in [s, *nbs]}
+            yield "mesh", s.index, mesh_step(s, summaries[s.index], nbs, [summaries[n.index] for n in nbs], tiling,
+                                             key_ref, fields, str(paths.piece(s)), str(paths.summary("mesh", s)))
+
+
+def reconstruct_scene(inputs: list[str], output: str | Path | None, tiling: TilingConfig, solver: SolverConfig,
+                      work_dir: str | Path, *, frames=None, float32: bool = False,
+                      log: Callable[[str], None] | None = None, tile_meshes: str | Path | None = None,
+                      fail_fast: bool = False, max_memory: int | None = None) -> Mesh:
+    """Tiled reconstruction, one tile after the other in this process (no Dask): :func:`run_tiled_job` with a
+    :class:`SerialExecutor`.
+
+    Returns the welded mesh; ``mesh.metadata`` describes the job (lattice, settings, per-tile summaries,
+    timings).
+    """
+    return run_tiled_job(inputs, output, tiling, solver, work_dir, SerialExecutor(log), frames=frames,
+                         float32=float32, tile_meshes=tile_meshes, fail_fast=fail_fast, max_memory=max_memory,
+                         progress=False)
+
+
+def run_tiled_job(inputs: list[str], output: str | Path | None, tiling: TilingConfig, solver: SolverConfig,
+                  work_dir: str | Path, executor: TileExecutor, *, frames=None, float32: bool = False,
+                  tile_meshes: str | Path | None = None, fail_fast: bool = False, max_memory: int | None = None,
+                  progress: bool = True) -> Mesh:
+    """A tiled reconstruction whose tiles ``executor`` runs; writes ``output`` (when given) with its sidecar and
+    the job's report, returns the welded mesh.
+
+    Parameters
+    ----------
+    inputs : list of str
+        Point files or KITTI sequence directories.
+    output : str or Path, optional
+        The mesh to write.
+    work_dir : str or Path
+        The job directory (:mod:`tiled_gridpull.jobdir`); a rerun there reuses every unchanged result.
+    executor : TileExecutor
+    frames : optional
+        KITTI frame range.
+    float32 : bool
+        Write float32 vertices with a recorded offset.
+    tile_meshes : str or Path, optional
+        Directory to also write one PLY per tile into.
+    fail_fast : bool
+        Stop at the first tile that fails for a data reason instead of producing the rest of the mesh.
+    max_memory : int, optional
+        Bytes one tile may use; the job is refused up front if a tile's estimate exceeds it.
+    progress : bool
+        Show a progress bar with an ETA.
+    """
+    check_compatible(tiling, solver)
+    executor.check()  # before the partition, not after it
+    work_dir = Path(work_dir).resolve()  # workers of an external cluster do not share this process's cwd
+    with job_lock(work_dir):
+        return _run(inputs, output, tiling, solver, JobPaths(work_dir), executor, frames=frames, float32=float32,
+                    tile_meshes=tile_meshes, fail_fast=fail_fast, max_memory=max_memory, progress=progress)
+
+
+def _run(inputs, output, tiling: TilingConfig, solver: SolverConfig, paths: JobPaths, executor: TileExecutor, *,
+         frames, float32, tile_meshes, fail_fast, max_memory, progress) -> Mesh:
+    t0 = time.perf_counter()
+    check = None
+    if max_memory is not None:
+        # refuse before the partition writes anything
+        def check(planned, occupancy):
+            check_some_tile_solvable(planned, tiling)
+            check_memory(planned, tiling, solver, max_memory, occupancy=occupancy)
+    plan, specs, scan = prepare_job(inputs, tiling, paths, frames=frames, check=check)
+    t_part = time.perf_counter()
+    log.info("%s %d points into %d tiles (%d planned) in %.1f s",
+             "reused the partition of" if scan.get("partition_reused") else "partitioned", scan["points"],
+             len(specs), int(plan.tile_range[0] * plan.tile_range[1] * plan.tile_range[2]), t_part - t0)
+    check_some_tile_solvable(specs, tiling)
+    if max_memory is not None and scan.get("partition_reused"):
+        check_memory(specs, tiling, solver, max_memory)
+    events = executor.run(specs, tiling, solver, paths, plan_centre(plan), key_reference(plan))
+    with contextlib.closing(events):
+        solve_summaries, mesh_summaries = collect_summaries(events, len(specs), fail_fast=fail_fast,
+                                                            progress=progress)
+    for s in solve_summaries + mesh_summaries:
+        if s.get("redone"):
+            log.warning("%s: %s; computed again", s["tile"], s["redone"])
+    check_some_tile_solved(solve_summaries)
+    t_mesh = time.perf_counter()
+    by_index = {s.index: s for s in specs}
+    n_solve = sum(1 for s in solve_summaries if s.get("reused"))
+    n_mesh = sum(1 for m in mesh_summaries if m.get("reused"))
+    log.info("reused %d of %d tile solves and %d of %d mesh pieces from %s", n_solve, len(solve_summaries), n_mesh,
+             sum(1 for m in mesh_summaries if m.get("status") == "meshed"), paths.root)
+    failed = [s for s in solve_summaries if s["status"] == "failed"]
+    if failed and fail_fast:
+        raise TileFailedError(f"{len(failed)} tile(s) failed: " + "; ".join(f"{s['tile']}: {s.get('reason')}"
+                                                                          for s in failed[:5]))
+    meta = job_metadata(plan, tiling, solver, scan, solve_summaries, mesh_summaries,
+                        {"partition": t_part - t0, "solve_and_mesh": t_mesh - t_part})
+    meta["engine"] = dict(executor.engine)
+    # a mesh task that failed (it killed its worker) leaves its tile out of the mesh: report it like a solve
+    meta["tiles"]["not_solved"] += [{"tile": m["tile"], "status": "failed", "reason": m.get("reason")}
+                                    for m in mesh_summaries if m.get("status") == "failed"]
+    meta["reused"] = {"partition": bool(scan.get("partition_reused")), "solves": n_solve, "meshes": n_mesh}
+    pieces = [paths.piece(by_index[tuple(m["index"])]) for m in mesh_summaries if m.get("status") == "meshed"]
+    mesh = finish_job(pieces, meta, float32=float32, tile_meshes=tile_meshes)
+    mesh.metadata["timings_s"]["merge"] = time.perf_counter() - t_mesh
+    mesh.metadata["timings_s"]["total"] = time.perf_counter() - t0
+    if output is not None:
+        # one commit: a sidecar that cannot be written leaves no mesh behind
+        write_mesh_and_sidecar(mesh, output, float32=float32)
+    write_report(paths.root, mesh.metadata, output=output)  # report.json + tiles.png in the job directory
+    return mesh
+
+
+def collect_summaries(events: Iterable[TileEvent], n_tiles: int, *, fail_fast: bool = False,
+                      progress: bool = True) -> tuple[list, list]:
+    """Consume an executor's events with a progress bar (tasks done / total, ETA); summaries in tile order.
+
+    Returns
+    -------
+    solve, mesh : list of dict
+        The solve and the mesh summaries, each in tile order, with ``index`` set.
+
+    Raises
+    ------
+    TileFailedError
+        ``fail_fast`` and a tile's solve failed.
+    """
+    bar = tqdm(total=2 * n_tiles, unit="task", desc="tiles", disable=not progress, dynamic_ncols=True)
+    results: dict = {}
+    try:
+        for kind, idx, res in events:
+            res["index"] = list(idx)
+            results[(kind, idx)] = res
+            bar.update(1)
+            if kind == "solve":
+                bar.set_postfix_str(f"{res['tile']} {res['status']}", refresh=False)
+                if res["status"] == "failed":
+                    # said now for a live view; the closing summary repeats it as a warning
+                    log.info("%s failed: %s", res["tile"], res.get("reason"))
+                    if fail_fast:
+                        raise TileFailedError(f"{res['tile']} failed: {res.get('reason')}")
+    finally:
+        bar.close()
+    ordered = sorted(results.items())  # by (kind, tile index)
+    solve = [v for (kind, _), v in ordered if kind == "solve"]
+    mesh = [v for (kind, _), v in ordered if kind == "mesh"]
+    return solve, mesh
+
+
+def plan_centre(plan: TilePlan) -> tuple[float, float, float]:
+    """Centre of the input's bounding box (world), for the ``outward`` orientation rule."""
+    return tuple(float(v) for v in plan.bounds.mean(axis=0))
+
+
+def key_reference(plan: TilePlan) -> np.ndarray:
+    """Global vertex index edge keys count from (below every tile block)."""
+    return np.asarray(plan.lattice.offset, np.int64) - plan.config.overlap_cells
+
+
+def finish_job(pieces: Iterable[Path], metadata: dict, *, float32: bool = False,
+               tile_meshes: str | Path | None = None) -> Mesh:
+    """Weld the tile pieces into one mesh carrying ``metadata``. The caller writes it, once its timings are in,
+    with its sidecar as one commit (:func:`~tiled_gridpull.io.write_mesh_and_sidecar`).
+
+    ``tile_meshes``: also write each tile's piece as ``<dir>/<tile>.ply`` (input coordinates; pieces share their
+    border vertices exactly, so they fit together without gaps).
+    """
+    loaded = [(Path(p), load_piece(p)) for p in pieces]
+    if tile_meshes is not None:
+        out_dir = Path(tile_meshes)
+        out_dir.mkdir(parents=True, exist_ok=True)
+        for p, piece in loaded:
+            if len(piece.faces):
+                write_mesh(Mesh(piece.vertices, piece.faces), out_dir / f"{p.stem}.ply", float32=float32)
+    mesh = weld_pieces([piece for _, piece in loaded])
+    mesh.metadata.update(metadata)
+    mesh.metadata["mesh"] = mesh.topology.to_dict()
+    return mesh
+
+
+def check_some_tile_solvable(specs: list[TileSpec], tiling: TilingConfig) -> None:
+    """Refuse, before any solve, a job none of whose tiles holds ``min_points`` points."""
+    largest = max((s.n_points for s in specs), default=0)
+    if largest < tiling.min_points:
+        raise InputError(f"no tile holds min_points ({tiling.min_points}) points, the largest holds {largest}: "
+                         "lower min_points or raise tile_size")
+
+
+def check_some_tile_solved(summaries: list[dict]) -> None:
+    """Stop a job none of whose tiles was solved before it writes anything: an empty mesh with exit 0 would
+    look like a result. All tiles failed: :class:`TileFailedError`; else (skipped, e.g. duplicates left too few
+    points): :class:`InputError`."""
+    if any(s["status"] == "solved" for s in summaries):
+        return
+    first = summaries[0] if summaries else {"tile": "-", "reason": "no tiles"}
+    error = TileFailedError if any(s["status"] == "failed" for s in summaries) else InputError
+    raise error(f"no tile was solved, nothing written ({len(summaries)} tile(s); {first['tile']}: "
+                f"{first.get('reason')})")
+
+
+def job_metadata(plan: TilePlan, tiling: TilingConfig, solver: SolverConfig, scan: dict, solve_summaries: list,
+                 mesh_summaries: list, timings: dict) -> dict:
+    """The self-describing record written beside a scene mesh."""
+    failed = [s for s in solve_summaries if s["status"] != "solved"]
+    return {
+        "generator": f"tiled_gridpull {__version__}",
+        "version": __version__,
+        "lattice": plan.lattice.to_dict(),
+        "tiling": tiling.to_dict(),
+        "config": solver.to_dict(),
+        "input": {"points": scan["points"], "bounds": np.asarray(scan["bounds"]).tolist(),
+                  "has_sensor": scan["has_sensor"]},
+        "crs": scan.get("crs"),
+        "tiles": {"planned": int(np.prod(plan.tile_range)), "with_points": len(solve_summaries),
+                  "solved": len(solve_summaries) - len(failed),
+                  "not_solved": [{"tile": s["tile"], "status": s["status"], "reason": s.get("reason")} for s in failed]},
+        "tile_summaries": [{k: v for k, v in s.items() if k != "loss_curve"} for s in solve_summaries],
+        "mesh_summaries": mesh_summaries,
+        "timings_s": dict(timings),
+        "memory_mb": _memory_summary(solve_summaries, mesh_summaries),
+    }
+
+
+def _memory_summary(solve_summaries: list, mesh_summaries: list) -> dict:
+    """Peak resident memory: the largest single tile task (solve or mesh) and this (driver) process."""
+    def biggest(rows):
+        vals = [r.get("peak_rss_mb") for r in rows if r.get("peak_rss_mb") is not None]
+        return max(vals) if vals else None
+
+    return {"max_solve_task_peak_rss": biggest(solve_summaries), "max_mesh_task_peak_rss": biggest(mesh_summaries),
+            "driver_peak_rss": peak_rss_mb()}
