@@ -20,11 +20,11 @@ __all__ = ["plan_job", "format_plan"]
 def plan_job(inputs: list[str], tiling: TilingConfig, solver: SolverConfig, work_dir: str | Path, *, frames=None,
              workers: int | None = None, chunk_size: int = 2_000_000) -> dict:
     """Everything the dry run reports (see :func:`format_plan`)."""
-    from tiled_gridpull.memory import estimate_tiles
-    from tiled_gridpull.resume import load_partition, partition_key
     from tiled_gridpull.jobdir import JobPaths
-    from tiled_gridpull.prepare import plan_inputs
+    from tiled_gridpull.memory import estimate_tiles
     from tiled_gridpull.partition import partition
+    from tiled_gridpull.prepare import plan_inputs
+    from tiled_gridpull.resume import load_partition, partition_key
     from tiled_gridpull.tiling import check_compatible
 
     check_compatible(tiling, solver)

@@ -9,8 +9,8 @@ from tiled_gridpull.config import SolverConfig
 from tiled_gridpull.lattice import Lattice
 from tiled_gridpull.mesh import Mesh
 from tiled_gridpull.metrics import evaluate, point_to_mesh
-from tiled_gridpull.tiled_job import reconstruct_scene
 from tiled_gridpull.synthetic.street import StreetScene, build_street, scan_street
+from tiled_gridpull.tiled_job import reconstruct_scene
 from tiled_gridpull.tiling import TilingConfig
 
 ORIGIN = (500000.0, 4000000.0, 100.0)
@@ -88,8 +88,8 @@ def test_street_seams_accuracy_and_orientation(street, up_run):
 
 def _seam_cracks(mesh: Mesh, job, lattice: Lattice, tiling: TilingConfig, return_edges: bool = False):
     """Boundary edges lying in an interior tile plane: (those between two optimized cells, all of them)."""
-    from tiled_gridpull.kernels import CELL_OPT
     from tiled_gridpull.jobdir import read_manifest
+    from tiled_gridpull.kernels import CELL_OPT
     from tiled_gridpull.tile_field import load_tile_field
 
     _, specs = read_manifest(job / "manifest.json")
@@ -137,11 +137,10 @@ def _seam_cracks(mesh: Mesh, job, lattice: Lattice, tiling: TilingConfig, return
 
 def test_trimming_is_the_same_in_every_tile(street, up_run, tmp_path):
     """Re-mesh the solved tiles with trimming: faces far from every point go, the rest (and seams) stay."""
-    from tiled_gridpull.jobdir import neighbors_of
-    from tiled_gridpull.tiled_job import key_reference
+    from tiled_gridpull.jobdir import neighbors_of, read_manifest
     from tiled_gridpull.stitch import load_piece, mesh_tile, weld_pieces
-    from tiled_gridpull.jobdir import read_manifest
     from tiled_gridpull.tile_plan import TilePlan
+    from tiled_gridpull.tiled_job import key_reference
 
     d, scene, gt, scan = street
     mesh, tiling = up_run

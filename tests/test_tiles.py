@@ -12,11 +12,11 @@ from tiled_gridpull.kernels import BRICK, PARAM
 from tiled_gridpull.lattice import Lattice
 from tiled_gridpull.mesh import Mesh
 from tiled_gridpull.metrics import evaluate
-from tiled_gridpull.tiled_job import reconstruct_scene
+from tiled_gridpull.partition import partition, read_tile_points
 from tiled_gridpull.stitch import MeshPiece, weld_pieces
 from tiled_gridpull.synthetic import sample_shape, sphere
-from tiled_gridpull.partition import partition, read_tile_points
 from tiled_gridpull.tile_plan import plan_tiles
+from tiled_gridpull.tiled_job import reconstruct_scene
 from tiled_gridpull.tiling import TilingConfig
 
 OFFSET = np.array([500000.0, 4000000.0, 100.0])

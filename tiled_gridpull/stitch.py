@@ -140,8 +140,8 @@ def mesh_tile(spec, neighbors: list, tiling, key_ref: np.ndarray, field_path: st
     from .field import Field
     from .kernels import BRICK
     from .kernels.band import brick_neighbors
-    from .mesh import extract_mesh
     from .memory import peak_rss_mb, reset_peak_rss
+    from .mesh import extract_mesh
     from .partition import read_tile_points
     from .tile_field import load_tile_field
 

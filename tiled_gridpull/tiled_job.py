@@ -31,9 +31,9 @@ from .io import write_mesh, write_mesh_and_sidecar
 from .jobdir import JobPaths, job_lock, neighbors_of
 from .memory import check_memory, peak_rss_mb
 from .mesh import Mesh
+from .prepare import prepare_job
 from .report import write_report
 from .resume import mesh_tile_resumable, solve_tile_resumable
-from .prepare import prepare_job
 from .stitch import load_piece, mesh_tile, weld_pieces
 from .tile_plan import TilePlan, TileSpec
 from .tile_solve import solve_tile
