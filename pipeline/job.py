@@ -49,7 +49,9 @@ NO_WORKER_TIMEOUT_S = 120.0
 
 @dataclass(frozen=True)
 class JobOptions:
-    """How a job runs (not what it computes).
+    """How a job runs (not what it computes): ``fail_fast``, ``float32``, ``progress``, ``tile_meshes`` and
+    ``max_memory`` go to the driver (:func:`tiled_gridpull.tiled_job.run_tiled_job`), the rest to the
+    :class:`DaskExecutor`.
 
     Attributes
     ----------
