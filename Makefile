@@ -1,11 +1,12 @@
 # Two commands do everything on a fresh machine: `make demo` and `make test` (each creates .venv if missing).
+# Daily work: `make check` (the tests not marked slow, under 2 minutes once numba's cache is warm) and `make lint`.
 PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 DEMO := demo_out
 
-.PHONY: demo test bench venv clean
+.PHONY: demo test check lint bench venv clean
 
 venv: $(STAMP)
 
@@ -22,8 +23,16 @@ demo: $(STAMP)
 	$(VENV)/bin/tiled-gridpull reconstruct $(DEMO)/street.laz -o $(DEMO)/street_mesh.ply --config configs/scene.yaml
 	$(VENV)/bin/tiled-gridpull evaluate $(DEMO)/street_mesh.ply $(DEMO)/street_gt.ply --observed $(DEMO)/street.laz --thresholds 0.05 0.1 0.2
 
+# the full suite, slow end-to-end tests included (what CI runs)
 test: $(STAMP)
 	$(PY) -m pytest -q
+
+# the fast tier: everything not marked slow
+check: $(STAMP)
+	$(PY) -m pytest -q -m "not slow"
+
+lint: $(STAMP)
+	$(PY) -m ruff check tiled_gridpull pipeline tests benchmarks
 
 bench: $(STAMP)
 	$(PY) -m pip install --quiet -e ".[bench]"

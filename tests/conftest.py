@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
-SHARED = REPO.parent / "shared" / "data"
+# ../shared/data beside the checkout; a worktree elsewhere points at it with TILED_GRIDPULL_SHARED_DATA
+SHARED = Path(os.environ.get("TILED_GRIDPULL_SHARED_DATA") or REPO.parent / "shared" / "data")
 
 
 def shared_file(*parts: str) -> Path:

@@ -93,6 +93,7 @@ def test_config_key_given_twice_is_refused(tmp_path, capsys, sphere_xyz):
     assert not (tmp_path / "o.ply").exists()
 
 
+@pytest.mark.slow
 def test_reconstruct_evaluate_roundtrip(tmp_path, capsys, sphere_xyz):
     out = tmp_path / "mesh.ply"
     code, _, err = run(["reconstruct", str(sphere_xyz), "-o", str(out), "-q", "--resolution", "40",

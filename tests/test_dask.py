@@ -54,6 +54,7 @@ def cluster(tmp_path):
                 p.kill()
 
 
+@pytest.mark.slow
 def test_job_on_separately_started_scheduler_and_workers(tmp_path, cluster):
     pts = terrain(19.2, 40)
     np.save(tmp_path / "ground.npy", pts)
@@ -72,6 +73,7 @@ def test_job_on_separately_started_scheduler_and_workers(tmp_path, cluster):
     assert side["mesh"]["nonmanifold_edges"] == 0 and side["mesh"]["n_faces"] > 1000
 
 
+@pytest.mark.slow
 def test_worker_memory_does_not_grow_with_tile_count(tmp_path):
     from tiled_gridpull.pipeline.job import JobOptions, run_job
 
@@ -240,6 +242,7 @@ if __name__ == "__main__":
 '''
 
 
+@pytest.mark.slow
 def test_workers_compile_fresh_kernels_when_numba_was_imported_first(tmp_path):
     """A cold numba cache compiles inside the workers; that must not trip over the thread-pool size (it did:
     `make demo` on a fresh machine failed with "Cannot set NUMBA_NUM_THREADS ...")."""
@@ -294,6 +297,7 @@ def _slow_solve(spec):
     return {"tile": spec.name, "status": "solved"}
 
 
+@pytest.mark.slow
 def test_cluster_without_workers_stops_the_job_instead_of_hanging():
     """Every worker gone (scaled away here; killed in real life): the job stops with a clear error after the
     no-worker timeout instead of waiting for ever."""

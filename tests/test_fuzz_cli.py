@@ -120,6 +120,7 @@ def _damage(path: Path, how: str, where: float, target: Path) -> None:
           suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
 @given(pick=st.floats(0.0, 1.0, exclude_max=True), how=st.sampled_from(
     ["truncate", "flip", "zero", "delete", "symlink", "directory"]), where=st.floats(0.0, 1.0))
+@pytest.mark.slow
 def test_damaged_job_directory_is_redone_or_refused_in_one_line(finished_job, capsys, pick, how, where):
     """Damage one file of a finished job directory (truncate, flip or zero bytes, delete it, or put a symlink or
     a directory in its place) and rerun: the job redoes what it cannot trust and writes the same mesh, or refuses

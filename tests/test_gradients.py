@@ -88,6 +88,7 @@ def _tv_loss(values, band, form):
 
 
 @pytest.mark.parametrize("form", [ks.TV_SQUARED, ks.TV_SQRT])
+@pytest.mark.slow
 def test_tv_gradient_matches_finite_differences(small_band, form):
     band, _, values = small_band
     flags = band.flags.reshape(-1)

@@ -61,6 +61,7 @@ def street_job(street):
     return est, mesh.metadata
 
 
+@pytest.mark.slow
 def test_memory_estimate_is_an_upper_bound_within_2x_on_the_street(street_job):
     est, meta = street_job
     solves = {s["tile"]: s for s in meta["tile_summaries"]}

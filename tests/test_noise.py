@@ -45,6 +45,7 @@ def test_clean_cloud_is_not_noisy_and_shift_does_not_matter():
     assert abs(far.sigma - est.sigma) < 1e-3 * est.spacing
 
 
+@pytest.mark.slow
 def test_noise_cells_lowers_the_resolution_and_is_recorded():
     pts = noisy_sphere(30_000, 0.006)
     mesh = reconstruct(pts, resolution=128, noise_cells=1.5, beta=0.0, **FAST)
@@ -55,6 +56,7 @@ def test_noise_cells_lowers_the_resolution_and_is_recorded():
     assert est["cells"] == pytest.approx(est["sigma"] / mesh.metadata["lattice"]["cell_size"])
 
 
+@pytest.mark.slow
 def test_noisy_preset_beats_the_default_on_a_noisy_sphere():
     """1 % of the diameter of noise, twice the samples' spacing: the preset's surface lies closer to the sphere."""
     pts = noisy_sphere(80_000, 0.01)
@@ -80,6 +82,7 @@ def test_noise_cells_refused_in_tiled_mode():
         SolverConfig(noise_cells=-1)
 
 
+@pytest.mark.slow
 def test_plane_projection_removes_scatter_across_the_surface_only():
     from tiled_gridpull.noise import project_to_local_planes
 
@@ -124,6 +127,7 @@ def thin_part(gap: float, sigma: float, n: int = 40_000, seed: int = 0) -> tuple
     return np.column_stack([xy, z]), which
 
 
+@pytest.mark.slow
 def test_robust_projection_keeps_two_close_walls_apart():
     """Walls 4 sigma apart share every 64-point neighbourhood: the plain fit merges them into one sheet between,
     the robust (bilateral) fit moves each point toward its own wall."""
@@ -146,6 +150,7 @@ def test_robust_projection_keeps_two_close_walls_apart():
     assert wall_error(robust) < 0.7 * wall_error(pts)
 
 
+@pytest.mark.slow
 def test_robust_projection_still_denoises_a_single_sheet():
     """On one noisy surface the robust weights keep some scatter the plain fit removes (measured: 1.4x its residual
     at 64 neighbours) but still take out most of it, with 64 neighbours and with the preset's 32."""

@@ -117,6 +117,7 @@ def test_real_files_cut_anywhere_in_the_header_or_first_records(data):
 @needs_shared
 @FAST
 @given(data=st.data())
+@pytest.mark.slow
 def test_real_files_with_damaged_headers(data):
     name = data.draw(st.sampled_from(sorted(_sources())), label="file")
     suffix, raw, region = _sources()[name]

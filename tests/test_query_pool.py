@@ -20,6 +20,7 @@ def _solve(**changes):
     return solve(pts, Lattice.fit(pts, cfg.resolution, cfg.margin), cfg)
 
 
+@pytest.mark.slow
 def test_a_pool_as_long_as_the_schedule_is_the_fresh_path():
     # batch b of the pool is drawn exactly as iteration b would be: with one batch per iteration, nothing changes
     fresh, pooled = _solve(query_pool=0), _solve(query_pool=1000)

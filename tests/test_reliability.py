@@ -80,6 +80,7 @@ def reference(data, shared):
     return out.read_bytes(), json.loads(out.with_suffix(".json").read_text())
 
 
+@pytest.mark.slow
 def test_failed_tile_is_named_and_the_rest_is_meshed(data, shared, reference, capsys, caplog):
     _, side = reference
     failed = [t for t in side["tiles"]["not_solved"] if t["status"] == "failed"]
@@ -98,6 +99,7 @@ def test_failed_tile_is_named_and_the_rest_is_meshed(data, shared, reference, ca
     assert "Traceback" not in err
 
 
+@pytest.mark.slow
 def test_fail_fast_stops_without_writing_a_mesh(data, shared, capsys):
     out = data / "ff.ply"
     code, err = run_cli(["reconstruct", str(data / "pts.npy"), "-o", str(out), "-q", "--fail-fast", *shared],
@@ -109,6 +111,7 @@ def test_fail_fast_stops_without_writing_a_mesh(data, shared, capsys):
     assert not out.exists() and not out.with_suffix(".json").exists()
 
 
+@pytest.mark.slow
 def test_same_inputs_seed_and_workers_give_identical_bytes(data, shared, reference):
     ref_bytes, _ = reference
     out = data / "second.ply"
@@ -143,6 +146,7 @@ def test_solver_result_does_not_depend_on_thread_count(data, tmp_path):
 # ---------------------------------------------------------------------------------------------- worker faults
 
 
+@pytest.mark.slow
 def test_worker_killed_mid_job_gives_the_undisturbed_mesh(data, reference, monkeypatch):
     """SIGKILL a worker process while it solves a tile: Dask reschedules its tasks and the job's mesh equals
     the undisturbed run's, array for array."""
@@ -181,6 +185,7 @@ def test_worker_killed_mid_job_gives_the_undisturbed_mesh(data, reference, monke
     assert (data / "fault.ply").read_bytes() == reference[0]
 
 
+@pytest.mark.slow
 def test_tile_that_keeps_killing_its_worker_is_a_failed_tile(data, monkeypatch, capsys):
     """A tile whose solve takes its worker process down on every attempt (Dask's KilledWorker) is reported as a
     failed tile by name, exit 6, with the rest of the mesh written; it used to end the job as an internal error."""
@@ -197,6 +202,7 @@ def test_tile_that_keeps_killing_its_worker_is_a_failed_tile(data, monkeypatch, 
     assert read_mesh(out).faces.shape[0] > 0
 
 
+@pytest.mark.slow
 def test_killed_worker_job_prints_only_its_own_lines_and_fails_no_bystander(data):
     """Run as a user would (a process of its own, whose LocalCluster workers share its stderr): Dask's chatter
     ("Couldn't gather keys", "marked as failed because 4 workers died") stays out of the terminal, and a tile
@@ -217,6 +223,7 @@ def test_killed_worker_job_prints_only_its_own_lines_and_fails_no_bystander(data
     assert failed == {victim}, side["tiles"]["not_solved"]
 
 
+@pytest.mark.slow
 def test_far_stray_point_is_counted_at_planning_and_dropped_on_request(data, capsys):
     """A point far from the rest (a (0, 0, 0) in a UTM cloud; here 1e6 away) stretches the lattice past what it
     can hold: refused at planning with how many points are far and how to drop them. With --drop-outliers the
@@ -264,6 +271,7 @@ def test_bad_scheduler_address_is_refused_before_any_work(data, capsys, address,
 # ---------------------------------------------------------------------------------------------------- resume
 
 
+@pytest.mark.slow
 def test_interrupted_job_resumes_to_the_same_bytes(data, shared, reference, capsys):
     ref_bytes, ref_side = reference
     out, work = data / "resumed.ply", data / "resumed.job"
@@ -299,6 +307,7 @@ def test_interrupted_job_resumes_to_the_same_bytes(data, shared, reference, caps
     assert side["reused"]["solves"] == done
 
 
+@pytest.mark.slow
 def test_changed_settings_invalidate_only_what_depends_on_them(data, shared, reference, caplog):
     """Trim distance is read only by the mesh step; iterations by the solve (and so the mesh)."""
     _, ref_side = reference

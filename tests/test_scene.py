@@ -61,6 +61,7 @@ def _ground_orientation_by_tile(mesh: Mesh, gt: Mesh, scan, tiling: TilingConfig
     return out
 
 
+@pytest.mark.slow
 def test_street_seams_accuracy_and_orientation(street, up_run):
     d, scene, gt, scan = street
     mesh, tiling = up_run
@@ -135,6 +136,7 @@ def _seam_cracks(mesh: Mesh, job, lattice: Lattice, tiling: TilingConfig, return
     return cracks, on_planes
 
 
+@pytest.mark.slow
 def test_trimming_is_the_same_in_every_tile(street, up_run, tmp_path):
     """Re-mesh the solved tiles with trimming: faces far from every point go, the rest (and seams) stay."""
     from tiled_gridpull.jobdir import neighbors_of, read_manifest
@@ -176,6 +178,7 @@ def test_trimming_is_the_same_in_every_tile(street, up_run, tmp_path):
         assert len(shared) == 2 and dd.max() > 3.0 * VOXEL
 
 
+@pytest.mark.slow
 def test_naive_sphere_per_tile_flips_where_sensor_rule_does_not(street, up_run):
     d, scene, gt, scan = street
     mesh, tiling = _run(street, "sphere", "sphere")
@@ -186,6 +189,7 @@ def test_naive_sphere_per_tile_flips_where_sensor_rule_does_not(street, up_run):
     assert min(naive.values()) < 0.5, naive
 
 
+@pytest.mark.slow
 def test_georeferenced_output_to_the_millimetre(street, up_run):
     d, scene, gt, scan = street
     mesh, _ = up_run
@@ -200,6 +204,7 @@ def test_georeferenced_output_to_the_millimetre(street, up_run):
     assert abs(mesh.vertices[:, 0].mean() - c[0]) < 100
 
 
+@pytest.mark.slow
 def test_float32_output_keeps_millimetres(street, up_run, tmp_path):
     from tiled_gridpull.io import read_mesh, write_mesh
 

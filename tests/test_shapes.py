@@ -56,6 +56,7 @@ def results():
 
 
 @pytest.mark.parametrize("name", list(SHAPES))
+@pytest.mark.slow
 def test_analytic_shape_watertight_and_accurate(results, name):
     gt, dist, mesh = results[name]
     cell = mesh.metadata["lattice"]["cell_size"]
@@ -78,6 +79,7 @@ def test_analytic_shape_watertight_and_accurate(results, name):
     assert mesh.signed_volume() > 0
 
 
+@pytest.mark.slow
 def test_output_in_input_coordinates(results):
     """A cloud shifted by (500000, 4000000, 100) gives the same mesh, shifted."""
     gt, _, ref = results["torus"]
@@ -94,6 +96,7 @@ def test_output_in_input_coordinates(results):
     assert moved.signed_volume() == pytest.approx(ref.signed_volume(), rel=1e-4)
 
 
+@pytest.mark.slow
 def test_seed_gives_bitwise_identical_mesh(results):
     gt, _, ref = results["sphere"]
     pts, _ = sample_shape(gt, 100_000, seed=1)

@@ -126,6 +126,7 @@ def sphere_job(tmp_path_factory):
     return gt, m8, m1, cell, d
 
 
+@pytest.mark.slow
 def test_closed_shape_across_8_tiles_is_watertight_manifold(sphere_job):
     gt, m8, m1, cell, d = sphere_job
     assert len(m8.metadata["tile_summaries"]) == 8
@@ -136,6 +137,7 @@ def test_closed_shape_across_8_tiles_is_watertight_manifold(sphere_job):
     assert m8.signed_volume() > 0  # outward orientation
 
 
+@pytest.mark.slow
 def test_tiled_matches_single_tile(sphere_job):
     gt, m8, m1, cell, d = sphere_job
     assert len(m1.metadata["tile_summaries"]) == 1
@@ -145,6 +147,7 @@ def test_tiled_matches_single_tile(sphere_job):
     assert r_gt["chamfer_l1_exact"] < 0.25 * cell
 
 
+@pytest.mark.slow
 def test_scene_outputs_are_self_describing(sphere_job):
     gt, m8, m1, cell, d = sphere_job
     side = json.loads((d / "tiled.json").read_text())

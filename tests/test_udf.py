@@ -115,6 +115,7 @@ def test_pinched_fans_keep_the_larger_fan():
 
 
 @pytest.mark.parametrize("make", [half_sphere, height_field], ids=["half_sphere", "terrain"])
+@pytest.mark.slow
 def test_udf_solve_gives_one_open_sheet(make):
     """The whole UDF mode (unsigned solve, signs, signed polish, trim) on an open surface: one sheet, one rim
     where the data ends, more accurate with the polish than without."""
@@ -146,6 +147,7 @@ def test_udf_solve_gives_one_open_sheet(make):
     assert mesh.metadata["solve"]["udf"]["polish_iterations"] == 200
 
 
+@pytest.mark.slow
 def test_udf_sparse_cloud_and_stray_point_stay_one_sheet():
     """A sparse cloud (samples farther apart than a cell) keeps one sheet: the trim reach follows the spacing;
     a lone stray point far from the sheet does not come back as a bubble."""
@@ -163,6 +165,7 @@ def test_udf_sparse_cloud_and_stray_point_stay_one_sheet():
     assert point_to_mesh(mesh.vertices, gt)[0].max() < reach + cell  # no bubble
 
 
+@pytest.mark.slow
 def test_udf_signs_follow_input_normals():
     """Oriented input normals (``--normals``) orient the sheet, here inward, against what propagation would pick;
     points without a normal follow their neighbours."""
