@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from ._version import __version__
+from .cloud import PointCloud, clean_points
 from .config import SolverConfig
 from .errors import ConfigError, InputError
 from .kernels.graph import vertex_components
@@ -93,8 +94,6 @@ def prepare_points(points: Any, normals: np.ndarray | None = None, *, what: str 
     report : dict
         What cleaning did.
     """
-    from .io.points import PointCloud, clean_points
-
     if isinstance(points, PointCloud):
         cloud = points
         if normals is not None:

@@ -173,14 +173,14 @@ def _crs_name(crs: str) -> str:
 
 
 def _chunks(inputs, chunk_size, frames):
-    from .io.points import iter_point_chunks, read_kitti_sequence
+    from .io import iter_point_chunks, read_kitti_sequence
 
     for path in inputs:
         p = Path(path)
         if p.is_dir():
             cloud = read_kitti_sequence(p, frames)
             for s in range(0, len(cloud), chunk_size):
-                from .io.points import PointCloud
+                from .cloud import PointCloud
 
                 yield PointCloud(cloud.xyz[s:s + chunk_size], sensor=cloud.sensor[s:s + chunk_size],
                                  source=cloud.source, crs=cloud.crs)
