@@ -1,4 +1,4 @@
-"""Tests for tiled_gridpull.cloud: the point-cloud type and its cleaning."""
+"""Tests for tiled_gridpull.cloud: the point-cloud type, its cleaning and the one duplicate test."""
 
 from __future__ import annotations
 
@@ -114,4 +114,21 @@ def test_extent_float64_cannot_resolve_is_refused(scale):
 
 
 # -- headers that declare fewer points than the file holds: the rest is not read, and the user is told ---------
+
+
+def test_duplicate_mask_with_signed_zeros_is_the_tile_solves_byte_test():
+    # solve_tile used np.unique on the bytes of its float32 rows (first occurrences, put back in order): the
+    # shared mask must keep exactly those rows, -0.0 and 0.0 apart
+    rng = np.random.default_rng(11)
+    for _ in range(20):
+        base = (rng.integers(-3, 4, size=(300, 3)) * 0.5).astype(np.float32)
+        xyz32 = np.ascontiguousarray(base[rng.integers(0, len(base), 1000)])
+        zeros = (xyz32 == 0) & (rng.random(xyz32.shape) < 0.5)
+        xyz32[zeros] = np.float32(-0.0)
+        by_bytes = np.sort(np.unique(xyz32.view(np.dtype((np.void, 12))).ravel(), return_index=True)[1])
+        kept = np.flatnonzero(~duplicate_mask(xyz32.astype(np.float64), signed_zeros=True))
+        np.testing.assert_array_equal(kept, by_bytes)
+    z = np.array([[0.0, 1.0, 2.0], [-0.0, 1.0, 2.0], [0.0, 1.0, 2.0]])
+    assert duplicate_mask(z, signed_zeros=True).tolist() == [False, False, True]
+    assert duplicate_mask(z).tolist() == [False, True, True]
 

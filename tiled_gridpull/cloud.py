@@ -2,7 +2,7 @@
 
 :class:`PointCloud` holds float64 world coordinates with optional normals, sensor origins and per-point
 attributes; :func:`clean_points` drops non-finite and duplicate points and refuses clouds a surface cannot be
-reconstructed from; :func:`duplicate_mask` finds exact duplicate points.
+reconstructed from; :func:`duplicate_mask` is the one duplicate test (the tile solve uses it too).
 """
 
 from __future__ import annotations
@@ -269,7 +269,7 @@ def _row_hash(words: np.ndarray) -> np.ndarray:
     return h
 
 
-def duplicate_mask(xyz: np.ndarray) -> np.ndarray:
+def duplicate_mask(xyz: np.ndarray, *, signed_zeros: bool = False) -> np.ndarray:
     """(N,) bool: True for every row equal to an earlier row (the first occurrence is kept).
 
     Rows are compared bit for bit, so ``~duplicate_mask(xyz)`` keeps the first occurrence of every point, in
@@ -278,7 +278,10 @@ def duplicate_mask(xyz: np.ndarray) -> np.ndarray:
     Parameters
     ----------
     xyz : (N, 3) float array
-        Coordinates (float32 rows compare as their exact float64 values); -0.0 and 0.0 are the same.
+        Coordinates (float32 rows compare as their exact float64 values).
+    signed_zeros : bool
+        Whether -0.0 and 0.0 are different coordinates. :func:`clean_points` treats them as equal; the tile
+        solve (which always compared the bytes of its float32 rows) keeps them apart.
 
     Sorting 64-bit hashes is several times faster than sorting 24-byte rows (lexsort or np.unique on a void
     view), which matters at 10M points; equal-hash neighbours are then compared exactly, and the rare hash
@@ -289,7 +292,8 @@ def duplicate_mask(xyz: np.ndarray) -> np.ndarray:
     if n < 2:
         return dup
     # + 0.0 turns -0.0 into 0.0 so the bit patterns of equal coordinates agree.
-    words = np.ascontiguousarray(xyz + 0.0, dtype=np.float64).view(np.uint64).reshape(n, 3)
+    rows = xyz if signed_zeros else xyz + 0.0
+    words = np.ascontiguousarray(rows, dtype=np.float64).view(np.uint64).reshape(n, 3)
     h = _row_hash(words)
     order = np.argsort(h, kind="stable")
     hs = h[order]
