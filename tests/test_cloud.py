@@ -1,4 +1,5 @@
-"""Tests for tiled_gridpull.cloud: the point-cloud type, its cleaning and the one duplicate test."""
+"""Tests for tiled_gridpull.cloud: the point-cloud type, its cleaning, the one duplicate test, and point clouds
+of pyvista, Open3D and trimesh as input."""
 
 from __future__ import annotations
 
@@ -6,7 +7,7 @@ import numpy as np
 import pytest
 
 import tiled_gridpull.cloud as cloud_mod
-from tiled_gridpull.cloud import PointCloud, clean_points, duplicate_mask
+from tiled_gridpull.cloud import PointCloud, as_points, clean_points, duplicate_mask
 from tiled_gridpull.errors import InputError
 from test_io_points import cloud_xyz, unit_normals
 
@@ -132,3 +133,89 @@ def test_duplicate_mask_with_signed_zeros_is_the_tile_solves_byte_test():
     assert duplicate_mask(z, signed_zeros=True).tolist() == [False, False, True]
     assert duplicate_mask(z).tolist() == [False, True, True]
 
+
+# ------------------------------------------------------------------------------------- other libraries' clouds
+
+
+class FakeOpen3dCloud:
+    """The attributes of open3d.geometry.PointCloud that as_points uses (points, normals, has_normals)."""
+
+    def __init__(self, points, normals=None):
+        self.points = points
+        self.normals = normals if normals is not None else np.zeros((0, 3))
+
+    def has_normals(self):
+        return len(self.normals) > 0
+
+
+def test_as_points_passes_arrays_and_pointclouds_through():
+    xyz = cloud_xyz(20)
+    assert as_points(xyz)[0] is xyz and as_points(xyz)[1] is None
+    cloud = PointCloud(xyz)
+    assert as_points(cloud) == (cloud, None)
+    listed = xyz.tolist()
+    assert as_points(listed) == (listed, None)
+
+
+def test_as_points_open3d_like():
+    xyz, nrm = cloud_xyz(20), unit_normals(20)
+    got, normals = as_points(FakeOpen3dCloud(xyz, nrm))
+    np.testing.assert_array_equal(got, xyz)
+    np.testing.assert_array_equal(normals, nrm)
+    got, normals = as_points(FakeOpen3dCloud(xyz))
+    np.testing.assert_array_equal(got, xyz)
+    assert normals is None
+
+
+def test_as_points_pyvista():
+    pv = pytest.importorskip("pyvista")
+    xyz, nrm = cloud_xyz(20), unit_normals(20)
+    poly = pv.PolyData(xyz)
+    got, normals = as_points(poly)
+    np.testing.assert_array_equal(got, xyz)
+    assert normals is None
+    poly.point_data["Normals"] = nrm
+    got, normals = as_points(poly)
+    np.testing.assert_array_equal(normals, nrm)
+
+
+def test_as_points_trimesh():
+    trimesh = pytest.importorskip("trimesh")
+    xyz = cloud_xyz(20)
+    got, normals = as_points(trimesh.PointCloud(xyz))
+    np.testing.assert_array_equal(got, xyz)
+    assert normals is None
+    box = trimesh.creation.box()
+    got, normals = as_points(box)
+    np.testing.assert_array_equal(got, box.vertices)
+    np.testing.assert_array_equal(normals, box.vertex_normals)
+
+
+def test_as_points_open3d():
+    o3d = pytest.importorskip("open3d")
+    xyz, nrm = cloud_xyz(20), unit_normals(20)
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(xyz))
+    assert as_points(pc)[1] is None
+    pc.normals = o3d.utility.Vector3dVector(nrm)
+    got, normals = as_points(pc)
+    np.testing.assert_array_equal(got, xyz)
+    np.testing.assert_allclose(normals, nrm)
+
+
+def test_reconstruct_accepts_pyvista_and_open3d_like_clouds_with_their_normals():
+    pv = pytest.importorskip("pyvista")
+    from tiled_gridpull import reconstruct
+    from tiled_gridpull.synthetic import sample_shape, sphere
+
+    pts, nrm = sample_shape(sphere(), 3000, seed=0)
+    fast = {"resolution": 32, "iterations": 60, "coarse_iterations": 60, "queries": 5000, "seed": 0}
+    ref = reconstruct(pts, **fast)
+    poly = reconstruct(pv.PolyData(pts), **fast)
+    np.testing.assert_array_equal(poly.vertices, ref.vertices)
+    np.testing.assert_array_equal(poly.faces, ref.faces)
+    # the object's normals are used like normals=: the same mesh as passing them explicitly
+    with_normals = reconstruct(pts, normals=nrm, normal_weight=0.1, **fast)
+    got = reconstruct(FakeOpen3dCloud(pts, nrm), normal_weight=0.1, **fast)
+    np.testing.assert_array_equal(got.vertices, with_normals.vertices)
+    with pytest.raises(InputError, match="needs input normals"):
+        reconstruct(FakeOpen3dCloud(pts), normal_weight=0.1, **fast)

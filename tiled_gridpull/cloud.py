@@ -2,7 +2,8 @@
 
 :class:`PointCloud` holds float64 world coordinates with optional normals, sensor origins and per-point
 attributes; :func:`clean_points` drops non-finite and duplicate points and refuses clouds a surface cannot be
-reconstructed from; :func:`duplicate_mask` is the one duplicate test (the tile solve uses it too).
+reconstructed from; :func:`duplicate_mask` is the one duplicate test (the tile solve uses it too);
+:func:`as_points` accepts point clouds of pyvista, Open3D and trimesh without importing them.
 """
 
 from __future__ import annotations
@@ -10,13 +11,14 @@ from __future__ import annotations
 import warnings
 from collections.abc import Iterator
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
 from .errors import InputError
 
 __all__ = ["PointCloud", "clean_points", "duplicate_mask", "concat_clouds", "cloud_slices",
-           "drop_nonfinite_rows", "unit_normals"]
+           "drop_nonfinite_rows", "unit_normals", "as_points"]
 
 # Relative tolerance on singular values for the collinear / coplanar tests (see clean_points).
 _DEGENERATE_RTOL = 1e-9
@@ -350,3 +352,41 @@ def _degeneracy(xyz: np.ndarray, reject_planar: bool) -> str | None:
             return None
     return classify(xyz)
 
+
+# ------------------------------------------------------------------------------------------------------------
+# point clouds of other libraries
+
+
+def as_points(obj: Any) -> tuple[Any, np.ndarray | None]:
+    """Coordinates and normals of a point cloud from pyvista, Open3D or trimesh (found by duck typing).
+
+    Parameters
+    ----------
+    obj : object
+        A ``pyvista.PolyData`` (``points``; normals from its active point normals or a ``"Normals"`` point
+        array), an ``open3d.geometry.PointCloud`` (``points``; ``normals`` when ``has_normals()``), a
+        ``trimesh.PointCloud`` (``vertices``) or ``trimesh.Trimesh`` (``vertices``; its ``vertex_normals``).
+        Anything else (an (N, 3) array_like, a :class:`PointCloud`) is returned unchanged, for the caller to
+        validate.
+
+    Returns
+    -------
+    points : (N, 3) ndarray, or ``obj`` unchanged
+        The coordinates as the library stores them (float64 for Open3D and trimesh, often float32 in pyvista).
+    normals : (N, 3) ndarray or None
+        The object's normals, when it has them.
+    """
+    if isinstance(obj, (np.ndarray, PointCloud, list, tuple)):
+        return obj, None
+    if hasattr(obj, "point_data") and hasattr(obj, "points"):  # pyvista.DataSet
+        normals = getattr(obj.point_data, "active_normals", None)
+        if normals is None and "Normals" in obj.point_data.keys():
+            normals = obj.point_data["Normals"]
+        return np.asarray(obj.points), None if normals is None else np.asarray(normals)
+    if callable(getattr(obj, "has_normals", None)) and hasattr(obj, "points"):  # open3d.geometry.PointCloud
+        return np.asarray(obj.points), np.asarray(obj.normals) if obj.has_normals() else None
+    if hasattr(obj, "vertices"):  # trimesh.Trimesh or trimesh.PointCloud
+        faces = getattr(obj, "faces", None)
+        has_faces = faces is not None and len(faces) > 0
+        return np.asarray(obj.vertices), np.asarray(obj.vertex_normals) if has_faces else None
+    return obj, None
