@@ -1,4 +1,4 @@
-"""Tests for tiled_gridpull.io.points: every format, the real shared data, cleaning and corrupted input."""
+"""Tests for the point-cloud readers (tiled_gridpull.io): every format, the real shared data, corrupted input."""
 
 from __future__ import annotations
 
@@ -13,9 +13,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from tiled_gridpull.errors import ConfigError, InputError
-from tiled_gridpull.io import (SUPPORTED_POINT_FORMATS, PointCloud, clean_points, iter_point_chunks,
-                               point_count, read_kitti_sequence, read_points)
-from tiled_gridpull.io import points as points_mod
+from tiled_gridpull.io import (SUPPORTED_POINT_FORMATS, iter_point_chunks, point_count, read_kitti_sequence,
+                               read_points)
+from tiled_gridpull.io.input_errors import input_errors
 from conftest import shared_file as shared  # a path under ../shared/data, or skip
 
 
@@ -654,71 +654,6 @@ def test_all_nan_refused(tmp_path):
     assert len(read_points(p, clean=False).xyz) == 15
 
 
-def test_duplicates_dropped_keep_first_and_order(tmp_path):
-    xyz = cloud_xyz(20)
-    nrm = unit_normals(20)
-    rows = [0, 1, 2, 1, 3, 0, 4, 5, 6, 7, 8, 9, 10, 2, 11]
-    cloud = PointCloud(xyz[rows], normals=nrm[rows], attributes={"id": np.arange(len(rows))}, source="dups")
-    out = clean_points(cloud)
-    np.testing.assert_array_equal(out.xyz, xyz[[0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11]])
-    np.testing.assert_array_equal(out.attributes["id"], [0, 1, 2, 4, 6, 7, 8, 9, 10, 11, 12, 14])
-    assert out.report["duplicates_dropped"] == 3
-    assert len(cloud.xyz) == len(rows)  # input untouched
-    # -0.0 and 0.0 are the same coordinate
-    z = np.vstack([cloud_xyz(12), [[0.0, -0.0, 1.0], [-0.0, 0.0, 1.0]]])
-    assert clean_points(PointCloud(z)).report["duplicates_dropped"] == 1
-
-
-def test_duplicate_mask_matches_exact_and_survives_collisions(monkeypatch):
-    rng = np.random.default_rng(3)
-    base = rng.normal(size=(2000, 3)) * 1e6
-    xyz = base[rng.integers(0, 2000, 20_000)]
-    fast = points_mod._duplicate_mask(xyz)
-    words = np.ascontiguousarray(xyz + 0.0).view(np.uint64).reshape(-1, 3)
-    np.testing.assert_array_equal(fast, points_mod._duplicate_mask_exact(words))
-    # every row colliding: the exact fallback must give the same answer
-    monkeypatch.setattr(points_mod, "_row_hash", lambda w: np.zeros(len(w), dtype=np.uint64))
-    np.testing.assert_array_equal(points_mod._duplicate_mask(xyz), fast)
-
-
-def test_identical_collinear_coplanar_refused():
-    with pytest.raises(InputError, match="all 50 points are identical"):
-        clean_points(PointCloud(np.tile([4e6, 5e5, 12.0], (50, 1)), source="same"))
-    t = np.linspace(0, 100, 40)[:, None]
-    line = np.array([4e6, 5e5, 10.0]) + t * np.array([1.0, 2.0, 0.5])
-    with pytest.raises(InputError, match=r"line: all 40 points are collinear"):
-        clean_points(PointCloud(line, source="line"))
-    rng = np.random.default_rng(5)
-    uv = rng.uniform(0, 100, size=(200, 2))
-    plane = np.array([4e6, 5e5, 10.0]) + uv[:, :1] * [1.0, 0.0, 0.3] + uv[:, 1:] * [0.0, 1.0, -0.2]
-    with pytest.raises(InputError, match=r"plane: all 200 points are coplanar"):
-        clean_points(PointCloud(plane, source="plane"))
-    assert len(clean_points(PointCloud(plane), reject_planar=False).xyz) == 200
-    # 1 mm of relief over 100 m at UTM magnitude is not coplanar
-    bumpy = plane.copy()
-    bumpy[::7, 2] += 0.001
-    assert len(clean_points(PointCloud(bumpy)).xyz) == 200
-
-
-def test_degeneracy_on_large_cloud_uses_full_check():
-    # 300k coplanar points except one: the subsample may look planar, the full check must not
-    rng = np.random.default_rng(6)
-    pts = np.column_stack([rng.uniform(0, 10, 300_000), rng.uniform(0, 10, 300_000), np.zeros(300_000)])
-    pts[123_457, 2] = 0.5
-    assert len(clean_points(PointCloud(pts)).xyz) == 300_000
-    pts[123_457, 2] = 0.0
-    with pytest.raises(InputError, match="coplanar"):
-        clean_points(PointCloud(pts))
-
-
-def test_empty_and_too_few(tmp_path):
-    with pytest.raises(InputError, match="empty: contains no points"):
-        clean_points(PointCloud(np.zeros((0, 3)), source="empty"))
-    with pytest.raises(InputError, match=r"few: only 5 points \(at least 10 needed\)"):
-        clean_points(PointCloud(cloud_xyz(5), source="few"))
-    assert len(clean_points(PointCloud(cloud_xyz(5)), min_points=4).xyz) == 5
-
-
 @pytest.mark.parametrize("suffix", ALL_SUFFIXES)
 def test_empty_file(tmp_path, suffix):
     p = tmp_path / f"empty{suffix}"
@@ -759,13 +694,6 @@ def test_utm_coordinates_keep_millimetres(tmp_path, suffix):
     assert np.abs(cloud.xyz - xyz).max() < 1e-6
 
 
-def test_pointcloud_never_narrows():
-    c = PointCloud(np.array([[4e6, 1.0, 2.0]], dtype=np.float32))
-    assert c.xyz.dtype == np.float64 and len(c) == 1
-    with pytest.raises(InputError, match="shape"):
-        PointCloud(np.zeros((4, 2)))
-
-
 # ------------------------------------------------------------------------------------------------ path errors
 
 
@@ -790,7 +718,7 @@ def test_missing_file(tmp_path):
 
 def test_unreadable_file(tmp_path, monkeypatch):
     p = write_cloud(tmp_path / "secret.xyz", cloud_xyz(12))
-    monkeypatch.setattr(points_mod.os, "access", lambda *a, **k: False)
+    monkeypatch.setattr(os, "access", lambda *a, **k: False)
     with pytest.raises(InputError, match=r"secret\.xyz: permission denied"):
         read_points(p)
 
@@ -876,7 +804,6 @@ def test_random_bytes_read_or_input_error(suffix, choice, body):
                     assert msg.startswith(str(p)) and "\n" not in msg
 
 
-
 def test_las_header_with_absurd_vlr_count(tmp_path):
     # laspy alone would loop over four billion VLRs on an empty stream
     p = write_las(tmp_path / "vlrs.laz", cloud_xyz(20))
@@ -941,15 +868,6 @@ def test_chunks_of_all_nan_file(tmp_path):
         list(iter_point_chunks(p))
 
 
-def test_clean_twice_accumulates_report():
-    xyz = np.vstack([cloud_xyz(12), cloud_xyz(12)[:2], [[np.nan, 0, 0]]])
-    with pytest.warns(UserWarning):
-        once = clean_points(PointCloud(xyz, source="twice"))
-    again = clean_points(once)
-    assert again.report == once.report == {"points_read": 15, "nonfinite_dropped": 1, "duplicates_dropped": 2,
-                                           "points_kept": 12}
-
-
 def test_text_with_cr_line_endings(tmp_path):
     xyz = cloud_xyz(12)
     p = tmp_path / "mac.xyz"
@@ -985,10 +903,10 @@ def test_rust_panics_become_one_line_input_errors(tmp_path):
         pass
 
     with pytest.raises(InputError, match=r"x\.laz: truncated or corrupted .*PanicException: boom"):
-        with points_mod._input_errors(tmp_path / "x.laz", ".laz"):
+        with input_errors(tmp_path / "x.laz", "LAZ"):
             raise PanicException("boom\nbacktrace")
     with pytest.raises(KeyboardInterrupt):  # other BaseExceptions pass through
-        with points_mod._input_errors(tmp_path / "x.laz", ".laz"):
+        with input_errors(tmp_path / "x.laz", "LAZ"):
             raise KeyboardInterrupt
 
 
@@ -1004,32 +922,6 @@ def test_kitti_frame_range_past_the_end_refused_without_listing_it(tmp_path, cap
                  "--frames", "0:99999999999999999999", "-q"])
     err = capsys.readouterr().err
     assert code == 3 and err.count("\n") == 1 and "sequence ends at frame 2" in err, err
-
-
-def test_identical_follows_the_extent_not_the_coordinates_size():
-    from tiled_gridpull.io import PointCloud, clean_points
-    from tiled_gridpull.synthetic import sample_shape, sphere
-
-    pts, _ = sample_shape(sphere(), 2000, seed=0)
-    far = pts * 0.5 + 1e12  # a 1 m sphere at 1e12: 4,500 float64 steps across, plenty to mesh
-    assert len(clean_points(PointCloud(far))) == 2000
-    # rounding noise of a few units in the last place around one point is still one point
-    jitter = 1e12 + np.random.default_rng(0).integers(-2, 3, size=(500, 3)) * np.spacing(1e12)
-    with pytest.raises(InputError, match="identical"):
-        clean_points(PointCloud(jitter))
-
-
-@pytest.mark.parametrize("scale", [1e-300, 1e200])
-def test_extent_float64_cannot_resolve_is_refused(scale):
-    from tiled_gridpull.io import PointCloud, clean_points
-    from tiled_gridpull.synthetic import sample_shape, sphere
-
-    pts, _ = sample_shape(sphere(), 500, seed=0)
-    with pytest.raises(InputError, match="outside what float64 arithmetic resolves"):
-        clean_points(PointCloud(pts * scale))
-
-
-# -- headers that declare fewer points than the file holds: the rest is not read, and the user is told ---------
 
 
 def _declare(path: Path, old: bytes, new: bytes) -> Path:

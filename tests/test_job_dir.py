@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 
 from tiled_gridpull.pipeline.cli import main
+from tiled_gridpull.cloud import PointCloud
 from tiled_gridpull.errors import ConfigError, InputError
-from tiled_gridpull.io import PointCloud, read_mesh, write_mesh_and_sidecar
+from tiled_gridpull.io import read_mesh, write_mesh_and_sidecar
 from tiled_gridpull.io.atomic import atomic_open
 from tiled_gridpull.jobdir import job_lock
 from tiled_gridpull.synthetic import sphere

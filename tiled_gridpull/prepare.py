@@ -16,7 +16,8 @@ import numpy as np
 
 from ._version import __version__
 from .errors import InputError
-from .io.points import PointCloud, iter_point_chunks, read_kitti_sequence
+from .cloud import PointCloud
+from .io import iter_point_chunks, read_kitti_sequence
 from .jobdir import JobPaths, write_manifest
 from .outliers import SAMPLE_STRIDE, body_box, describe, far_mask
 from .partition import partition

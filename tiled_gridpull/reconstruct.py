@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from ._version import __version__
+from .cloud import PointCloud, as_points, clean_points
 from .config import SolverConfig
 from .errors import ConfigError, InputError
 from .kernels.graph import vertex_components
@@ -93,8 +94,6 @@ def prepare_points(points: Any, normals: np.ndarray | None = None, *, what: str 
     report : dict
         What cleaning did.
     """
-    from .io.points import PointCloud, clean_points
-
     if isinstance(points, PointCloud):
         cloud = points
         if normals is not None:
@@ -123,8 +122,9 @@ def reconstruct(points: Any, *, config: SolverConfig | None = None, normals: np.
 
     Parameters
     ----------
-    points : (N, 3) array_like or PointCloud
-        World coordinates (any magnitude: the solver works in lattice-local coordinates).
+    points : (N, 3) array_like, PointCloud, or a pyvista, Open3D or trimesh point cloud or mesh
+        World coordinates (any magnitude: the solver works in lattice-local coordinates); normals come with
+        the object when it has them (see :func:`~tiled_gridpull.cloud.as_points`).
     config : SolverConfig, optional
         Solver settings (defaults: the paper's). Keyword ``options`` override single fields, e.g.
         ``resolution=128, iterations=800, seed=1``.
@@ -151,6 +151,8 @@ def reconstruct(points: Any, *, config: SolverConfig | None = None, normals: np.
         Vertices float64 in the input's coordinates, faces int64 oriented outward; ``metadata`` holds the
         config, lattice, version, timings and solve statistics.
     """
+    points, own_normals = as_points(points)
+    normals = own_normals if normals is None else normals
     t0 = time.perf_counter()
     cfg = config or SolverConfig()
     if options:

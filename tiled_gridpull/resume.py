@@ -81,7 +81,7 @@ def input_fingerprint(inputs: list) -> list[dict]:
         p = Path(raw).resolve()
         try:
             if p.is_dir():
-                from .io.points import kitti_sequence_files
+                from .io.kitti import kitti_sequence_files
 
                 # only what the reader reads: a job writing its output inside the sequence would change the key
                 # of its own partition and never reuse it

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .cloud import duplicate_mask
 from .config import SolverConfig
 from .errors import ConfigError, GridPullError
 from .kernels import BRICK
@@ -53,9 +54,9 @@ def solve_tile(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig, field
     try:
         xyz32, sensor32 = read_tile_points(spec)
         xyz = xyz32.astype(np.float64)
-        keep = np.unique(xyz32.view(np.dtype((np.void, 12))).ravel(), return_index=True)[1]
+        # the bytes of the float32 rows decide, as always: -0.0 and 0.0 stay apart
+        keep = np.flatnonzero(~duplicate_mask(xyz, signed_zeros=True))
         if len(keep) < len(xyz):
-            keep.sort()
             summary["duplicates_dropped"] = int(len(xyz) - len(keep))
             xyz = xyz[keep]
             sensor32 = sensor32[keep] if sensor32 is not None else None

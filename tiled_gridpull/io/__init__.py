@@ -7,8 +7,9 @@ from .outputs import check_outputs, written_by_us
 __all__ = ["atomic_open", "atomic_path", "write_json", "read_mesh", "write_mesh", "write_sidecar",
            "read_sidecar", "sidecar_path", "check_outputs", "written_by_us", "write_mesh_and_sidecar"]
 
-from .points import (SUPPORTED_POINT_FORMATS, PointCloud, clean_points, iter_point_chunks, point_count,
-                     read_kitti_sequence, read_points)
+from .formats import SUPPORTED_POINT_FORMATS
+from .kitti import read_kitti_sequence
+from .points import iter_point_chunks, point_count, read_points
 
-__all__ += ["PointCloud", "read_points", "iter_point_chunks", "clean_points", "read_kitti_sequence",
-            "point_count", "SUPPORTED_POINT_FORMATS"]
+__all__ += ["read_points", "iter_point_chunks", "read_kitti_sequence", "point_count",
+            "SUPPORTED_POINT_FORMATS"]
