@@ -153,9 +153,143 @@ class Mesh:
 
     # ------------------------------------------------------------------ conversions
     def to_pyvista(self):
-        """A :class:`pyvista.PolyData` (needs pyvista)."""
+        """The mesh as a :class:`pyvista.PolyData` (needs pyvista).
+
+        Returns
+        -------
+        pyvista.PolyData
+            ``points`` (V, 3) float64 world coordinates and ``regular_faces`` (F, 3) int64, in this mesh's order.
+        """
         pv = require("pyvista", "Mesh.to_pyvista")
         return pv.PolyData.from_regular_faces(self.vertices, self.faces)
+
+    def to_trimesh(self):
+        """The mesh as a :class:`trimesh.Trimesh` (needs trimesh).
+
+        Returns
+        -------
+        trimesh.Trimesh
+            ``vertices`` (V, 3) float64 world coordinates and ``faces`` (F, 3) int64, in this mesh's order:
+            built with ``process=False`` so trimesh neither merges vertices nor drops faces.
+        """
+        tm = require("trimesh", "Mesh.to_trimesh")
+        return tm.Trimesh(vertices=self.vertices.copy(), faces=self.faces.copy(), process=False)
+
+    def to_open3d(self):
+        """The mesh as an :class:`open3d.geometry.TriangleMesh` (needs open3d).
+
+        Returns
+        -------
+        open3d.geometry.TriangleMesh
+            ``vertices`` (V, 3) float64 world coordinates and ``triangles`` (F, 3) int32 (Open3D's index type),
+            in this mesh's order.
+        """
+        o3d = require("open3d", "Mesh.to_open3d")
+        return o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(self.vertices),
+                                         o3d.utility.Vector3iVector(self.faces.astype(np.int32)))
+
+    @classmethod
+    def from_trimesh(cls, mesh) -> "Mesh":
+        """A mesh from a :class:`trimesh.Trimesh` (vertices and faces copied as they are).
+
+        Parameters
+        ----------
+        mesh : trimesh.Trimesh
+            ``vertices`` (V, 3) and ``faces`` (F, 3).
+
+        Returns
+        -------
+        Mesh
+            ``vertices`` (V, 3) float64, ``faces`` (F, 3) int64.
+        """
+        return cls(np.array(mesh.vertices, dtype=np.float64), np.array(mesh.faces, dtype=np.int64))
+
+    @classmethod
+    def from_pyvista(cls, poly, *, triangulate: bool = False) -> "Mesh":
+        """A mesh from a :class:`pyvista.PolyData` (needs pyvista).
+
+        Parameters
+        ----------
+        poly : pyvista.PolyData
+            ``points`` (V, 3) and its polygon and strip cells; vertex and line cells are ignored.
+        triangulate : bool
+            Split quads, polygons and strips into triangles with pyvista's ``triangulate()``. Without it a
+            polydata holding anything but triangles is refused, so a caller never gets a silently re-cut surface.
+
+        Returns
+        -------
+        Mesh
+            ``vertices`` (V, 3) float64, ``faces`` (F, 3) int64.
+
+        Raises
+        ------
+        TypeError
+            ``poly`` is not a ``pyvista.PolyData``.
+        ValueError
+            ``poly`` has non-triangle faces and ``triangulate`` is false.
+        """
+        pv = require("pyvista", "Mesh.from_pyvista")
+        if not isinstance(poly, pv.PolyData):
+            raise TypeError(f"Mesh.from_pyvista needs a pyvista.PolyData, got {type(poly).__name__} "
+                            "(call .extract_surface() first)")
+        has_polys = poly.faces.size > 0
+        if has_polys and not poly.is_all_triangles or poly.n_strips:
+            if not triangulate:
+                raise ValueError("Mesh.from_pyvista: the polydata has non-triangle faces (quads, polygons or "
+                                 "strips); pass triangulate=True to split them into triangles")
+            poly = poly.triangulate()
+            has_polys = poly.faces.size > 0
+        faces = poly.regular_faces if has_polys else np.empty((0, 3), dtype=np.int64)
+        return cls(np.array(poly.points, dtype=np.float64), np.array(faces, dtype=np.int64))
+
+    @classmethod
+    def from_open3d(cls, mesh) -> "Mesh":
+        """A mesh from an :class:`open3d.geometry.TriangleMesh`.
+
+        Parameters
+        ----------
+        mesh : open3d.geometry.TriangleMesh
+            ``vertices`` (V, 3) and ``triangles`` (F, 3).
+
+        Returns
+        -------
+        Mesh
+            ``vertices`` (V, 3) float64, ``faces`` (F, 3) int64.
+        """
+        return cls(np.asarray(mesh.vertices, dtype=np.float64).copy(),
+                   np.asarray(mesh.triangles, dtype=np.int64).copy())
+
+    @classmethod
+    def from_any(cls, obj, *, triangulate: bool = False) -> "Mesh":
+        """A mesh from a trimesh, pyvista or Open3D triangle mesh, told apart by the object's package.
+
+        Parameters
+        ----------
+        obj : trimesh.Trimesh, pyvista.PolyData, open3d.geometry.TriangleMesh or Mesh
+            The mesh to convert; a :class:`Mesh` is returned as it is.
+        triangulate : bool
+            Passed to :meth:`from_pyvista` for pyvista input.
+
+        Returns
+        -------
+        Mesh
+
+        Raises
+        ------
+        TypeError
+            ``obj`` is none of the above.
+        """
+        if isinstance(obj, cls):
+            return obj
+        package = type(obj).__module__.split(".")[0]
+        if package == "trimesh":
+            return cls.from_trimesh(obj)
+        if package == "pyvista":
+            return cls.from_pyvista(obj, triangulate=triangulate)
+        if package == "open3d" and hasattr(obj, "triangles"):
+            return cls.from_open3d(obj)
+        raise TypeError(f"Mesh.from_any: cannot convert a {type(obj).__module__}.{type(obj).__name__} "
+                        "(expected trimesh.Trimesh, pyvista.PolyData or open3d.geometry.TriangleMesh)")
 
     def is_manifold_solid(self) -> bool:
         """Whether manifold3d accepts the mesh as a closed, oriented 2-manifold (needs manifold3d)."""
