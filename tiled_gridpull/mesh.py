@@ -158,7 +158,8 @@ class Mesh:
         Returns
         -------
         pyvista.PolyData
-            ``points`` (V, 3) float64 world coordinates and ``regular_faces`` (F, 3) int64, in this mesh's order.
+            ``points`` (V, 3) float64 world coordinates and ``regular_faces`` (F, 3) int64, in this mesh's
+            order.
         """
         pv = require("pyvista", "Mesh.to_pyvista")
         return pv.PolyData.from_regular_faces(self.vertices, self.faces)
@@ -181,8 +182,8 @@ class Mesh:
         Returns
         -------
         open3d.geometry.TriangleMesh
-            ``vertices`` (V, 3) float64 world coordinates and ``triangles`` (F, 3) int32 (Open3D's index type),
-            in this mesh's order.
+            ``vertices`` (V, 3) float64 world coordinates and ``triangles`` (F, 3) int32 (Open3D's index
+            type), in this mesh's order.
         """
         o3d = require("open3d", "Mesh.to_open3d")
         return o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(self.vertices),
@@ -214,7 +215,8 @@ class Mesh:
             ``points`` (V, 3) and its polygon and strip cells; vertex and line cells are ignored.
         triangulate : bool
             Split quads, polygons and strips into triangles with pyvista's ``triangulate()``. Without it a
-            polydata holding anything but triangles is refused, so a caller never gets a silently re-cut surface.
+            polydata holding anything but triangles is refused, so a caller never gets a silently re-cut
+            surface.
 
         Returns
         -------
@@ -326,7 +328,7 @@ def extract_mesh(fld: Field, iso: float = 0.0, cell_lo: np.ndarray | None = None
     """
     if not fld.signed:
         raise ValueError("an unsigned field has no zero crossings to mesh: sign it first "
-                         "(tiled_gridpull.orient.sign_unsigned_field)")
+                         "(tiled_gridpull.udf_sign.sign_unsigned_field)")
     band = fld.band
     lat = band.lattice
     lo = np.zeros(3, np.int64) if cell_lo is None else np.asarray(cell_lo, np.int64)

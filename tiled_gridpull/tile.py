@@ -531,7 +531,8 @@ def solve_tile(spec: TileSpec, tiling: TilingConfig, solver: "SolverConfig", fie
     import time
 
     from .errors import GridPullError
-    from .orient import estimate_normals, orient_normals, orientation_score, plane_distance_init
+    from .initial_field import plane_distance_init
+    from .normals import estimate_normals, orient_normals, orientation_score
     from .solver import solve
 
     t0 = time.perf_counter()
