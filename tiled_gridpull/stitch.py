@@ -16,7 +16,8 @@ import numpy as np
 
 from .io.atomic import atomic_path
 from .kernels.graph import vertex_components
-from .mesh import Mesh, boundary_edges
+from .mesh import Mesh
+from .mesh_repair import boundary_edges
 from .nearest import distances_to_cloud
 
 __all__ = ["MeshPiece", "trim_faces", "save_piece", "load_piece", "weld_pieces"]
@@ -140,7 +141,7 @@ def mesh_tile(spec, neighbors: list, tiling, key_ref: np.ndarray, field_path: st
     from .field import Field
     from .kernels import BRICK
     from .kernels.band import brick_neighbors
-    from .mesh import extract_mesh
+    from .isosurface import extract_mesh
     from .tile import load_tile_field, peak_rss_mb, read_tile_points, reset_peak_rss
 
     t0 = time.perf_counter()
