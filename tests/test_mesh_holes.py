@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tiled_gridpull.mesh import Mesh, boundary_loops, close_holes
+from tiled_gridpull.mesh import Mesh
+from tiled_gridpull.mesh_repair import boundary_loops, close_holes
 from tiled_gridpull.metrics import sample_surface
 from tiled_gridpull.reconstruct import _close_band_edge_holes
 

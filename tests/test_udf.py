@@ -8,10 +8,13 @@ import pytest
 from tiled_gridpull.band import build_band
 from tiled_gridpull.errors import ConfigError
 from tiled_gridpull.field import Field
+from tiled_gridpull.isosurface import extract_mesh
 from tiled_gridpull.lattice import Lattice
-from tiled_gridpull.mesh import Mesh, boundary_edges, boundary_loops, extract_mesh, remove_pinched_fans
+from tiled_gridpull.mesh import Mesh
+from tiled_gridpull.mesh_repair import boundary_edges, boundary_loops, remove_pinched_fans
 from tiled_gridpull.metrics import evaluate, point_to_mesh, sample_surface
-from tiled_gridpull.orient import estimate_normals, orient_by_propagation, sign_unsigned_field
+from tiled_gridpull.normals import estimate_normals, orient_by_propagation
+from tiled_gridpull.udf_sign import sign_unsigned_field
 from tiled_gridpull.solver import nearest_point_init
 from tiled_gridpull.stitch import trim_faces
 from tiled_gridpull.synthetic.shapes import half_sphere, height_field, sample_shape

@@ -69,7 +69,7 @@ class SolverConfig:
         0.1 measured best (half-sphere exact CD-L1 0.74e-3, NC 0.979; 0 gave 0.85e-3 / 0.972).
     udf_polish : int
         UDF mode: once the unsigned field is solved, its vertices get signs (the side of the oriented local
-        plane of the nearest point, :func:`tiled_gridpull.orient.sign_unsigned_field`) and the signed field is
+        plane of the nearest point, :func:`tiled_gridpull.udf_sign.sign_unsigned_field`) and the signed field is
         refined for this many iterations at the finest level with the signed losses (the refinement levels'
         settings, ``refine_lr`` in four stages over the run, decaying by ``lr_decay`` between them). A trilinear field cannot bend sharply at
         the sheet, so the unsigned field alone places it coarsely (half-sphere, R = 256: exact CD-L1 0.38e-3,

@@ -1,6 +1,6 @@
 """Up-front estimates of a tile's peak memory and solve time, from the partition alone (nothing is solved).
 
-What a tile solve holds (see :mod:`tiled_gridpull.solver`, :mod:`tiled_gridpull.orient`):
+What a tile solve holds (see :mod:`tiled_gridpull.solver`, :mod:`tiled_gridpull.initial_field`):
 
 * **points** (``N``, before duplicates are dropped): the spill records, float32 and float64 copies, normals,
   the nearest-neighbour cache of the solver (``k`` neighbours per point, int32 index + float32 distance, plus

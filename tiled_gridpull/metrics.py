@@ -23,7 +23,8 @@ import numpy as np
 from pykdtree.kdtree import KDTree
 
 from ._optional import require
-from .mesh import Mesh, boundary_loops
+from .mesh import Mesh
+from .mesh_repair import boundary_loops
 from .nearest import distances_to_cloud
 
 __all__ = ["sample_surface", "point_to_mesh", "evaluate", "DEFAULT_THRESHOLDS"]

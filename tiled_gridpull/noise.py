@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 from pykdtree.kdtree import KDTree
 
-from .orient import plane_fits
+from .normals import plane_fits
 
 __all__ = ["estimate_noise", "NoiseEstimate", "project_to_local_planes"]
 
@@ -105,14 +105,14 @@ def project_to_local_planes(points: np.ndarray, k: int = 64, iterations: int = 2
                             chunk: int = 50_000) -> np.ndarray:
     """Denoise a cloud: move every point onto the plane of its ``k`` nearest neighbours, repeated.
 
-    The classical point-set projection (:func:`tiled_gridpull.orient.plane_fits`, all points moved at once from
+    The classical point-set projection (:func:`tiled_gridpull.normals.plane_fits`, all points moved at once from
     the previous pass's positions). It removes scatter across the surface and leaves the spacing along it, so the
     noise estimate drops and the noisy preset can keep a finer grid.
 
     The plain least-squares plane (``bandwidth = 0``) averages whatever sheets share a neighbourhood: the two
     walls of a part thinner than the neighbourhood merge into one, and sharp edges round over about one
     neighbourhood radius. With ``bandwidth > 0`` the plane is fitted robustly (bilateral weights, see
-    :func:`~tiled_gridpull.orient.plane_fits`) with a range scale of ``bandwidth`` x the noise sigma
+    :func:`~tiled_gridpull.normals.plane_fits`) with a range scale of ``bandwidth`` x the noise sigma
     re-estimated before each pass, so each point moves toward the sheet it came from. Measured on
     abc_00011084 (a bushing with a thin sleeve in its bore; 100k points, noise 0.5 % of the bbox diagonal)
     by the noisy preset: docs/solver.md.

@@ -18,10 +18,11 @@ from ._version import __version__
 from .cloud import PointCloud, as_points, clean_points
 from .config import SolverConfig
 from .errors import ConfigError, InputError
+from .isosurface import extract_mesh
 from .kernels.graph import vertex_components
 from .lattice import Lattice
-from .mesh import (Mesh, boundary_loops, close_holes, extract_mesh, remove_pinched_fans,
-                   remove_small_components)
+from .mesh import Mesh
+from .mesh_repair import boundary_loops, close_holes, remove_pinched_fans, remove_small_components
 from .nearest import distances_to_cloud, nearest_in_cloud
 from .noise import estimate_noise, project_to_local_planes
 from .solver import ProgressFn, solve

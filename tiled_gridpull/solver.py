@@ -197,7 +197,7 @@ def solve(points: np.ndarray, lattice: Lattice, config: SolverConfig, *,
             if config.mode == "udf":
                 values = nearest_point_init(band, P)
             elif config.init == "flood":
-                from .orient import flood_init
+                from .initial_field import flood_init
 
                 values = flood_init(band, P)
             if values is None:
@@ -234,7 +234,7 @@ def _sign_and_polish(fld: Field, P: np.ndarray, N: np.ndarray | None, config: So
 
     ``N``: the input normals, present when the normal loss is on (``--normals``): they then orient the signs
     too; a file's normals are not trusted otherwise."""
-    from .orient import sign_unsigned_field
+    from .udf_sign import sign_unsigned_field
 
     values, info = sign_unsigned_field(fld.band, fld.values, P, N)
     info["polish_iterations"] = config.udf_polish

@@ -16,7 +16,8 @@ import numpy as np
 
 from .io.atomic import atomic_path
 from .kernels.graph import vertex_components
-from .mesh import Mesh, boundary_edges
+from .mesh import Mesh
+from .mesh_repair import boundary_edges
 from .nearest import distances_to_cloud
 
 __all__ = ["MeshPiece", "trim_faces", "save_piece", "load_piece", "weld_pieces"]
@@ -141,7 +142,7 @@ def mesh_tile(spec, neighbors: list, tiling, key_ref: np.ndarray, field_path: st
     from .kernels import BRICK
     from .kernels.band import brick_neighbors
     from .memory import peak_rss_mb, reset_peak_rss
-    from .mesh import extract_mesh
+    from .isosurface import extract_mesh
     from .partition import read_tile_points
     from .tile_field import load_tile_field
 

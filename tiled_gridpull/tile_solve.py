@@ -13,7 +13,8 @@ from .errors import ConfigError, GridPullError
 from .kernels import BRICK
 from .lattice import Lattice
 from .memory import peak_rss_mb, reset_peak_rss
-from .orient import estimate_normals, orient_normals, orientation_score, plane_distance_init
+from .normals import estimate_normals, orient_normals, orientation_score
+from .initial_field import plane_distance_init
 from .partition import read_tile_points
 from .solver import solve
 from .tile_field import save_tile_field

@@ -1,25 +1,19 @@
-"""Which side is outside: oriented point normals and the initial field they give.
+"""Point normals: PCA plane fits over neighbourhoods, and their orientation (which side is outside).
 
 The GridPull loss does not change when ``f -> -f``, so the sign of a solved field comes only from its
-initialisation. A sphere at the lattice centre (the paper) works for one closed object; on a street scene cut
-into tiles it means nothing, and neighbouring tiles would disagree. Here the outside is fixed by a rule every
-tile applies to the same data: normals estimated by PCA over each point's neighbours, turned to face the
-sensor that saw the point (its origin is known for KITTI sequences) or, for airborne data, to face up. The
-initial field is the signed distance to the tangent plane of the nearest point, so every tile starts with the
-same orientation and only refines it.
+initialisation, and that comes from oriented normals. On a street scene cut into tiles the outside is fixed
+by a rule every tile applies to the same data: normals estimated by PCA over each point's neighbours, turned
+to face the sensor that saw the point (its origin is known for KITTI sequences) or, for airborne data, to
+face up. A cloud with neither is oriented by propagation along its neighbour graph.
 """
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 from pykdtree.kdtree import KDTree
 
-from .band import Band
-
 __all__ = ["plane_fits", "local_planes", "estimate_normals", "orient_normals", "orient_by_propagation",
-           "plane_distance_init", "sign_unsigned_field", "orientation_score", "flood_init"]
+           "orientation_score"]
 
 
 def plane_fits(points: np.ndarray, k: int, chunk: int = 200_000, bandwidth: float = 0.0, reweights: int = 3):
@@ -273,85 +267,6 @@ def _bridges(tree: KDTree, pts: np.ndarray, labels: np.ndarray) -> tuple[np.ndar
     return a[keep], b[keep]
 
 
-def plane_distance_init(band: Band, index_points: np.ndarray, normals: np.ndarray,
-                        origins: np.ndarray | None = None) -> np.ndarray:
-    """Initial field: signed distance (cells) from every slot to the tangent plane of its nearest point.
-
-    Parameters
-    ----------
-    band : Band
-    index_points : (N, 3) float
-        Points in the band's lattice index coordinates.
-    normals : (N, 3) float
-        Oriented unit normals (positive side = outside).
-    origins : (N, 3) float, optional
-        A point on each plane (index coordinates), e.g. the centroid of the point's neighbourhood; default the
-        point itself.
-
-    Returns
-    -------
-    (n_bricks, 512) float32
-    """
-    pts = np.ascontiguousarray(index_points, dtype=np.float32)
-    at = pts if origins is None else np.asarray(origins, dtype=np.float32)
-    pos = band.slot_positions().astype(np.float32)
-    _, idx = KDTree(pts).query(pos, k=1)
-    d = np.einsum("ij,ij->i", pos - at[idx], np.asarray(normals, dtype=np.float32)[idx])
-    return d.astype(np.float32).reshape(band.n_bricks, 512)
-
-
-def sign_unsigned_field(band: Band, values: np.ndarray, index_points: np.ndarray,
-                        normals: np.ndarray | None = None, k: int = 16) -> tuple[np.ndarray, dict]:
-    """Signs for an unsigned field, vertex by vertex: the side of the oriented local plane of the nearest
-    point.
-
-    Marching cubes on per-vertex signs cannot crack (two cells sharing a face see the same four signs). Signs
-    guessed per cell from the field's own gradients (MeshUDF's pseudo-signs) did crack here: the trilinear
-    field cannot bend sharply at the sheet, so the vertices next to it have unreliable gradients (12.6 % of
-    those within a quarter cell pointed the wrong way on a solved half-sphere, R = 256) and neighbouring
-    cells disagreed about them: 102,000 boundary edges instead of the rim's 1,750.
-
-    Parameters
-    ----------
-    band : Band
-    values : (n_bricks, 512) float32
-        Unsigned field (cells).
-    index_points : (N, 3) float
-        The cloud in the band's lattice index coordinates.
-    normals : (N, 3) float, optional
-        Oriented input normals. The orientation is always propagated over the cloud
-        (:func:`orient_by_propagation`); given normals then turn each piece of it to agree with most of them,
-        and each plane to agree with its own point's normal. Zero rows (no normal in the file) are ignored.
-    k : int
-        Neighbours per plane fit.
-
-    Returns
-    -------
-    signed : (n_bricks, 512) float32
-        ``values`` with the sign of the side each vertex lies on (positive on the normals' side).
-    info : dict
-        ``orientation`` (``"input normals"`` or ``"propagated"``), ``pieces`` (of the bridged neighbour graph,
-        oriented independently) and ``time_s``.
-    """
-    t0 = time.perf_counter()
-    pts = np.ascontiguousarray(index_points, dtype=np.float64)
-    centroids, planes = local_planes(pts, k)
-    planes, pieces = orient_by_propagation(pts, planes)
-    how = "propagated"
-    if normals is not None:
-        given = np.asarray(normals, dtype=np.float64)
-        valid = np.einsum("ij,ij->i", given, given) > 0.25      # zero rows: the file had no normal there
-        dots = np.einsum("ij,ij->i", planes, given)
-        # each piece as most of its given normals say, then every given normal for its own point
-        vote = np.bincount(pieces[valid], np.sign(dots[valid]), minlength=int(pieces.max()) + 1)
-        planes[vote[pieces] < 0] *= -1.0
-        planes[valid & (np.einsum("ij,ij->i", planes, given) < 0)] *= -1.0
-        how = "input normals"
-    side = plane_distance_init(band, pts, planes, origins=centroids)
-    signed = np.where(side < 0, -np.abs(values), np.abs(values)).astype(np.float32)
-    return signed, {"orientation": how, "pieces": int(pieces.max()) + 1, "time_s": time.perf_counter() - t0}
-
-
 def orientation_score(gradients: np.ndarray, normals: np.ndarray) -> float:
     """Mean sign agreement in [-1, 1] between field gradients at the points and their oriented normals."""
     dots = np.einsum("ij,ij->i", np.asarray(gradients, dtype=np.float64), np.asarray(normals, dtype=np.float64))
@@ -359,41 +274,3 @@ def orientation_score(gradients: np.ndarray, normals: np.ndarray) -> float:
     if not valid.any():
         return 0.0
     return float(np.mean(np.sign(dots[valid])))
-
-
-def flood_init(band: Band, index_points: np.ndarray, closing: int = 2) -> np.ndarray | None:
-    """Initial field for a closed shape: inside/outside by flood fill, magnitude = distance to the points.
-
-    Cells holding points are dilated by ``closing`` cells (to close gaps between samples and small holes in
-    the scan), free cells reachable from the lattice border are outside, the other free cells inside. Each
-    slot gets ``sign * distance to the nearest point`` (cells), the sign of the nearest labelled cell.
-    Unlike the paper's sphere this does not assume the shape is star-shaped around its bounding-box centre
-    (a tube, a torus or a flange with a bore). Meant for the coarsest level, where the grid is small.
-
-    Returns
-    -------
-    (n_bricks, 512) float32, or None when no inside region exists (the shape is open or leaks through a hole
-    wider than ``2 * closing`` cells); callers then fall back to the sphere.
-    """
-    from .kernels import band as kb
-    from .kernels import flood as kf
-
-    lat = band.lattice
-    ncell = np.asarray(lat.n_cells, dtype=np.int64)
-    cells = np.clip(np.floor(np.asarray(index_points, dtype=np.float64)).astype(np.int64), 0, ncell - 1)
-    occ = np.zeros(tuple(int(v) for v in ncell), np.uint8)
-    occ[cells[:, 0], cells[:, 1], cells[:, 2]] = 1
-    for axis in range(3):
-        occ = kb.window_any(occ, axis, closing, closing)
-    reached = kf.flood_from_border((occ == 0).astype(np.uint8))
-    labels = np.where(occ != 0, 0, np.where(reached != 0, 1, -1)).astype(np.int8)
-    if not (labels < 0).any():
-        return None
-    labels = kf.spread_labels(labels, int(closing) + 2)
-    pos = band.slot_positions()
-    cell_of_slot = np.clip(pos, 0, ncell - 1)
-    sign = labels[cell_of_slot[:, 0], cell_of_slot[:, 1], cell_of_slot[:, 2]].astype(np.float32)
-    sign[sign == 0] = 1.0
-    pts = np.ascontiguousarray(index_points, dtype=np.float32)
-    d, _ = KDTree(pts).query(pos.astype(np.float32), k=1)
-    return (sign * d.astype(np.float32)).reshape(band.n_bricks, 512)
