@@ -69,9 +69,10 @@ def _package_edges(name: str) -> set[str]:
     """Modules of the package that ``name`` imports (``from pkg import module`` counts the module)."""
     edges = set()
     for target, names, _ in _imports(name):
-        for n in names:
-            if f"{target}.{n}" in MODULES:
-                edges.add(f"{target}.{n}")
+        submodules = [n for n in names if f"{target}.{n}" in MODULES]
+        edges.update(f"{target}.{n}" for n in submodules)
+        if submodules and len(submodules) == len(names):
+            continue  # `from . import a, b` of submodules only: the package's own names are not read
         while target and target not in MODULES:
             target = target.rpartition(".")[0]
         if target and target != name:

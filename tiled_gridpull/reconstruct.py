@@ -83,7 +83,7 @@ def shape_lattice(points: np.ndarray, config: SolverConfig) -> Lattice:
 
 def prepare_points(points: Any, normals: np.ndarray | None = None, *, what: str = "input",
                    reject_planar: bool = True) -> tuple[np.ndarray, np.ndarray | None, dict]:
-    """Validate and clean a cloud given as an array or a :class:`~tiled_gridpull.io.PointCloud`.
+    """Validate and clean a cloud given as an array or a :class:`~tiled_gridpull.cloud.PointCloud`.
 
     Non-finite rows are dropped (with a warning) and exact duplicates removed; empty, too small and degenerate
     (identical, collinear, coplanar) clouds raise :class:`InputError`.

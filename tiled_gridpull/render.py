@@ -58,7 +58,7 @@ def _check_view(view: str) -> str:
 
 
 def _points_array(cloud) -> np.ndarray:
-    """(N, 3) float64 from an array or a :class:`~tiled_gridpull.io.PointCloud`."""
+    """(N, 3) float64 from an array or a :class:`~tiled_gridpull.cloud.PointCloud`."""
     xyz = np.asarray(getattr(cloud, "xyz", cloud), dtype=np.float64)
     if xyz.ndim != 2 or xyz.shape[1] != 3:
         raise InputError(f"point cloud must be an (N, 3) array, got shape {xyz.shape}")
