@@ -1,15 +1,31 @@
 """tiled_gridpull: GridPull surface reconstruction for very large point clouds.
 
 The core (this package) runs without Dask: :func:`reconstruct` turns one cloud into a mesh with the banded
-GridPull solver. The tiled, out-of-core pipeline on Dask lives in :mod:`tiled_gridpull.pipeline` (the
-``pipeline/`` folder of the source tree), which imports the core and never the other way round.
+GridPull solver, and :func:`reconstruct_scene` runs a tiled job in this process. The same tiled job on a Dask
+cluster lives in :mod:`tiled_gridpull.pipeline` (the ``pipeline/`` folder of the source tree), which imports the
+core and never the other way round. ``docs/architecture.md`` draws the layers.
+
+The public API, all importable from here::
+
+    reconstruct, reconstruct_scene, run_tiled_job      one shape; a tiled scene (serial, or any executor)
+    SolverConfig, TilingConfig, Lattice                 the settings and the global grid
+    read_points, iter_point_chunks, read_kitti_sequence, PointCloud, as_points
+    read_mesh, write_mesh, Mesh                         meshes (Mesh.to_trimesh / to_pyvista / to_open3d ...)
+    evaluate                                            Chamfer, normal consistency, F-score, Hausdorff
+    load_job                                            a job directory, for notebooks
+    GridPullError, InputError, ConfigError              the errors every failure is reported as
+
+Names beyond the few every use needs are loaded on first access (as scikit-image does), so ``import
+tiled_gridpull`` stays quick.
 """
 
+import importlib as _importlib
 import os as _os
 
 # pykdtree and numba's OpenMP layer take turns every iteration; with OpenMP's default busy-wait the idle
 # pool of one spins on the cores the other needs (a 50k-query nearest-neighbour call went from 1.2 ms to
-# 8 ms). Passive waiting costs nothing measurable here. Respect an explicit user setting.
+# 8 ms). OpenMP reads the policy once, when its runtime loads (the first pykdtree import), so it has to be
+# set before that, which is here. Passive waiting costs nothing measurable here. An explicit user setting wins.
 _os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 from ._version import __version__  # noqa: E402
@@ -19,5 +35,34 @@ from .lattice import Lattice  # noqa: E402
 from .mesh import Mesh  # noqa: E402
 from .reconstruct import reconstruct  # noqa: E402
 
+# public name -> module that defines it, imported on first access
+_LAZY = {
+    "reconstruct_scene": "tiled_job",
+    "run_tiled_job": "tiled_job",
+    "TilingConfig": "tiling",
+    "read_points": "io",
+    "iter_point_chunks": "io",
+    "read_kitti_sequence": "io",
+    "read_mesh": "io",
+    "write_mesh": "io",
+    "PointCloud": "cloud",
+    "as_points": "cloud",
+    "evaluate": "metrics",
+    "load_job": "jobview",
+}
+
 __all__ = ["__version__", "reconstruct", "SolverConfig", "Lattice", "Mesh", "GridPullError", "InputError",
-           "ConfigError"]
+           "ConfigError", *_LAZY]
+
+
+def __getattr__(name: str):
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module 'tiled_gridpull' has no attribute {name!r}")
+    value = getattr(_importlib.import_module(f".{module}", __name__), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))

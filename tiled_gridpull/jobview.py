@@ -165,5 +165,16 @@ class JobView:
 
 
 def load_job(job_dir: str | Path) -> JobView:
-    """Open a job directory for inspection (see :class:`JobView`)."""
+    """Open a job directory for inspection (see :class:`JobView`).
+
+    Parameters
+    ----------
+    job_dir : str or Path
+        A tiled job's work directory (``<output>.job`` unless ``--work-dir`` named another).
+
+    Returns
+    -------
+    JobView
+        Its manifest, tile summaries, fields and pieces, read on demand.
+    """
     return JobView(job_dir)

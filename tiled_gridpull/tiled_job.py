@@ -141,8 +141,36 @@ def reconstruct_scene(inputs: list[str], output: str | Path | None, tiling: Tili
     """Tiled reconstruction, one tile after the other in this process (no Dask): :func:`run_tiled_job` with a
     :class:`SerialExecutor`.
 
-    Returns the welded mesh; ``mesh.metadata`` describes the job (lattice, settings, per-tile summaries,
-    timings).
+    Parameters
+    ----------
+    inputs : list of str
+        Point files (LAS/LAZ, PLY, NPY, text) or KITTI sequence directories.
+    output : str or Path, optional
+        The mesh to write (PLY or OBJ), with its ``.json`` sidecar; None writes nothing but the job directory.
+    tiling : TilingConfig
+        Cell size, tile core and overlap (world units), trim, orientation.
+    solver : SolverConfig
+        The per-tile solve.
+    work_dir : str or Path
+        The job directory; a rerun there reuses the partition and every tile whose inputs are unchanged.
+    frames : slice, optional
+        KITTI frames to read.
+    float32 : bool
+        Write float32 vertices relative to an offset recorded in the file (smaller; exact for our reader).
+    log : callable, optional
+        ``log(line)`` for one line per finished tile.
+    tile_meshes : str or Path, optional
+        Also keep every tile's piece in this directory.
+    fail_fast : bool
+        Stop at the first failed tile instead of meshing around it.
+    max_memory : int, optional
+        Bytes the job may use; refused before the partition when a tile's estimate exceeds it.
+
+    Returns
+    -------
+    Mesh
+        The welded mesh (float64 vertices, world units); ``mesh.metadata`` describes the job (lattice,
+        settings, per-tile summaries, timings).
     """
     return run_tiled_job(inputs, output, tiling, solver, work_dir, SerialExecutor(log), frames=frames,
                          float32=float32, tile_meshes=tile_meshes, fail_fast=fail_fast, max_memory=max_memory,

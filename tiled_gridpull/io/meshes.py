@@ -108,7 +108,23 @@ def _write_obj(mesh: Mesh, fh) -> None:
 
 
 def read_mesh(path: str | Path) -> Mesh:
-    """Read a triangle mesh (PLY, OBJ, OFF); polygons are fan-triangulated. One-line errors on bad files."""
+    """Read a triangle mesh (PLY, OBJ, OFF); polygons are fan-triangulated.
+
+    Parameters
+    ----------
+    path : str or Path
+
+    Returns
+    -------
+    Mesh
+        ``vertices`` (V, 3) float64 (a float32 PLY written by this package gets its recorded offset back),
+        ``faces`` (F, 3) int64.
+
+    Raises
+    ------
+    InputError
+        One line naming the file and the problem (missing, unreadable, not a mesh, damaged).
+    """
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{path}: file not found")
