@@ -175,6 +175,6 @@ def load_job(job_dir: str | Path) -> JobView:
     Returns
     -------
     JobView
-        Its manifest, tile summaries, fields and pieces, read on demand.
+        Its manifest and tiles; fields, pieces and points are read when asked for.
     """
     return JobView(job_dir)
