@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from tiled_gridpull.band import build_band
+from tiled_gridpull.band import build_band, dense_brick_table
 from tiled_gridpull.kernels import CELL_OCC, CELL_OPT, CELL_PULL, PARAM
 from tiled_gridpull.lattice import Lattice
 
@@ -69,3 +69,13 @@ def test_brick_neighbors_consistent(rng):
             else:
                 inside = np.all((target >= 0) & (target < band.brick_table.shape))
                 assert not inside or band.brick_table[tuple(target)] == -1
+
+
+def test_dense_brick_table_numbers_bricks_in_order_and_marks_the_rest_absent():
+    coords = np.array([[2, 0, 1], [0, 0, 0], [1, 2, 1]])
+    table = dense_brick_table((3, 3, 2), coords)
+    assert table.dtype == np.int32 and table.shape == (3, 3, 2)
+    assert [int(table[tuple(c)]) for c in coords] == [0, 1, 2]
+    assert np.count_nonzero(table >= 0) == 3 and set(np.unique(table)) == {-1, 0, 1, 2}
+    wide = dense_brick_table((3, 3, 2), coords, first=7, dtype=np.int64)
+    assert wide.dtype == np.int64 and int(wide[1, 2, 1]) == 9 and int(wide[0, 0, 1]) == -1

@@ -22,7 +22,7 @@ from .kernels import BRICK, BRICK_VOLUME, CELL_OCC, CELL_OPT, CELL_PULL, PARAM
 from .kernels import band as kb
 from .lattice import Lattice
 
-__all__ = ["Band", "build_band"]
+__all__ = ["Band", "build_band", "dense_brick_table"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -85,6 +85,31 @@ class Band:
         return (self.brick_coords[:, None, :].astype(np.int64) * BRICK + local[None]).reshape(-1, 3)
 
 
+def dense_brick_table(bshape: tuple[int, ...], coords: np.ndarray, first: int = 0,
+                      dtype: type = np.int32) -> np.ndarray:
+    """Brick lookup: the number of each brick at its coordinates, -1 where no brick is stored.
+
+    Parameters
+    ----------
+    bshape : (3,) int
+        Bricks per axis of the table (for a band, its lattice's vertices per axis over ``BRICK``, rounded up).
+    coords : (nb, 3) int
+        Brick coordinates relative to the table's low corner, in brick order; all inside ``bshape``.
+    first : int
+        Number of the first brick (bricks of several fields numbered in one sequence).
+    dtype : numpy integer type
+        Of the table: int32 for a band (what the kernels take), int64 where numbers run past one field.
+
+    Returns
+    -------
+    (bx, by, bz) ``dtype``
+        ``table[coords[i]] == first + i``.
+    """
+    table = np.full(bshape, -1, dtype)
+    table[coords[:, 0], coords[:, 1], coords[:, 2]] = first + np.arange(len(coords), dtype=dtype)
+    return table
+
+
 def build_band(index_points: np.ndarray, lattice: Lattice, m1: int = 3, m2: int = 14) -> Band:
     """Build the pull and TV bands of a cloud.
 
@@ -114,8 +139,7 @@ def build_band(index_points: np.ndarray, lattice: Lattice, m1: int = 3, m2: int 
     for axis in range(3):
         cand = kb.window_any(cand, axis, reach, reach)
     coords = np.argwhere(cand).astype(np.int64)
-    table = np.full(bshape, -1, np.int32)
-    table[coords[:, 0], coords[:, 1], coords[:, 2]] = np.arange(len(coords), dtype=np.int32)
+    table = dense_brick_table(bshape, coords)
     occ = kb.scatter_cells(cells, table, len(coords))
 
     def dilate(mask, lo, hi, limit):
@@ -131,8 +155,7 @@ def build_band(index_points: np.ndarray, lattice: Lattice, m1: int = 3, m2: int 
     keep = np.flatnonzero(vparam.any(axis=1))
     flags = kb.pack_flags(vparam, cell_opt, cell_m1, occ, keep)
     kept = coords[keep].astype(np.int32)
-    table = np.full(bshape, -1, np.int32)
-    table[kept[:, 0], kept[:, 1], kept[:, 2]] = np.arange(len(kept), dtype=np.int32)
+    table = dense_brick_table(bshape, kept)
     neighbors = kb.brick_neighbors(kept, table)
     stats = {
         "occupied_cells": int(np.count_nonzero(occ)),

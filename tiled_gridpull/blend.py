@@ -17,6 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .band import dense_brick_table
 from .kernels import BRICK, PARAM
 
 __all__ = ["TileField", "brick_table", "pou_weight", "blend_into"]
@@ -89,10 +90,7 @@ def brick_table(coords: np.ndarray, first: int = 0) -> tuple[np.ndarray, np.ndar
     if len(coords) == 0:
         return np.zeros(3, np.int64), np.full((1, 1, 1), -1, np.int64)
     lo = coords.min(axis=0)
-    table = np.full(tuple(coords.max(axis=0) + 1 - lo), -1, np.int64)
-    rel = coords - lo
-    table[rel[:, 0], rel[:, 1], rel[:, 2]] = first + np.arange(len(coords))
-    return lo, table
+    return lo, dense_brick_table(tuple(coords.max(axis=0) + 1 - lo), coords - lo, first, np.int64)
 
 
 def pou_weight(g: np.ndarray, block_lo: np.ndarray, block_hi: np.ndarray, overlap: int) -> np.ndarray:

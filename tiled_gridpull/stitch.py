@@ -136,7 +136,7 @@ def mesh_tile(spec, neighbors: list, tiling, key_ref: np.ndarray, field_path: st
     """
     import time
 
-    from .band import Band
+    from .band import Band, dense_brick_table
     from .blend import blend_into
     from .field import Field
     from .kernels import BRICK
@@ -159,8 +159,7 @@ def mesh_tile(spec, neighbors: list, tiling, key_ref: np.ndarray, field_path: st
     off = np.asarray(block.offset, np.int64)
     local_bricks = (own.brick_coords - off // BRICK).astype(np.int32)
     bshape = tuple(int(v) for v in -(-np.asarray(block.shape) // BRICK))
-    table = np.full(bshape, -1, np.int32)
-    table[local_bricks[:, 0], local_bricks[:, 1], local_bricks[:, 2]] = np.arange(len(local_bricks), dtype=np.int32)
+    table = dense_brick_table(bshape, local_bricks)
     band = Band(block, 0, 0, local_bricks, table, brick_neighbors(local_bricks, table), own.flags)
     fld = Field(band, own.values)
     mesh, keys = extract_mesh(fld, 0.0, mesh_lo - off, mesh_hi - off, off - np.asarray(key_ref, np.int64),
