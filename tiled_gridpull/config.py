@@ -14,7 +14,7 @@ from typing import Any
 
 from .errors import ConfigError
 
-__all__ = ["SolverConfig", "load_config_file", "parse_overrides"]
+__all__ = ["LevelSchedule", "SolverConfig", "load_config_file", "parse_overrides"]
 
 MIN_COARSE_CELLS = 32
 
@@ -229,10 +229,9 @@ class SolverConfig:
             return self.queries
         return int(min(self.queries, max(self.min_queries, math.ceil(self.queries_per_point * n_points))))
 
-    def level_settings(self, level: int, n_levels: int, n_points: int | None = None) -> dict:
-        """Iterations, queries per iteration, query pool length, learning-rate schedule, TV band, gradient
-        weight, query noise and TV form of ``level`` (0 = coarsest) out of ``n_levels``, for a level holding
-        ``n_points`` points (``None``: the most queries the settings allow)."""
+    def level_settings(self, level: int, n_levels: int, n_points: int | None = None) -> "LevelSchedule":
+        """The schedule of ``level`` (0 = coarsest) out of ``n_levels``, for a level holding ``n_points`` points
+        (``None``: the most queries the settings allow)."""
         iterations = self.iterations if level == n_levels - 1 else self.coarse_iterations
         if 0 < level < n_levels - 1 and self.middle_iterations:
             iterations = self.middle_iterations
@@ -240,24 +239,62 @@ class SolverConfig:
         common = {"iterations": iterations, "query_pool": min(self.query_pool, iterations),
                   "queries": self.queries_for(n_points)}
         if level == 0:
-            return {**common, "lr": self.lr, "lr_step": self.lr_step, "m2": self.m2, "gamma": self.gamma,
-                    "sigma": self.query_sigma, "tv_form": self.tv_form}
-        return {**common, "lr": self.refine_lr, "lr_step": self.refine_lr_step, "m2": self.refine_m2,
-                "gamma": self.refine_gamma, "sigma": self.refine_sigma, "tv_form": self.refine_tv_form}
+            return LevelSchedule(**common, lr=self.lr, lr_step=self.lr_step, m2=self.m2, gamma=self.gamma,
+                                 sigma=self.query_sigma, tv_form=self.tv_form)
+        return LevelSchedule(**common, lr=self.refine_lr, lr_step=self.refine_lr_step, m2=self.refine_m2,
+                             gamma=self.refine_gamma, sigma=self.refine_sigma, tv_form=self.refine_tv_form)
 
     def total_iterations(self, cells: int) -> int:
         """Iterations of a solve on a lattice ``cells`` across, over all its levels and a UDF polish."""
         levels = self.levels_for(cells)
-        total = sum(self.level_settings(level, levels)["iterations"] for level in range(levels))
+        total = sum(self.level_settings(level, levels).iterations for level in range(levels))
         return total + (self.udf_polish if self.mode == "udf" else 0)
 
-    def polish_settings(self) -> dict:
-        """Settings of the signed refinement that ends a UDF solve: a refinement level's (even after a one-level
+    def polish_settings(self) -> "LevelSchedule":
+        """Schedule of the signed refinement that ends a UDF solve: a refinement level's (even after a one-level
         solve: the polish refines a field that has settled), for ``udf_polish`` iterations, the learning rate
         in four stages over them (as over a refinement level's 800 at 200 each)."""
         its = self.udf_polish
-        return {**self.level_settings(1, 2), "iterations": its, "query_pool": min(self.query_pool, its),
-                "lr_step": max(1, its // 4)}
+        return dataclasses.replace(self.level_settings(1, 2), iterations=its, query_pool=min(self.query_pool, its),
+                                   lr_step=max(1, its // 4))
+
+
+@dataclass(frozen=True)
+class LevelSchedule:
+    """What one resolution level (or the UDF polish) of a solve runs, resolved from a :class:`SolverConfig`.
+
+    Attributes
+    ----------
+    iterations : int
+        Optimizer steps of the level.
+    queries : int
+        Queries per iteration.
+    query_pool : int
+        Batches of queries whose nearest points are found once and cycled through (0: fresh every iteration);
+        never more than ``iterations``.
+    lr : float
+        Adam learning rate in cells per step at the level's start.
+    lr_step : int
+        Iterations between multiplications of the learning rate by ``SolverConfig.lr_decay``.
+    m2 : int
+        TV band half width in cells.
+    gamma : float
+        Weight of the gradient-consistency loss (SDF mode; a UDF solve does not use it).
+    sigma : float
+        Standard deviation of the query noise in cells.
+    tv_form : {"squared", "sqrt"}
+        Form of the TV loss.
+    """
+
+    iterations: int
+    queries: int
+    query_pool: int
+    lr: float
+    lr_step: int
+    m2: int
+    gamma: float
+    sigma: float
+    tv_form: str
 
 
 def finite_number(name: str, value: Any) -> float:
