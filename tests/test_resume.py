@@ -105,7 +105,7 @@ def test_solve_key_follows_the_settings_a_solve_reads(tmp_path, ground):
     for changed in (SOLVER.replace(iterations=31), SOLVER.replace(seed=1), SOLVER.replace(m2=7),
                     SOLVER.replace(alpha=2.0)):
         assert solve_key(s, TILING, changed) != base
-    for same in (SOLVER.replace(resolution=64), SOLVER.replace(margin=2), SOLVER.replace(init="flood"),
+    for same in (SOLVER.replace(resolution=64), SOLVER.replace(margin=2), SOLVER.replace(init_radius=3.0),
                  SOLVER.replace(normal_weight=1.0)):
         assert solve_key(s, TILING, same) == base  # shape-mode settings a tile solve never reads
     up = TilingConfig(voxel_size=0.2, tile_size=6.4, overlap=1.6, orientation="up", trim_distance=1.0)

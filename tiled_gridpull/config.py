@@ -21,9 +21,7 @@ MIN_COARSE_CELLS = 32
 _CHOICES = {
     "tv_form": ("squared", "sqrt"),
     "refine_tv_form": ("squared", "sqrt"),
-    "surface_form": ("abs", "squared"),
     "mode": ("sdf", "udf"),
-    "init": ("sphere", "flood"),
 }
 
 
@@ -50,17 +48,12 @@ class SolverConfig:
         Weights of the TV, surface and gradient-consistency losses (paper: 1, 1, 0.005).
     tv_form : {"squared", "sqrt"}
         TV as squared differences (authors' code) or the paper's per-vertex square root.
-    surface_form : {"abs", "squared"}
-        ``|f(s)|`` (paper) or ``f(s)^2`` (authors' code).
     query_sigma : float
         Standard deviation of the query noise in cells (paper text: 2 cells; authors' code: ~0.05).
-    init : {"sphere", "flood"}
-        Sphere of ``init_radius`` cells at the lattice centre (paper: right for shapes that are star-shaped
-        around their bounding-box centre), or inside/outside from a flood fill of the coarsest grid from its
-        border (closed shapes of any topology; falls back to the sphere when no inside region exists). Tiled
-        scenes start from oriented normals instead (see ``TilingConfig.orientation``).
     init_radius : float
-        Sphere radius in cells (paper: one or two cells).
+        An SDF solve starts from a sphere of this radius in cells at the lattice centre (paper: one or two
+        cells; right for shapes that are star-shaped around their bounding-box centre). Tiled scenes start from
+        oriented normals instead (see ``TilingConfig.orientation``).
     mode : {"sdf", "udf"}
         Signed field (default) or unsigned field for open surfaces (CAP-UDF pull, no gradient loss).
     udf_beta : float
@@ -137,9 +130,7 @@ class SolverConfig:
     beta: float = 1.0
     gamma: float = 0.005
     tv_form: str = "sqrt"
-    surface_form: str = "abs"
     query_sigma: float = 0.2
-    init: str = "sphere"
     init_radius: float = 2.0
     mode: str = "sdf"
     udf_beta: float = 0.1

@@ -51,7 +51,7 @@ __all__ = ["partition_key", "load_partition", "solve_key", "mesh_key", "solve_ti
 
 SPILL_FORMAT = 2  # bump when the spill/occupancy layout changes
 SOLVE_SETTINGS_IGNORED = ("resolution", "margin", "normal_weight")  # shape-mode only / never passed by tiles
-SPHERE_ONLY = ("init", "init_radius")  # read only when the tile starts from the paper's sphere
+SPHERE_ONLY = ("init_radius",)  # read only when the tile starts from the paper's sphere
 
 
 def digest(obj) -> str:

@@ -192,16 +192,10 @@ def solve(points: np.ndarray, lattice: Lattice, config: SolverConfig, *,
             values = upsample(fld, band)
         elif init is not None:
             values = np.ascontiguousarray(init(band), dtype=np.float32).reshape(band.n_bricks, 512)
+        elif config.mode == "udf":
+            values = nearest_point_init(band, P)
         else:
-            values = None
-            if config.mode == "udf":
-                values = nearest_point_init(band, P)
-            elif config.init == "flood":
-                from .orient import flood_init
-
-                values = flood_init(band, P)
-            if values is None:
-                values = sphere_init(band, config.init_radius)
+            values = sphere_init(band, config.init_radius)
         fld = _optimize(P, Nl, band, values, config, st, progress, history_every, done, total, level, history)
         done += st.iterations
         per_level.append({"level": level, "cell_size": lat.cell_size, "shape": list(lat.shape), "band": band.stats,
@@ -270,7 +264,6 @@ def _optimize(P: np.ndarray, N: np.ndarray | None, band: Band, values: np.ndarra
     n_params = max(band.n_params, 1)
     form = ks.TV_SQRT if st.tv_form == "sqrt" else ks.TV_SQUARED
     tv_scale = (cfg.alpha if form == ks.TV_SQRT else 2.0 * cfg.alpha) / n_params
-    surface_form = kl.SURFACE_SQUARED if cfg.surface_form == "squared" else kl.SURFACE_ABS
     clamp = cfg.mode == "udf"
     shape = np.asarray(band.lattice.shape, np.int64)
     nq = st.queries
@@ -300,7 +293,7 @@ def _optimize(P: np.ndarray, N: np.ndarray | None, band: Band, values: np.ndarra
         ksamp.draw_queries(P, cfg.seed, it0 + batch, sigma, centres, q)
         nn_idx = pool_nn[batch] if pool else nn.query(q, centres)[0]
         n_valid = kl.query_losses(d_a, flat_flags, band.brick_table, shape, q, P, nn_idx, nrm, CELL_PULL,
-                                  beta, gamma, cfg.normal_weight, surface_form, slots, grads, losses)
+                                  beta, gamma, cfg.normal_weight, slots, grads, losses)
         if n_valid:
             kl.scatter_add(qgrad, slots, grads, np.float32(1.0 / n_valid))
         tb = time.perf_counter()
