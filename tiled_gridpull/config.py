@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
@@ -23,6 +23,15 @@ _CHOICES = {
     "refine_tv_form": ("squared", "sqrt"),
     "mode": ("sdf", "udf"),
 }
+
+
+def setting(default: Any, *, solve: bool = True, sphere_only: bool = False) -> Any:
+    """A :class:`SolverConfig` field whose metadata says whether it can change a tile solve's result.
+
+    ``solve=False``: one-shape settings a tile solve never reads (they stay out of resume keys).
+    ``sphere_only=True``: read only when the solve starts from the sphere (not from oriented normals).
+    """
+    return field(default=default, metadata={"solve": solve, "sphere_only": sphere_only})
 
 
 @dataclass(frozen=True)
@@ -115,43 +124,43 @@ class SolverConfig:
         many estimated noise sigmas, so thin walls and sharp edges keep their sheets apart.
     """
 
-    resolution: int = 256
-    margin: int = 4
-    m1: int = 3
-    m2: int = 14
-    iterations: int = 800
-    queries: int = 50_000
-    queries_per_point: float = 0.0
-    min_queries: int = 2048
-    lr: float = 1.0
-    lr_decay: float = 0.3
-    lr_step: int = 400
-    alpha: float = 1.0
-    beta: float = 1.0
-    gamma: float = 0.005
-    tv_form: str = "sqrt"
-    query_sigma: float = 0.2
-    init_radius: float = 2.0
-    mode: str = "sdf"
-    udf_beta: float = 0.1
-    udf_polish: int = 200
-    normal_weight: float = 0.0
-    levels: int = 3
-    coarse_iterations: int = 800
-    middle_iterations: int = 0
-    refine_m2: int = 8
-    refine_lr: float = 0.3
-    refine_lr_step: int = 200
-    refine_gamma: float = 3.0
-    refine_sigma: float = 0.5
-    refine_tv_form: str = "squared"
-    knn: int = 16
-    query_pool: int = 200
-    seed: int = 0
-    noise_cells: float = 0.0
-    denoise: int = 0
-    denoise_neighbors: int = 64
-    denoise_bandwidth: float = 0.0
+    resolution: int = setting(256, solve=False)
+    margin: int = setting(4, solve=False)
+    m1: int = setting(3)
+    m2: int = setting(14)
+    iterations: int = setting(800)
+    queries: int = setting(50_000)
+    queries_per_point: float = setting(0.0)
+    min_queries: int = setting(2048)
+    lr: float = setting(1.0)
+    lr_decay: float = setting(0.3)
+    lr_step: int = setting(400)
+    alpha: float = setting(1.0)
+    beta: float = setting(1.0)
+    gamma: float = setting(0.005)
+    tv_form: str = setting("sqrt")
+    query_sigma: float = setting(0.2)
+    init_radius: float = setting(2.0, sphere_only=True)
+    mode: str = setting("sdf")
+    udf_beta: float = setting(0.1)
+    udf_polish: int = setting(200)
+    normal_weight: float = setting(0.0, solve=False)
+    levels: int = setting(3)
+    coarse_iterations: int = setting(800)
+    middle_iterations: int = setting(0)
+    refine_m2: int = setting(8)
+    refine_lr: float = setting(0.3)
+    refine_lr_step: int = setting(200)
+    refine_gamma: float = setting(3.0)
+    refine_sigma: float = setting(0.5)
+    refine_tv_form: str = setting("squared")
+    knn: int = setting(16)
+    query_pool: int = setting(200)
+    seed: int = setting(0)
+    noise_cells: float = setting(0.0)
+    denoise: int = setting(0)
+    denoise_neighbors: int = setting(64)
+    denoise_bandwidth: float = setting(0.0)
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -205,6 +214,14 @@ class SolverConfig:
     def to_dict(self) -> dict:
         """Plain dict of all settings."""
         return dataclasses.asdict(self)
+
+    def solve_settings(self, sphere_init: bool) -> dict:
+        """The settings that can change a tile solve's result (fields marked ``solve``), for resume keys.
+
+        ``sphere_init``: the solve starts from the sphere, so its radius counts too.
+        """
+        return {f.name: getattr(self, f.name) for f in fields(self)
+                if f.metadata["solve"] and (sphere_init or not f.metadata["sphere_only"])}
 
     def levels_for(self, cells: int) -> int:
         """Levels used on a lattice ``cells`` across: at most ``levels``, fewer when the coarsest would have
