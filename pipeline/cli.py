@@ -72,7 +72,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="override one setting (repeatable), e.g. --set alpha=2")
     r.add_argument("--resolution", type=int, help="cells across the longest side (one-shape mode; default 256)")
-    r.add_argument("--iterations", type=int, help="optimizer iterations (default 1600)")
+    r.add_argument("--iterations", type=int, help="optimizer iterations at the finest level (default 800)")
     r.add_argument("--seed", type=int, help="random seed (default 0)")
     r.add_argument("--mode", choices=("sdf", "udf"), help="signed (closed surfaces) or unsigned (open) field")
     r.add_argument("--normals", action="store_true",

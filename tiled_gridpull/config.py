@@ -36,7 +36,12 @@ def setting(default: Any, *, solve: bool = True, sphere_only: bool = False) -> A
 
 @dataclass(frozen=True)
 class SolverConfig:
-    """Everything that decides a GridPull solve (the paper's defaults unless noted).
+    """Everything that decides a GridPull solve.
+
+    The defaults are the schedule we ship (``configs/shape.yaml``; docs/solver.md, "The schedule we ship"), which
+    differs from the paper's recipe (``configs/paper.yaml``): three levels instead of one, 800 iterations at the
+    finest level instead of 1600, queries at 0.2 cells instead of 2, a query pool. The paper's values are noted
+    per setting.
 
     Attributes
     ----------
@@ -47,7 +52,7 @@ class SolverConfig:
     m1, m2 : int
         Pull band and TV band half widths in cells (paper: 3 and 14; 25 for scenes).
     iterations : int
-        Optimizer steps at the finest level (paper: 1600).
+        Optimizer steps at the finest level (default 800; paper: 1600 at its single level).
     queries : int
         Queries per iteration (paper: 50,000).
     lr, lr_decay, lr_step : float, float, int
@@ -58,7 +63,7 @@ class SolverConfig:
     tv_form : {"squared", "sqrt"}
         TV as squared differences (authors' code) or the paper's per-vertex square root.
     query_sigma : float
-        Standard deviation of the query noise in cells (paper text: 2 cells; authors' code: ~0.05).
+        Standard deviation of the query noise in cells (default 0.2; paper text: 2 cells; authors' code: ~0.05).
     init_radius : float
         An SDF solve starts from a sphere of this radius in cells at the lattice centre (paper: one or two
         cells; right for shapes that are star-shaped around their bounding-box centre). Tiled scenes start from
@@ -79,8 +84,8 @@ class SolverConfig:
     normal_weight : float
         Weight of the normal-supervision loss when the input has normals (0 = off).
     levels : int
-        Resolution levels (at most; fewer when the coarsest lattice would have fewer than 32 cells across).
-        1 is the paper's single-level solve. With ``L > 1`` the field is first solved on a lattice with
+        Resolution levels (at most; fewer when the coarsest lattice would have fewer than 32 cells across;
+        default 3). 1 is the paper's single-level solve. With ``L > 1`` the field is first solved on a lattice with
         ``2^(L-1)`` times larger cells (``coarse_iterations`` with the schedule above), then refined
         level by level (cells halved, values transferred by trilinear interpolation), each refinement over a
         ``refine_m2`` band with ``refine_lr`` decaying every ``refine_lr_step``; the finest level runs
@@ -102,7 +107,7 @@ class SolverConfig:
     min_queries : int
         Floor of the per-iteration query count when ``queries_per_point > 0``.
     query_pool : int
-        0 (paper): fresh queries every iteration. ``B > 0``: each level draws ``B`` batches of queries once,
+        0 (paper): fresh queries every iteration. ``B > 0`` (default 200): each level draws ``B`` batches of queries once,
         finds their nearest points in one go, and cycles through them (NeuralPull's precomputed queries), so
         nearest-neighbour search costs ``B`` batches instead of one per iteration. Pays where that search
         dominates: dense LiDAR tiles (see docs/solver.md).

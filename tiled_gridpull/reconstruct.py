@@ -126,8 +126,8 @@ def reconstruct(points: Any, *, config: SolverConfig | None = None, normals: np.
     points : (N, 3) array_like or PointCloud
         World coordinates (any magnitude: the solver works in lattice-local coordinates).
     config : SolverConfig, optional
-        Solver settings (defaults: the paper's). Keyword ``options`` override single fields, e.g.
-        ``resolution=128, iterations=800, seed=1``.
+        Solver settings (defaults: the schedule we ship, see :class:`~tiled_gridpull.config.SolverConfig`).
+        Keyword ``options`` override single fields, e.g. ``resolution=128, iterations=800, seed=1``.
     normals : (N, 3) array_like, optional
         Unit normals, used when ``normal_weight > 0`` (in UDF mode they then also orient the signs).
     lattice : Lattice, optional
