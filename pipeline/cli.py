@@ -179,9 +179,6 @@ def _setup_logging(args) -> None:
             f"warning: {str(message).splitlines()[0] if str(message) else category.__name__}"
 
 
-#: normal_weight set by ``--normals``: measured on exact normals in benchmarks/paper_eval.py (normals suite).
-NORMALS_WEIGHT = 1.0
-
 _CLI_KEYS = {"resolution": "resolution", "iterations": "iterations", "seed": "seed", "mode": "mode",
              "voxel_size": "voxel_size", "tile_size": "tile_size", "overlap": "overlap",
              "drop_outliers": "drop_outliers"}
@@ -197,7 +194,7 @@ def resolve_settings(args) -> tuple:
 
     Every key is checked before any data is read: unknown keys and bad values are refused with one line.
     """
-    from tiled_gridpull.config import SolverConfig, load_config_file, parse_overrides
+    from tiled_gridpull.config import NORMALS_WEIGHT, SolverConfig, load_config_file, parse_overrides
     from tiled_gridpull.errors import ConfigError
     from tiled_gridpull.tile import TilingConfig
 

@@ -14,9 +14,12 @@ from typing import Any
 
 from .errors import ConfigError
 
-__all__ = ["LevelSchedule", "SolverConfig", "load_config_file", "parse_overrides"]
+__all__ = ["LevelSchedule", "SolverConfig", "NORMALS_WEIGHT", "load_config_file", "parse_overrides"]
 
 MIN_COARSE_CELLS = 32
+#: ``normal_weight`` that given normals switch on when no weight is set (``reconstruct(normals=...)``,
+#: ``--normals``): measured on exact normals in benchmarks/paper_eval.py (normals suite).
+NORMALS_WEIGHT = 1.0
 
 _CHOICES = {
     "tv_form": ("squared", "sqrt"),
@@ -82,7 +85,9 @@ class SolverConfig:
         the sheet, so the unsigned field alone places it coarsely (half-sphere, R = 256: exact CD-L1 0.38e-3,
         NC 0.958); 200 iterations: 0.034e-3, 0.9997. 0 meshes the unsigned field, signed, as it is.
     normal_weight : float
-        Weight of the normal-supervision loss when the input has normals (0 = off).
+        Weight of the normal-supervision loss when the input has normals (0 = off). Normals passed to
+        :func:`tiled_gridpull.reconstruct` (or ``--normals``) switch it to ``NORMALS_WEIGHT`` (1) when it is
+        not set.
     levels : int
         Resolution levels (at most; fewer when the coarsest lattice would have fewer than 32 cells across;
         default 3). 1 is the paper's single-level solve. With ``L > 1`` the field is first solved on a lattice with

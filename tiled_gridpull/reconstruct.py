@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from ._version import __version__
-from .config import SolverConfig
+from .config import NORMALS_WEIGHT, SolverConfig
 from .errors import ConfigError, InputError
 from .kernels.graph import vertex_components
 from .lattice import Lattice
@@ -129,7 +129,10 @@ def reconstruct(points: Any, *, config: SolverConfig | None = None, normals: np.
         Solver settings (defaults: the schedule we ship, see :class:`~tiled_gridpull.config.SolverConfig`).
         Keyword ``options`` override single fields, e.g. ``resolution=128, iterations=800, seed=1``.
     normals : (N, 3) array_like, optional
-        Unit normals, used when ``normal_weight > 0`` (in UDF mode they then also orient the signs).
+        Unit normals of the points. Passing them turns the normal loss on: ``normal_weight`` becomes
+        :data:`~tiled_gridpull.config.NORMALS_WEIGHT` (1) unless the config sets a weight above 0 or
+        ``normal_weight`` is given as a keyword (``normal_weight=0`` keeps the loss off). In UDF mode the normals
+        then also orient the signs. Normals carried by a ``PointCloud`` are used only when ``normal_weight > 0``.
     lattice : Lattice, optional
         Use this lattice instead of fitting one to the cloud.
     progress : callable, optional
@@ -155,6 +158,8 @@ def reconstruct(points: Any, *, config: SolverConfig | None = None, normals: np.
     cfg = config or SolverConfig()
     if options:
         cfg = cfg.replace(**options)
+    if normals is not None and cfg.normal_weight == 0 and "normal_weight" not in options:
+        cfg = cfg.replace(normal_weight=NORMALS_WEIGHT)
     if min_component_cells < 0:
         raise ConfigError(f"min_component_cells must be >= 0, got {min_component_cells!r}")
     xyz, nrm, report = prepare_points(points, normals)
