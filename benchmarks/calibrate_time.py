@@ -28,9 +28,9 @@ def tile_work(spec, solver, occupancy=None) -> dict:
     w = {"query": 0.0, "nn": 0.0, "slot": 0.0, "iteration": 0.0, "point": float(spec.n_points), "one": 1.0}
     for level, b in enumerate(bricks):
         st = solver.level_settings(level, levels, m.level_points(spec, level, levels))
-        it, nq = st["iterations"], st["queries"]
+        it, nq = st.iterations, st.queries
         w["query"] += it * nq
-        w["nn"] += (st["query_pool"] or it) * nq
+        w["nn"] += (st.query_pool or it) * nq
         w["slot"] += it * b * m.SLOT
         w["iteration"] += it
     return w, bricks

@@ -72,7 +72,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="override one setting (repeatable), e.g. --set alpha=2")
     r.add_argument("--resolution", type=int, help="cells across the longest side (one-shape mode; default 256)")
-    r.add_argument("--iterations", type=int, help="optimizer iterations (default 1600)")
+    r.add_argument("--iterations", type=int, help="optimizer iterations at the finest level (default 800)")
     r.add_argument("--seed", type=int, help="random seed (default 0)")
     r.add_argument("--mode", choices=("sdf", "udf"), help="signed (closed surfaces) or unsigned (open) field")
     r.add_argument("--normals", action="store_true",
@@ -179,9 +179,6 @@ def _setup_logging(args) -> None:
             f"warning: {str(message).splitlines()[0] if str(message) else category.__name__}"
 
 
-#: normal_weight set by ``--normals``: measured on exact normals in benchmarks/paper_eval.py (normals suite).
-NORMALS_WEIGHT = 1.0
-
 _CLI_KEYS = {"resolution": "resolution", "iterations": "iterations", "seed": "seed", "mode": "mode",
              "voxel_size": "voxel_size", "tile_size": "tile_size", "overlap": "overlap",
              "drop_outliers": "drop_outliers"}
@@ -197,7 +194,7 @@ def resolve_settings(args) -> tuple:
 
     Every key is checked before any data is read: unknown keys and bad values are refused with one line.
     """
-    from tiled_gridpull.config import SolverConfig, load_config_file, parse_overrides
+    from tiled_gridpull.config import NORMALS_WEIGHT, SolverConfig, load_config_file, parse_overrides
     from tiled_gridpull.errors import ConfigError
     from tiled_gridpull.tiling import TilingConfig
 

@@ -6,6 +6,7 @@ dependents -- are in ``test_reliability.py``.)
 
 import hashlib
 import json
+import dataclasses
 import os
 
 from pathlib import Path
@@ -35,6 +36,34 @@ def ground(tmp_path):
 
 def _names(specs):
     return [(s.name, s.n_points, s.points_sha256) for s in specs]
+
+
+OTHER_CHOICE = {"tv_form": "squared", "refine_tv_form": "sqrt", "mode": "udf"}
+
+
+def _changed(name: str, value):
+    """A valid value of setting ``name`` different from ``value``."""
+    if isinstance(value, str):
+        return OTHER_CHOICE[name]
+    if isinstance(value, int):
+        return value + 1
+    return value / 2 if value else 0.5
+
+
+def test_solve_key_follows_exactly_the_settings_marked_solve(tmp_path, ground):
+    _, specs, _ = prepare_job([str(ground)], TILING, JobPaths(tmp_path / "job"))
+    s = specs[0]
+    sphere = TilingConfig(voxel_size=0.2, tile_size=6.4, overlap=1.6, orientation="sphere")
+    fields = dataclasses.fields(SolverConfig)
+    assert all(set(f.metadata) == {"solve", "sphere_only"} for f in fields)  # every setting classified
+    assert {f.name for f in fields if not f.metadata["solve"]} == {"resolution", "margin", "normal_weight"}
+    assert {f.name for f in fields if f.metadata["sphere_only"]} == {"init_radius"}
+    for tiling in (TILING, sphere):
+        base = solve_key(s, tiling, SOLVER)
+        for f in fields:
+            changed = SOLVER.replace(**{f.name: _changed(f.name, getattr(SOLVER, f.name))})
+            counts = f.metadata["solve"] and (tiling is sphere or not f.metadata["sphere_only"])
+            assert (solve_key(s, tiling, changed) != base) == counts, f.name
 
 
 def test_partition_is_reused_only_for_the_same_inputs_and_grid(tmp_path, ground):
@@ -107,7 +136,7 @@ def test_solve_key_follows_the_settings_a_solve_reads(tmp_path, ground):
     for changed in (SOLVER.replace(iterations=31), SOLVER.replace(seed=1), SOLVER.replace(m2=7),
                     SOLVER.replace(alpha=2.0)):
         assert solve_key(s, TILING, changed) != base
-    for same in (SOLVER.replace(resolution=64), SOLVER.replace(margin=2), SOLVER.replace(init="flood"),
+    for same in (SOLVER.replace(resolution=64), SOLVER.replace(margin=2), SOLVER.replace(init_radius=3.0),
                  SOLVER.replace(normal_weight=1.0)):
         assert solve_key(s, TILING, same) == base  # shape-mode settings a tile solve never reads
     up = TilingConfig(voxel_size=0.2, tile_size=6.4, overlap=1.6, orientation="up", trim_distance=1.0)

@@ -4,7 +4,7 @@
 import numpy as np
 import pytest
 
-from tiled_gridpull.config import ConfigError, SolverConfig
+from tiled_gridpull.config import ConfigError, LevelSchedule, SolverConfig
 from tiled_gridpull.lattice import Lattice
 from tiled_gridpull.solver import solve
 
@@ -27,13 +27,13 @@ def test_level_settings_carry_per_level_iterations():
     cfg = SolverConfig(levels=3, coarse_iterations=800, middle_iterations=400, iterations=200,
                        lr_step=400, refine_lr_step=100)
     st = [cfg.level_settings(level, 3) for level in range(3)]
-    assert [s["iterations"] for s in st] == [800, 400, 200]
-    assert [s["lr_step"] for s in st] == [400, 100, 100]
+    assert [s.iterations for s in st] == [800, 400, 200]
+    assert [s.lr_step for s in st] == [400, 100, 100]
     # unset, the middle level runs the coarse count (as before the option existed)
     old = SolverConfig(levels=3, coarse_iterations=800, iterations=600)
-    assert [old.level_settings(level, 3)["iterations"] for level in range(3)] == [800, 800, 600]
+    assert [old.level_settings(level, 3).iterations for level in range(3)] == [800, 800, 600]
     # with two levels there is no middle level
-    assert [cfg.level_settings(level, 2)["iterations"] for level in range(2)] == [800, 200]
+    assert [cfg.level_settings(level, 2).iterations for level in range(2)] == [800, 200]
     # the solve runs what the settings say
     pts = _sphere_cloud(800)
     small = SolverConfig(resolution=128, levels=3, coarse_iterations=30, middle_iterations=20, iterations=10,
@@ -81,3 +81,19 @@ def test_total_iterations_is_the_total_the_solver_reports(mode, levels):
     solve(_sphere_cloud(3000), lat, cfg, progress=lambda it, total, stats: totals.add(total), history_every=5)
     assert totals == {cfg.total_iterations(128)}
     assert cfg.total_iterations(128) == {1: 10, 3: 60, 2: 40}[levels] + (7 if mode == "udf" else 0)
+
+
+def test_level_schedules_are_typed_and_take_the_coarse_or_refinement_settings():
+    cfg = SolverConfig(lr=0.9, lr_step=300, m2=12, gamma=0.01, query_sigma=0.3, tv_form="sqrt", refine_lr=0.2,
+                       refine_lr_step=150, refine_m2=7, refine_gamma=2.0, refine_sigma=0.6,
+                       refine_tv_form="squared", query_pool=500, iterations=400, coarse_iterations=600)
+    coarse, fine = cfg.level_settings(0, 2), cfg.level_settings(1, 2)
+    assert coarse == LevelSchedule(iterations=600, queries=50_000, query_pool=500, lr=0.9, lr_step=300, m2=12,
+                                   gamma=0.01, sigma=0.3, tv_form="sqrt")
+    assert fine == LevelSchedule(iterations=400, queries=50_000, query_pool=400, lr=0.2, lr_step=150, m2=7,
+                                 gamma=2.0, sigma=0.6, tv_form="squared")
+    with pytest.raises(AttributeError):
+        fine.iterations = 1  # frozen
+    polish = cfg.replace(udf_polish=120).polish_settings()
+    assert polish == LevelSchedule(iterations=120, queries=50_000, query_pool=120, lr=0.2, lr_step=30, m2=7,
+                                   gamma=2.0, sigma=0.6, tv_form="squared")

@@ -103,3 +103,22 @@ def test_seed_gives_bitwise_identical_mesh(results):
     again = reconstruct(pts, resolution=RES, seed=0)
     np.testing.assert_array_equal(again.vertices, ref.vertices)
     np.testing.assert_array_equal(again.faces, ref.faces)
+
+
+def test_passing_normals_turns_the_normal_loss_on_unless_a_weight_is_given():
+    from tiled_gridpull.config import NORMALS_WEIGHT, SolverConfig
+
+    pts, _ = sample_shape(sphere(0.5), 3000, seed=1)
+    normals = pts / np.linalg.norm(pts, axis=1, keepdims=True)
+    quick = dict(resolution=40, levels=1, iterations=20, queries=2000, query_pool=0)
+
+    def run(**kw):
+        mesh = reconstruct(pts, **{**quick, **kw})
+        return mesh.metadata["config"]["normal_weight"], mesh.metadata["loss_history"][-1]["normal"]
+
+    weight, normal_loss = run(normals=normals)
+    assert NORMALS_WEIGHT > 0 and weight == NORMALS_WEIGHT and normal_loss > 0
+    assert run(normals=normals, normal_weight=0.25)[0] == 0.25
+    assert run(normals=normals, normal_weight=0.0) == (0.0, 0.0)  # an explicit 0 keeps the loss off
+    assert run(normals=normals, config=SolverConfig(normal_weight=0.5))[0] == 0.5
+    assert run() == (0.0, 0.0)  # no normals: nothing changes

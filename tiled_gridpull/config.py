@@ -8,28 +8,43 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
 from .errors import ConfigError
 
-__all__ = ["SolverConfig", "load_config_file", "parse_overrides"]
+__all__ = ["LevelSchedule", "SolverConfig", "NORMALS_WEIGHT", "load_config_file", "parse_overrides"]
 
 MIN_COARSE_CELLS = 32
+#: ``normal_weight`` that given normals switch on when no weight is set (``reconstruct(normals=...)``,
+#: ``--normals``): measured on exact normals in benchmarks/paper_eval.py (normals suite).
+NORMALS_WEIGHT = 1.0
 
 _CHOICES = {
     "tv_form": ("squared", "sqrt"),
     "refine_tv_form": ("squared", "sqrt"),
-    "surface_form": ("abs", "squared"),
     "mode": ("sdf", "udf"),
-    "init": ("sphere", "flood"),
 }
+
+
+def setting(default: Any, *, solve: bool = True, sphere_only: bool = False) -> Any:
+    """A :class:`SolverConfig` field whose metadata says whether it can change a tile solve's result.
+
+    ``solve=False``: one-shape settings a tile solve never reads (they stay out of resume keys).
+    ``sphere_only=True``: read only when the solve starts from the sphere (not from oriented normals).
+    """
+    return field(default=default, metadata={"solve": solve, "sphere_only": sphere_only})
 
 
 @dataclass(frozen=True)
 class SolverConfig:
-    """Everything that decides a GridPull solve (the paper's defaults unless noted).
+    """Everything that decides a GridPull solve.
+
+    The defaults are the schedule we ship (``configs/shape.yaml``; docs/solver.md, "The schedule we ship"), which
+    differs from the paper's recipe (``configs/paper.yaml``): three levels instead of one, 800 iterations at the
+    finest level instead of 1600, queries at 0.2 cells instead of 2, a query pool. The paper's values are noted
+    per setting.
 
     Attributes
     ----------
@@ -40,7 +55,7 @@ class SolverConfig:
     m1, m2 : int
         Pull band and TV band half widths in cells (paper: 3 and 14; 25 for scenes).
     iterations : int
-        Optimizer steps at the finest level (paper: 1600).
+        Optimizer steps at the finest level (default 800; paper: 1600 at its single level).
     queries : int
         Queries per iteration (paper: 50,000).
     lr, lr_decay, lr_step : float, float, int
@@ -50,17 +65,12 @@ class SolverConfig:
         Weights of the TV, surface and gradient-consistency losses (paper: 1, 1, 0.005).
     tv_form : {"squared", "sqrt"}
         TV as squared differences (authors' code) or the paper's per-vertex square root.
-    surface_form : {"abs", "squared"}
-        ``|f(s)|`` (paper) or ``f(s)^2`` (authors' code).
     query_sigma : float
-        Standard deviation of the query noise in cells (paper text: 2 cells; authors' code: ~0.05).
-    init : {"sphere", "flood"}
-        Sphere of ``init_radius`` cells at the lattice centre (paper: right for shapes that are star-shaped
-        around their bounding-box centre), or inside/outside from a flood fill of the coarsest grid from its
-        border (closed shapes of any topology; falls back to the sphere when no inside region exists). Tiled
-        scenes start from oriented normals instead (see ``TilingConfig.orientation``).
+        Standard deviation of the query noise in cells (default 0.2; paper text: 2 cells; authors' code: ~0.05).
     init_radius : float
-        Sphere radius in cells (paper: one or two cells).
+        An SDF solve starts from a sphere of this radius in cells at the lattice centre (paper: one or two
+        cells; right for shapes that are star-shaped around their bounding-box centre). Tiled scenes start from
+        oriented normals instead (see ``TilingConfig.orientation``).
     mode : {"sdf", "udf"}
         Signed field (default) or unsigned field for open surfaces (CAP-UDF pull, no gradient loss).
     udf_beta : float
@@ -75,10 +85,12 @@ class SolverConfig:
         the sheet, so the unsigned field alone places it coarsely (half-sphere, R = 256: exact CD-L1 0.38e-3,
         NC 0.958); 200 iterations: 0.034e-3, 0.9997. 0 meshes the unsigned field, signed, as it is.
     normal_weight : float
-        Weight of the normal-supervision loss when the input has normals (0 = off).
+        Weight of the normal-supervision loss when the input has normals (0 = off). Normals passed to
+        :func:`tiled_gridpull.reconstruct` (or ``--normals``) switch it to ``NORMALS_WEIGHT`` (1) when it is
+        not set.
     levels : int
-        Resolution levels (at most; fewer when the coarsest lattice would have fewer than 32 cells across).
-        1 is the paper's single-level solve. With ``L > 1`` the field is first solved on a lattice with
+        Resolution levels (at most; fewer when the coarsest lattice would have fewer than 32 cells across;
+        default 3). 1 is the paper's single-level solve. With ``L > 1`` the field is first solved on a lattice with
         ``2^(L-1)`` times larger cells (``coarse_iterations`` with the schedule above), then refined
         level by level (cells halved, values transferred by trilinear interpolation), each refinement over a
         ``refine_m2`` band with ``refine_lr`` decaying every ``refine_lr_step``; the finest level runs
@@ -100,7 +112,7 @@ class SolverConfig:
     min_queries : int
         Floor of the per-iteration query count when ``queries_per_point > 0``.
     query_pool : int
-        0 (paper): fresh queries every iteration. ``B > 0``: each level draws ``B`` batches of queries once,
+        0 (paper): fresh queries every iteration. ``B > 0`` (default 200): each level draws ``B`` batches of queries once,
         finds their nearest points in one go, and cycles through them (NeuralPull's precomputed queries), so
         nearest-neighbour search costs ``B`` batches instead of one per iteration. Pays where that search
         dominates: dense LiDAR tiles (see docs/solver.md).
@@ -122,45 +134,43 @@ class SolverConfig:
         many estimated noise sigmas, so thin walls and sharp edges keep their sheets apart.
     """
 
-    resolution: int = 256
-    margin: int = 4
-    m1: int = 3
-    m2: int = 14
-    iterations: int = 800
-    queries: int = 50_000
-    queries_per_point: float = 0.0
-    min_queries: int = 2048
-    lr: float = 1.0
-    lr_decay: float = 0.3
-    lr_step: int = 400
-    alpha: float = 1.0
-    beta: float = 1.0
-    gamma: float = 0.005
-    tv_form: str = "sqrt"
-    surface_form: str = "abs"
-    query_sigma: float = 0.2
-    init: str = "sphere"
-    init_radius: float = 2.0
-    mode: str = "sdf"
-    udf_beta: float = 0.1
-    udf_polish: int = 200
-    normal_weight: float = 0.0
-    levels: int = 3
-    coarse_iterations: int = 800
-    middle_iterations: int = 0
-    refine_m2: int = 8
-    refine_lr: float = 0.3
-    refine_lr_step: int = 200
-    refine_gamma: float = 3.0
-    refine_sigma: float = 0.5
-    refine_tv_form: str = "squared"
-    knn: int = 16
-    query_pool: int = 200
-    seed: int = 0
-    noise_cells: float = 0.0
-    denoise: int = 0
-    denoise_neighbors: int = 64
-    denoise_bandwidth: float = 0.0
+    resolution: int = setting(256, solve=False)
+    margin: int = setting(4, solve=False)
+    m1: int = setting(3)
+    m2: int = setting(14)
+    iterations: int = setting(800)
+    queries: int = setting(50_000)
+    queries_per_point: float = setting(0.0)
+    min_queries: int = setting(2048)
+    lr: float = setting(1.0)
+    lr_decay: float = setting(0.3)
+    lr_step: int = setting(400)
+    alpha: float = setting(1.0)
+    beta: float = setting(1.0)
+    gamma: float = setting(0.005)
+    tv_form: str = setting("sqrt")
+    query_sigma: float = setting(0.2)
+    init_radius: float = setting(2.0, sphere_only=True)
+    mode: str = setting("sdf")
+    udf_beta: float = setting(0.1)
+    udf_polish: int = setting(200)
+    normal_weight: float = setting(0.0, solve=False)
+    levels: int = setting(3)
+    coarse_iterations: int = setting(800)
+    middle_iterations: int = setting(0)
+    refine_m2: int = setting(8)
+    refine_lr: float = setting(0.3)
+    refine_lr_step: int = setting(200)
+    refine_gamma: float = setting(3.0)
+    refine_sigma: float = setting(0.5)
+    refine_tv_form: str = setting("squared")
+    knn: int = setting(16)
+    query_pool: int = setting(200)
+    seed: int = setting(0)
+    noise_cells: float = setting(0.0)
+    denoise: int = setting(0)
+    denoise_neighbors: int = setting(64)
+    denoise_bandwidth: float = setting(0.0)
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -215,6 +225,14 @@ class SolverConfig:
         """Plain dict of all settings."""
         return dataclasses.asdict(self)
 
+    def solve_settings(self, sphere_init: bool) -> dict:
+        """The settings that can change a tile solve's result (fields marked ``solve``), for resume keys.
+
+        ``sphere_init``: the solve starts from the sphere, so its radius counts too.
+        """
+        return {f.name: getattr(self, f.name) for f in fields(self)
+                if f.metadata["solve"] and (sphere_init or not f.metadata["sphere_only"])}
+
     def levels_for(self, cells: int) -> int:
         """Levels used on a lattice ``cells`` across: at most ``levels``, fewer when the coarsest would have
         fewer than 32 cells across."""
@@ -229,10 +247,9 @@ class SolverConfig:
             return self.queries
         return int(min(self.queries, max(self.min_queries, math.ceil(self.queries_per_point * n_points))))
 
-    def level_settings(self, level: int, n_levels: int, n_points: int | None = None) -> dict:
-        """Iterations, queries per iteration, query pool length, learning-rate schedule, TV band, gradient
-        weight, query noise and TV form of ``level`` (0 = coarsest) out of ``n_levels``, for a level holding
-        ``n_points`` points (``None``: the most queries the settings allow)."""
+    def level_settings(self, level: int, n_levels: int, n_points: int | None = None) -> "LevelSchedule":
+        """The schedule of ``level`` (0 = coarsest) out of ``n_levels``, for a level holding ``n_points`` points
+        (``None``: the most queries the settings allow)."""
         iterations = self.iterations if level == n_levels - 1 else self.coarse_iterations
         if 0 < level < n_levels - 1 and self.middle_iterations:
             iterations = self.middle_iterations
@@ -240,24 +257,62 @@ class SolverConfig:
         common = {"iterations": iterations, "query_pool": min(self.query_pool, iterations),
                   "queries": self.queries_for(n_points)}
         if level == 0:
-            return {**common, "lr": self.lr, "lr_step": self.lr_step, "m2": self.m2, "gamma": self.gamma,
-                    "sigma": self.query_sigma, "tv_form": self.tv_form}
-        return {**common, "lr": self.refine_lr, "lr_step": self.refine_lr_step, "m2": self.refine_m2,
-                "gamma": self.refine_gamma, "sigma": self.refine_sigma, "tv_form": self.refine_tv_form}
+            return LevelSchedule(**common, lr=self.lr, lr_step=self.lr_step, m2=self.m2, gamma=self.gamma,
+                                 sigma=self.query_sigma, tv_form=self.tv_form)
+        return LevelSchedule(**common, lr=self.refine_lr, lr_step=self.refine_lr_step, m2=self.refine_m2,
+                             gamma=self.refine_gamma, sigma=self.refine_sigma, tv_form=self.refine_tv_form)
 
     def total_iterations(self, cells: int) -> int:
         """Iterations of a solve on a lattice ``cells`` across, over all its levels and a UDF polish."""
         levels = self.levels_for(cells)
-        total = sum(self.level_settings(level, levels)["iterations"] for level in range(levels))
+        total = sum(self.level_settings(level, levels).iterations for level in range(levels))
         return total + (self.udf_polish if self.mode == "udf" else 0)
 
-    def polish_settings(self) -> dict:
-        """Settings of the signed refinement that ends a UDF solve: a refinement level's (even after a one-level
+    def polish_settings(self) -> "LevelSchedule":
+        """Schedule of the signed refinement that ends a UDF solve: a refinement level's (even after a one-level
         solve: the polish refines a field that has settled), for ``udf_polish`` iterations, the learning rate
         in four stages over them (as over a refinement level's 800 at 200 each)."""
         its = self.udf_polish
-        return {**self.level_settings(1, 2), "iterations": its, "query_pool": min(self.query_pool, its),
-                "lr_step": max(1, its // 4)}
+        return dataclasses.replace(self.level_settings(1, 2), iterations=its, query_pool=min(self.query_pool, its),
+                                   lr_step=max(1, its // 4))
+
+
+@dataclass(frozen=True)
+class LevelSchedule:
+    """What one resolution level (or the UDF polish) of a solve runs, resolved from a :class:`SolverConfig`.
+
+    Attributes
+    ----------
+    iterations : int
+        Optimizer steps of the level.
+    queries : int
+        Queries per iteration.
+    query_pool : int
+        Batches of queries whose nearest points are found once and cycled through (0: fresh every iteration);
+        never more than ``iterations``.
+    lr : float
+        Adam learning rate in cells per step at the level's start.
+    lr_step : int
+        Iterations between multiplications of the learning rate by ``SolverConfig.lr_decay``.
+    m2 : int
+        TV band half width in cells.
+    gamma : float
+        Weight of the gradient-consistency loss (SDF mode; a UDF solve does not use it).
+    sigma : float
+        Standard deviation of the query noise in cells.
+    tv_form : {"squared", "sqrt"}
+        Form of the TV loss.
+    """
+
+    iterations: int
+    queries: int
+    query_pool: int
+    lr: float
+    lr_step: int
+    m2: int
+    gamma: float
+    sigma: float
+    tv_form: str
 
 
 def finite_number(name: str, value: Any) -> float:

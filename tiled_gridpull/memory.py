@@ -140,7 +140,7 @@ def band_bricks_bound(occupancy: np.ndarray, block_shape, solver: SolverConfig) 
         if len(idx):
             idx = np.minimum(idx, np.asarray(bshape) - 1)
             grid[idx[:, 0], idx[:, 1], idx[:, 2]] = True
-        reach = -(-(st["m2"] + 1) // BRICK)
+        reach = -(-(st.m2 + 1) // BRICK)
         out.append(int(_dilate(grid, reach).sum()))
     return out
 
@@ -175,7 +175,7 @@ def tile_memory(spec: TileSpec, occupancy: np.ndarray, solver: SolverConfig, til
     phases = [min(n, NORMALS_CHUNK) * NORMALS_BYTES * tiling.normal_neighbors / 16.0]
     prev = 0
     for level, b in enumerate(bricks):
-        pool = solver.level_settings(level, len(bricks))["query_pool"]
+        pool = solver.level_settings(level, len(bricks)).query_pool
         coarser = prev * SLOT * FIELD_BYTES_PER_SLOT
         phases.append(b * SLOT * INIT_BYTES_PER_SLOT + coarser)  # initial values / transfer
         phases.append(n * KNN_BYTES_PER_NEIGHBOUR * k + b * SLOT * FIELD_BYTES_PER_SLOT + coarser)  # NN cache
@@ -216,8 +216,8 @@ def tile_time(spec: TileSpec, bricks: list[int], solver: SolverConfig) -> float:
     t = TILE_SETUP_S + spec.n_points * RATE_POINT_S
     for level, b in enumerate(bricks):
         st = solver.level_settings(level, levels, level_points(spec, level, levels))
-        it, nq = st["iterations"], st["queries"]
-        searched = (st["query_pool"] or it) * nq
+        it, nq = st.iterations, st.queries
+        searched = (st.query_pool or it) * nq
         t += it * (nq * RATE_QUERY_S + b * SLOT * RATE_SLOT_S) + searched * RATE_NN_S
     return t
 

@@ -16,7 +16,7 @@ import numpy as np
 
 from ._version import __version__
 from .cloud import PointCloud, as_points, clean_points
-from .config import SolverConfig
+from .config import NORMALS_WEIGHT, SolverConfig
 from .errors import ConfigError, InputError
 from .isosurface import extract_mesh
 from .kernels.graph import vertex_components
@@ -125,12 +125,16 @@ def reconstruct(points: Any, *, config: SolverConfig | None = None, normals: np.
     ----------
     points : (N, 3) array_like, PointCloud, or a pyvista, Open3D or trimesh point cloud or mesh
         World coordinates (any magnitude: the solver works in lattice-local coordinates); normals come with
-        the object when it has them (see :func:`~tiled_gridpull.cloud.as_points`).
+        the object when it has them (see :func:`~tiled_gridpull.cloud.as_points`) and, like a ``PointCloud``'s,
+        are used when ``normal_weight > 0``.
     config : SolverConfig, optional
-        Solver settings (defaults: the paper's). Keyword ``options`` override single fields, e.g.
-        ``resolution=128, iterations=800, seed=1``.
+        Solver settings (defaults: the schedule we ship, see :class:`~tiled_gridpull.config.SolverConfig`).
+        Keyword ``options`` override single fields, e.g. ``resolution=128, iterations=800, seed=1``.
     normals : (N, 3) array_like, optional
-        Unit normals, used when ``normal_weight > 0`` (in UDF mode they then also orient the signs).
+        Unit normals of the points. Passing them turns the normal loss on: ``normal_weight`` becomes
+        :data:`~tiled_gridpull.config.NORMALS_WEIGHT` (1) unless the config sets a weight above 0 or
+        ``normal_weight`` is given as a keyword (``normal_weight=0`` keeps the loss off). In UDF mode the normals
+        then also orient the signs. Normals carried by a ``PointCloud`` are used only when ``normal_weight > 0``.
     lattice : Lattice, optional
         Use this lattice instead of fitting one to the cloud.
     progress : callable, optional
@@ -152,15 +156,18 @@ def reconstruct(points: Any, *, config: SolverConfig | None = None, normals: np.
         Vertices float64 in the input's coordinates, faces int64 oriented outward; ``metadata`` holds the
         config, lattice, version, timings and solve statistics.
     """
-    points, own_normals = as_points(points)
-    normals = own_normals if normals is None else normals
     t0 = time.perf_counter()
     cfg = config or SolverConfig()
     if options:
         cfg = cfg.replace(**options)
+    # only normals the caller hands over switch the loss on: an object's own normals (often estimated and
+    # unoriented, e.g. Open3D's) are treated like a PointCloud's, used when a weight is set
+    if normals is not None and cfg.normal_weight == 0 and "normal_weight" not in options:
+        cfg = cfg.replace(normal_weight=NORMALS_WEIGHT)
     if min_component_cells < 0:
         raise ConfigError(f"min_component_cells must be >= 0, got {min_component_cells!r}")
-    xyz, nrm, report = prepare_points(points, normals)
+    points, own_normals = as_points(points)
+    xyz, nrm, report = prepare_points(points, own_normals if normals is None else normals)
     if cfg.normal_weight > 0 and nrm is None:
         raise InputError("normal_weight > 0 needs input normals, but the cloud has none")
     if cfg.denoise > 0:

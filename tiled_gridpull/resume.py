@@ -50,8 +50,6 @@ __all__ = ["partition_key", "load_partition", "solve_key", "mesh_key", "solve_ti
            "mesh_tile_resumable", "input_fingerprint"]
 
 SPILL_FORMAT = 2  # bump when the spill/occupancy layout changes
-SOLVE_SETTINGS_IGNORED = ("resolution", "margin", "normal_weight")  # shape-mode only / never passed by tiles
-SPHERE_ONLY = ("init", "init_radius")  # read only when the tile starts from the paper's sphere
 
 
 def digest(obj) -> str:
@@ -158,10 +156,7 @@ def solve_key(spec: "TileSpec", tiling: "TilingConfig", solver: "SolverConfig", 
         rule = orientation_rule(tiling, spec.has_sensor)
     except ConfigError:
         rule = tiling.orientation
-    settings = {k: v for k, v in solver.to_dict().items() if k not in SOLVE_SETTINGS_IGNORED}
-    if rule != "sphere":
-        for k in SPHERE_ONLY:
-            settings.pop(k)
+    settings = solver.solve_settings(sphere_init=rule == "sphere")
     return digest({"points_sha256": spec.points_sha256, "n_points": spec.n_points, "has_sensor": spec.has_sensor,
                    "block": spec.block.to_dict(), "min_points": tiling.min_points, "orientation": rule,
                    "normal_neighbors": tiling.normal_neighbors, "solver": settings,

@@ -20,7 +20,7 @@ import numpy as np
 from pykdtree.kdtree import KDTree
 
 from .band import Band, build_band
-from .config import SolverConfig
+from .config import LevelSchedule, SolverConfig
 from .errors import InputError
 from .field import Field
 from .kernels import CELL_PULL
@@ -168,7 +168,7 @@ def solve(points: np.ndarray, lattice: Lattice, config: SolverConfig, *,
         N = np.ascontiguousarray(np.asarray(normals, dtype=np.float32)[inside])
     udf = config.mode == "udf"
     levels = config.levels_for(max(lattice.n_cells))
-    total = sum(config.level_settings(level, levels)["iterations"] for level in range(levels))
+    total = sum(config.level_settings(level, levels).iterations for level in range(levels))
     if udf:
         total += config.udf_polish
     fld: Field | None = None
@@ -186,24 +186,18 @@ def solve(points: np.ndarray, lattice: Lattice, config: SolverConfig, *,
             Nl = Nl[keep] if Nl is not None else None
         st = config.level_settings(level, levels, len(P))
         tb = time.perf_counter()
-        band = build_band(P, lat, config.m1, st["m2"])
+        band = build_band(P, lat, config.m1, st.m2)
         t_band = time.perf_counter() - tb
         if fld is not None:
             values = upsample(fld, band)
         elif init is not None:
             values = np.ascontiguousarray(init(band), dtype=np.float32).reshape(band.n_bricks, 512)
+        elif config.mode == "udf":
+            values = nearest_point_init(band, P)
         else:
-            values = None
-            if config.mode == "udf":
-                values = nearest_point_init(band, P)
-            elif config.init == "flood":
-                from .initial_field import flood_init
-
-                values = flood_init(band, P)
-            if values is None:
-                values = sphere_init(band, config.init_radius)
+            values = sphere_init(band, config.init_radius)
         fld = _optimize(P, Nl, band, values, config, st, progress, history_every, done, total, level, history)
-        done += st["iterations"]
+        done += st.iterations
         per_level.append({"level": level, "cell_size": lat.cell_size, "shape": list(lat.shape), "band": band.stats,
                           "time_band_s": t_band, **{k: v for k, v in fld.info.items() if k != "history"}})
     assert fld is not None
@@ -247,18 +241,18 @@ def _sign_and_polish(fld: Field, P: np.ndarray, N: np.ndarray | None, config: So
 
 
 def _optimize(P: np.ndarray, N: np.ndarray | None, band: Band, values: np.ndarray, cfg: SolverConfig,
-              st: dict, progress: ProgressFn | None, history_every: int, it0: int, total: int, level: int,
+              st: LevelSchedule, progress: ProgressFn | None, history_every: int, it0: int, total: int, level: int,
               history: list) -> Field:
-    """Run one level's schedule (``st``: iterations, lr, lr_step) on one band."""
+    """Run one level's schedule ``st`` on one band."""
     t0 = time.perf_counter()
     # Morton order: stratified centres then come out spatially sorted
     order = np.argsort(ksamp.morton_codes(P), kind="stable")
     P = np.ascontiguousarray(P[order])
     if N is not None:
         N = np.ascontiguousarray(N[order])
-    gamma = 0.0 if cfg.mode == "udf" else st.get("gamma", cfg.gamma)
+    gamma = 0.0 if cfg.mode == "udf" else st.gamma
     beta = cfg.udf_beta if cfg.mode == "udf" else cfg.beta
-    sigma = np.float32(st.get("sigma", cfg.query_sigma))
+    sigma = np.float32(st.sigma)
     nn = NearestPoints(P, cfg.knn, sigma=float(sigma))
     flat_flags = band.flags.reshape(-1)
     d_a = values.reshape(-1).copy()
@@ -266,14 +260,13 @@ def _optimize(P: np.ndarray, N: np.ndarray | None, band: Band, values: np.ndarra
     m = np.zeros_like(d_a)
     v = np.zeros_like(d_a)
     qgrad = np.zeros_like(d_a)
-    inv = np.zeros_like(d_a) if st.get("tv_form", cfg.tv_form) == "sqrt" else np.zeros(1, np.float32)
+    inv = np.zeros_like(d_a) if st.tv_form == "sqrt" else np.zeros(1, np.float32)
     n_params = max(band.n_params, 1)
-    form = ks.TV_SQRT if st.get("tv_form", cfg.tv_form) == "sqrt" else ks.TV_SQUARED
+    form = ks.TV_SQRT if st.tv_form == "sqrt" else ks.TV_SQUARED
     tv_scale = (cfg.alpha if form == ks.TV_SQRT else 2.0 * cfg.alpha) / n_params
-    surface_form = kl.SURFACE_SQUARED if cfg.surface_form == "squared" else kl.SURFACE_ABS
     clamp = cfg.mode == "udf"
     shape = np.asarray(band.lattice.shape, np.int64)
-    nq = st["queries"]
+    nq = st.queries
     slots = np.empty((nq, 16), np.int64)
     grads = np.empty((nq, 16), np.float32)
     losses = np.empty((nq, 4), np.float32)
@@ -281,9 +274,9 @@ def _optimize(P: np.ndarray, N: np.ndarray | None, band: Band, values: np.ndarra
     q = np.empty((nq, 3), np.float32)
     nrm = N if N is not None else np.zeros((0, 3), np.float32)
     beta1, beta2, eps = 0.9, 0.999, 1e-8
-    iterations, lr0, lr_step = st["iterations"], st["lr"], st["lr_step"]
+    iterations, lr0, lr_step = st.iterations, st.lr, st.lr_step
     t_query = t_step = 0.0
-    pool = st["query_pool"]
+    pool = st.query_pool
     tp = time.perf_counter()
     if pool:
         # nearest points found once per batch; the batch's queries are re-drawn from the counter-based RNG each
@@ -300,7 +293,7 @@ def _optimize(P: np.ndarray, N: np.ndarray | None, band: Band, values: np.ndarra
         ksamp.draw_queries(P, cfg.seed, it0 + batch, sigma, centres, q)
         nn_idx = pool_nn[batch] if pool else nn.query(q, centres)[0]
         n_valid = kl.query_losses(d_a, flat_flags, band.brick_table, shape, q, P, nn_idx, nrm, CELL_PULL,
-                                  beta, gamma, cfg.normal_weight, surface_form, slots, grads, losses)
+                                  beta, gamma, cfg.normal_weight, slots, grads, losses)
         if n_valid:
             kl.scatter_add(qgrad, slots, grads, np.float32(1.0 / n_valid))
         tb = time.perf_counter()

@@ -22,14 +22,12 @@ from numba import njit, prange
 
 from .interp import corner_gradients, corner_slots, eval_corners, locate
 
-SURFACE_ABS = 0
-SURFACE_SQUARED = 1
 _EPS = 1e-12
 
 
 @njit(cache=True, parallel=True, fastmath=True)
 def query_losses(values, flags, table, shape, q, points, nearest, normals, pull_bit,
-                 beta, gamma, lam, surface_form, slots, grads, losses):
+                 beta, gamma, lam, slots, grads, losses):
     """Evaluate the losses of every query and the gradient at its 16 corner slots.
 
     Parameters
@@ -52,8 +50,6 @@ def query_losses(values, flags, table, shape, q, points, nearest, normals, pull_
         Unit normals of ``points`` (used when ``lam > 0``).
     beta, gamma, lam : float
         Weights of the surface, gradient-consistency and normal losses (the pull has weight 1).
-    surface_form : int
-        ``SURFACE_ABS`` or ``SURFACE_SQUARED``.
     slots : (Nq, 16) int64, out
         Corner slots (-1 for queries that do not count).
     grads : (Nq, 16) float32, out
@@ -107,12 +103,8 @@ def query_losses(values, flags, table, shape, q, points, nearest, normals, pull_
         dgqy = k * (uy - un * nqy)
         dgqz = k * (uz - un * nqz)
         # --- surface at s
-        if surface_form == SURFACE_SQUARED:
-            ls = fs * fs
-            dfs = beta * 2.0 * fs
-        else:
-            ls = abs(fs)
-            dfs = beta * (1.0 if fs > 0.0 else (-1.0 if fs < 0.0 else 0.0))
+        ls = abs(fs)
+        dfs = beta * (1.0 if fs > 0.0 else (-1.0 if fs < 0.0 else 0.0))
         # --- gradient consistency
         dgsx = 0.0
         dgsy = 0.0
