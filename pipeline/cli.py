@@ -194,7 +194,8 @@ def resolve_settings(args) -> tuple:
 
     Every key is checked before any data is read: unknown keys and bad values are refused with one line.
     """
-    from tiled_gridpull.config import NORMALS_WEIGHT, SolverConfig, load_config_file, parse_overrides
+    from tiled_gridpull.config import (NORMALS_WEIGHT, SolverConfig, drop_removed_settings, load_config_file,
+                                       parse_overrides)
     from tiled_gridpull.errors import ConfigError
     from tiled_gridpull.tiling import TilingConfig
 
@@ -210,6 +211,7 @@ def resolve_settings(args) -> tuple:
         if "voxel_size" in settings:
             raise ConfigError("--normals applies to one-shape mode (tiles orient estimated normals instead)")
         settings.setdefault("normal_weight", NORMALS_WEIGHT)
+    settings = drop_removed_settings(settings)
     solver_keys = set(SolverConfig.__dataclass_fields__)
     tiling_keys = set(TilingConfig.__dataclass_fields__)
     unknown = set(settings) - solver_keys - tiling_keys

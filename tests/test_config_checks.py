@@ -64,6 +64,8 @@ def test_bad_option_refused_before_any_work(tmp_path, capsys, cloud, opts, needl
     ("voxel_size: 0.1\ntile_size: -2\n", "tile_size must be positive"),
     ("- voxel_size\n- 0.1\n", "expected a mapping"),
     ("voxel_size: [0.1\n", "not valid YAML"),
+    ("voxel_size: 0.1\ninit: flood\n", "init 'flood' was removed"),
+    ("voxel_size: 0.1\nsurface_form: squared\n", "surface_form 'squared' was removed"),
 ])
 def test_bad_config_file_refused_before_any_work(tmp_path, capsys, cloud, text, needle):
     cfg = tmp_path / "c.yaml"
@@ -100,3 +102,21 @@ def test_tiling_config_refuses(kw):
 def test_solver_config_refuses(kw):
     with pytest.raises(ConfigError):
         SolverConfig(**kw)
+
+
+@pytest.mark.parametrize("key,value", [("init", "sphere"), ("surface_form", "abs")])
+def test_removed_setting_with_its_remaining_value_is_ignored_with_a_warning(tmp_path, key, value):
+    from tiled_gridpull.config import drop_removed_settings
+
+    with pytest.warns(UserWarning, match=f"setting '{key}' was removed"):
+        kept = drop_removed_settings({key: value, "alpha": 2.0})
+    assert kept == {"alpha": 2.0}
+    # and through the command line's settings, from a config file as from --set
+    from tiled_gridpull.pipeline.cli import build_parser, resolve_settings
+
+    cfg = tmp_path / "old.yaml"
+    cfg.write_text(f"{key}: {value}\nalpha: 2.0\n")
+    args = build_parser().parse_args(["reconstruct", "x.ply", "-o", "y.ply", "--config", str(cfg)])
+    with pytest.warns(UserWarning, match="was removed"):
+        solver, tiling = resolve_settings(args)
+    assert solver == SolverConfig(alpha=2.0) and tiling is None

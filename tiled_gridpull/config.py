@@ -14,7 +14,8 @@ from typing import Any
 
 from .errors import ConfigError
 
-__all__ = ["LevelSchedule", "SolverConfig", "NORMALS_WEIGHT", "load_config_file", "parse_overrides"]
+__all__ = ["LevelSchedule", "SolverConfig", "NORMALS_WEIGHT", "REMOVED_SETTINGS", "drop_removed_settings",
+           "load_config_file", "parse_overrides"]
 
 MIN_COARSE_CELLS = 32
 #: ``normal_weight`` that given normals switch on when no weight is set (``reconstruct(normals=...)``,
@@ -326,6 +327,32 @@ def finite_number(name: str, value: Any) -> float:
     if not math.isfinite(out):
         shown = f"an integer of {value.bit_length()} bits" if isinstance(value, int) else repr(value)
         raise ConfigError(f"{name} must be a finite number, got {shown}")
+    return out
+
+
+#: Settings that no longer exist, with the one value they could still mean (what the solver always does now).
+#: Old config files naming that value keep working, with a warning; any other value is refused.
+REMOVED_SETTINGS = {
+    "init": "sphere",       # init: flood was removed (used by no config, benchmark or test); scenes start from planes
+    "surface_form": "abs",  # surface_form: squared was removed; the surface loss is the paper's |f(s)|
+}
+
+
+def drop_removed_settings(settings: dict[str, Any]) -> dict[str, Any]:
+    """``settings`` without the keys of :data:`REMOVED_SETTINGS`: a key given its remaining value is dropped
+    with a warning, any other value is a one-line :class:`ConfigError`."""
+    import warnings
+
+    out = dict(settings)
+    for key, kept in REMOVED_SETTINGS.items():
+        if key not in out:
+            continue
+        value = out.pop(key)
+        if value != kept:
+            raise ConfigError(f"{key} {value!r} was removed; the solver always uses {key} {kept!r} "
+                              f"(delete the setting)")
+        warnings.warn(f"setting {key!r} was removed ({kept!r} is what the solver always does); ignored",
+                      UserWarning, stacklevel=2)
     return out
 
 
