@@ -40,10 +40,6 @@ PIECE_COLORS = ("#4c72b0", "#dd8452", "#55a868", "#c44e52", "#8172b3", "#937860"
 # helpers
 
 
-# ---------------------------------------------------------------------------------------------------------------
-# helpers
-
-
 def _check_view(view: str) -> str:
     if view not in VIEWS:
         raise ConfigError(f"view must be one of {', '.join(VIEWS)}; got {view!r}")
