@@ -99,7 +99,7 @@ def scene_config(work: Path, overrides: dict) -> Path:
 
 
 def street(n_points: int, workers: int, work: Path, overrides: dict | None = None) -> None:
-    from tiled_gridpull.synthetic.street import make_street_sample
+    from tiled_gridpull.synthetic.street_sample import make_street_sample
 
     t0 = time.perf_counter()
     sample = make_street_sample(work / f"street_{n_points}", n_points=n_points, origin=(500000.0, 4000000.0, 100.0))
@@ -146,7 +146,8 @@ def tile_count(n_points: int, copies: list[int], workers: int, work: Path) -> No
     """Time and memory against the number of occupied tiles at a fixed point density (issue 4's "time linear in
     the number of occupied tiles"): a slab of the ``n_points`` street repeated 1, 2, 4, ... times along x."""
     from tiled_gridpull.io import read_points
-    from tiled_gridpull.synthetic.street import make_street_sample, write_las
+    from tiled_gridpull.synthetic.lidar_files import write_las
+    from tiled_gridpull.synthetic.street_sample import make_street_sample
 
     sample = make_street_sample(work / f"street_{n_points}", n_points=n_points)
     xyz = read_points(sample["laz"]).xyz
@@ -199,7 +200,7 @@ def wide(n_points: int, workers: int, work: Path, variants: list[str], depth: in
     """A grid of streets (about 200 m x 200 m, one sensor pass per street) at ``n_points``: Poisson, then each
     GridPull variant, on the same file in the same run; accuracy against the ground truth over the observed
     region for all of them."""
-    from tiled_gridpull.synthetic.street import make_street_sample
+    from tiled_gridpull.synthetic.street_sample import make_street_sample
 
     t0 = time.perf_counter()
     sample = make_street_sample(work / f"grid_{n_points}", n_points=n_points, origin=(500000.0, 4000000.0, 100.0),
@@ -241,7 +242,7 @@ def holdout(workers: int, work: Path, variants: list[str], depth: int = 10, frac
 
     from tiled_gridpull.io import read_mesh, read_points
     from tiled_gridpull.metrics import point_to_mesh
-    from tiled_gridpull.synthetic.street import write_las
+    from tiled_gridpull.synthetic.lidar_files import write_las
 
     for name, cell, src in shared_lidar_files():
         xyz = read_points(src).xyz

@@ -342,7 +342,7 @@ def cmd_sample(args) -> int:
         raise ConfigError(f"--points must be at least 100, got {args.points}")
     out = Path(args.out_dir)
     if args.kind == "street":
-        from tiled_gridpull.synthetic.street import make_street_sample
+        from tiled_gridpull.synthetic.street_sample import make_street_sample
 
         formats = ("laz", "kitti") if args.kitti else ("laz",)
         info = make_street_sample(out, n_points=args.points, seed=args.seed, origin=tuple(args.origin),

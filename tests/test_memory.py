@@ -37,7 +37,8 @@ def test_parse_size_refuses(text):
 
 @pytest.fixture(scope="module")
 def street(tmp_path_factory):
-    from tiled_gridpull.synthetic.street import StreetScene, build_street, scan_street
+    from tiled_gridpull.synthetic.lidar import scan_street
+    from tiled_gridpull.synthetic.street import StreetScene, build_street
 
     d = tmp_path_factory.mktemp("street_memory")
     scene = StreetScene(seed=1, length_m=40.0, width_m=30.0, origin=ORIGIN)

@@ -9,11 +9,13 @@ import pytest
 
 from tiled_gridpull.pipeline.cli import main
 from tiled_gridpull.errors import ConfigError, InputError
+from tiled_gridpull.images import save_png
 from tiled_gridpull.io import read_sidecar, write_mesh
 from tiled_gridpull.mesh import Mesh
-from tiled_gridpull.render import render_mesh, render_meshes_image, render_tile_layout_image, save_png
 from tiled_gridpull.jobview import load_job
+from tiled_gridpull.render import render_mesh, render_meshes_image
 from tiled_gridpull.report import build_report, format_report_table, read_report, write_report
+from tiled_gridpull.tile_layout import render_tile_layout_image
 from tiled_gridpull.synthetic import sample_shape, sphere
 from conftest import terrain
 
@@ -217,12 +219,12 @@ def test_cli_report_errors(tmp_path, capsys):
 
 
 def test_a_picture_that_fails_never_fails_the_report(job, tmp_path, monkeypatch, caplog):
-    import tiled_gridpull.render as render
+    import tiled_gridpull.tile_layout as tile_layout
 
     def broken(*a, **k):
         raise RuntimeError("no canvas")
 
-    monkeypatch.setattr(render, "render_tile_layout", broken)
+    monkeypatch.setattr(tile_layout, "render_tile_layout", broken)
     meta = read_sidecar(job[1])
     path = write_report(tmp_path, meta)
     rep = read_report(path)

@@ -9,7 +9,8 @@ from tiled_gridpull.config import SolverConfig
 from tiled_gridpull.lattice import Lattice
 from tiled_gridpull.mesh import Mesh
 from tiled_gridpull.metrics import evaluate, point_to_mesh
-from tiled_gridpull.synthetic.street import StreetScene, build_street, scan_street
+from tiled_gridpull.synthetic.lidar import scan_street
+from tiled_gridpull.synthetic.street import StreetScene, build_street
 from tiled_gridpull.tiled_job import reconstruct_scene
 from tiled_gridpull.tiling import TilingConfig
 

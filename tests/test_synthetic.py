@@ -25,7 +25,9 @@ from tiled_gridpull.synthetic import (
     write_kitti_sequence,
     write_las,
 )
-from tiled_gridpull.synthetic.street import grid_frames_for_points, grid_passes, grid_street_lines
+from tiled_gridpull.synthetic.lidar import grid_passes
+from tiled_gridpull.synthetic.street import grid_street_lines
+from tiled_gridpull.synthetic.street_sample import grid_frames_for_points
 
 UTM = (500000.0, 4000000.0, 100.0)
 

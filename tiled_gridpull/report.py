@@ -202,7 +202,7 @@ def _write_layout(job_dir: Path, report: dict, max_points: int) -> str | None:
         log.info("matplotlib is not installed: no %s picture", LAYOUT_NAME)
         return None
     try:
-        from .render import render_tile_layout
+        from .tile_layout import render_tile_layout
 
         pts = sample_job_points(job_dir, max_points) if (job_dir / "manifest.json").exists() else None
         render_tile_layout(report, job_dir / LAYOUT_NAME, points=pts)

@@ -4,26 +4,21 @@ Feeds the tests, the demo command and the benchmarks. Everything is deterministi
 """
 
 from .shapes import box, sample_shape, sphere, torus
-from .street import (
-    FACE_CLASSES,
-    KITTI_TR,
+from .lidar import (
     POINTS_PER_FRAME_DEFAULT,
     SENSOR_HEIGHT_M,
     Scan,
-    StreetScene,
-    build_street,
     frames_for_points,
     hdl64_directions,
-    make_street_sample,
-    observed_samples,
     points_per_frame,
     scan_street,
     sensor_poses,
     street_length_for_frames,
-    terrain_height,
-    write_kitti_sequence,
-    write_las,
 )
+from .lidar_files import KITTI_TR, write_kitti_sequence, write_las
+from .observed import observed_samples
+from .street import FACE_CLASSES, StreetScene, build_street, terrain_height
+from .street_sample import make_street_sample
 
 __all__ = [
     "sphere", "torus", "box", "sample_shape",
