@@ -1,8 +1,10 @@
 """Overhead of the job's Dask graph with a no-op solve and mesh: the pipeline's own cost per tile.
 
-The graph is the one ``run_job`` runs (:func:`tiled_gridpull.pipeline.job.run_tiles`): a solve task per tile and a mesh task per
+The graph is the one ``run_job`` runs (:func:`tiled_gridpull.pipeline.job.run_tiles`): a solve task per tile
+and a mesh task per
 tile that takes the solve summaries of the tile and its neighbours, with the arguments the job's tasks carry
-(:func:`tiled_gridpull.pipeline.job.task_arguments`: real ``TileSpec``, ``TilingConfig`` and ``SolverConfig`` objects, paths), submitted as a sliding window of at most
+(:func:`tiled_gridpull.pipeline.job.task_arguments`: real ``TileSpec``, ``TilingConfig`` and ``SolverConfig``
+objects, paths), submitted as a sliding window of at most
 ``DEFAULT_WINDOW`` tasks, on a LocalCluster of 2 single-threaded worker processes. Results append to
 ``benchmarks/results/dask.jsonl``.
 

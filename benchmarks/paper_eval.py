@@ -50,7 +50,8 @@ def run(suite: str, label: str, method: str = "gridpull", config: dict | None = 
     out = run_isolated("benchmarks.shape_worker", args)
     row = {"suite": suite, "label": label, "date": time.strftime("%Y-%m-%d %H:%M"), **out}
     append_jsonl(RESULTS, row)
-    print(f"{suite:10s} {mesh:10s} {label:28s} wall {out['wall_s']:7.1f} s  CD-L1 {out['chamfer_l1_exact'] * 1e3:7.3f}e-3"
+    print(f"{suite:10s} {mesh:10s} {label:28s} wall {out['wall_s']:7.1f} s  "
+          f"CD-L1 {out['chamfer_l1_exact'] * 1e3:7.3f}e-3"
           f"  NC {out['normal_consistency_exact']:.4f}  pieces {out['components']}", flush=True)
     return out
 

@@ -51,7 +51,7 @@ def machine_section(rows: list[dict]) -> str:
                                   "absolute times, and compare times only within one machine.")
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def gt_watertight(mesh: str) -> str:
     """Topology of a shared ground-truth mesh (read once per mesh, not once per table row)."""
     from benchmarks.shape_worker import load_unit_mesh
@@ -87,7 +87,8 @@ def shapes_accuracy(rows: list[dict]) -> str:
     cols = [("mesh", "mesh", ""), ("cloud", "cloud", ""), ("g_cd", "GridPull CD-L1 x1e3", ".3f"),
             ("p_cd", "Poisson CD-L1 x1e3", ".3f"), ("cd_ratio", "ratio", ".2f"), ("g_nc", "GridPull NC", ".4f"),
             ("p_nc", "Poisson NC", ".4f"), ("d_nc", "NC diff", "+.4f"), ("g_l2", "GridPull CD-L2 x100", ".2e"),
-            ("g_f", "GridPull F@0.01", ".3f"), ("p_f", "Poisson F@0.01", ".3f"), ("gt_wt", "GT watertight", ""), ("g_wt", "GridPull watertight", ""),
+            ("g_f", "GridPull F@0.01", ".3f"), ("p_f", "Poisson F@0.01", ".3f"), ("gt_wt", "GT watertight", ""),
+            ("g_wt", "GridPull watertight", ""),
             ("g_pc", "pieces", "d"), ("p_wt", "Poisson watertight", ""), ("g_t", "GridPull s", ".1f"),
             ("p_t", "Poisson s", ".1f"), ("g_mem", "GridPull MB", ".0f"), ("p_mem", "Poisson MB", ".0f")]
     return markdown_table(out, cols)
@@ -139,7 +140,8 @@ def shapes_speed(rows: list[dict]) -> str:
                     "ratio": t / p_t if p_t else None, "cd": 1e3 * median(rs, "chamfer_l1_exact"),
                     "nc": median(rs, "normal_consistency_exact")})
     return markdown_table(out, [("method", "method", ""), ("res", "R", ""), ("points", "points", ","),
-                                ("pool", "query pool", ""), ("n", "runs", "d"), ("wall", "median wall s", ".1f"), ("solve", "solve s", ".1f"),
+                                ("pool", "query pool", ""), ("n", "runs", "d"),
+                                ("wall", "median wall s", ".1f"), ("solve", "solve s", ".1f"),
                                 ("ratio", "x Poisson time", ".2f"), ("mem", "peak MB", ".0f"),
                                 ("cd", "CD-L1 x1e3", ".3f"), ("nc", "NC", ".4f")])
 
@@ -159,7 +161,8 @@ def shapes_grid(rows: list[dict]) -> str:
         out.append({"mesh": mesh, "points": pts, "res": res, "wall": r["wall_s"], "mem": r["peak_rss_mb"],
                     "cd": 1e3 * cd, "cd2": 1e5 * r["chamfer_l2_exact"], "nc": nc,
                     "f": r.get("fscore_exact@0.01"),
-                    "p_cd": 1e3 * p["chamfer_l1_exact"] if p else None, "p_nc": p["normal_consistency_exact"] if p else None,
+                    "p_cd": 1e3 * p["chamfer_l1_exact"] if p else None,
+                    "p_nc": p["normal_consistency_exact"] if p else None,
                     "p_wall": p["wall_s"] if p else None, "p_mem": p["peak_rss_mb"] if p else None,
                     "cd_ratio": cd / p["chamfer_l1_exact"] if p else None,
                     "t_ratio": r["wall_s"] / p["wall_s"] if p else None,
@@ -207,7 +210,8 @@ def dask_section(rows: list[dict]) -> str:
                                      ("per_tile_ms", "median ms per tile", ".2f"),
                                      ("driver_peak_rss_mb", "driver peak MB", ".0f")])
     return "\n".join(["## Dask graph overhead (no-op solve and mesh)", "",
-                      "The job's own graph (`tiled_gridpull.pipeline.job.run_tiles`: a solve task per tile, a mesh task per tile "
+                      "The job's own graph (`tiled_gridpull.pipeline.job.run_tiles`: a solve task per tile, a "
+                      "mesh task per tile "
                       "reading the solve summaries of its neighbours) on a LocalCluster of 2 single-threaded worker "
                       "processes, with functions that do nothing: what the pipeline costs per tile before any work. "
                       "Submitting the whole graph at once (the first rows) lost the client's connection to the "
@@ -237,7 +241,8 @@ def main() -> None:
                   "meshes at 0.5 % noise (noise table below). The 100k and noisy GridPull rows were re-run "
                   "2026-11-22 on the AMD machine after one-shape lattices were padded (docs/solver.md, Variants: "
                   "noise), their Poisson rows earlier on the same cloud; the 10k rows, both methods, were re-run "
-                  "together on 2026-11-23 on the Intel machine (slower: its GridPull times for the 10k clouds are 1.8-2.4x the AMD machine's). The "
+                  "together on 2026-11-23 on the Intel machine (slower: its GridPull times for the 10k clouds "
+                  "are 1.8-2.4x the AMD machine's). The "
                   "times in this table were taken while other jobs shared the machine; the speed table below was "
                   "measured on a quiet machine.", "",
                   shapes_accuracy(shapes), ""]
@@ -252,7 +257,8 @@ def main() -> None:
             parts += ["## Shapes at 10k / 100k / 1M points and R = 128 / 256 / 512 (`benchmarks/shapes.py grid`)", "",
                       "GridPull (defaults but R) beside Open3D screened Poisson (depth 9, normals estimated by Open3D) "
                       "on the same cloud in the same session; ratios are GridPull / Poisson (below 1: GridPull more "
-                      "accurate, faster or smaller). One run each. R = 512 loses accuracy, not completeness: at 100k points "
+                      "accurate, faster or smaller). One run each. R = 512 loses accuracy, not completeness: at "
+                      "100k points "
                       "the mesh-to-truth term is 1.44e-3 against 0.09e-3 the other way, and 8.6 % of the mesh's area "
                       "lies more than 5e-3 from the truth, all of it in the bunny's open base (y < -0.33), which the "
                       "watertight surface caps with a bulge the finer band no longer holds flat (1.9 % without "
@@ -295,7 +301,8 @@ def main() -> None:
                   "with 2 workers. Poisson is Open3D's screened Poisson at depth 11 in its own process, end to end: "
                   "read, normals (30 neighbours, oriented up), Poisson, 5 % density trim, write "
                   "(`benchmarks/poisson_scene.py`). `x Poisson` columns are ratios to the Poisson row of the same "
-                  "run; accuracy is against the ground truth over the observed region (0.2 m). The 2026-11-23 `today` run "
+                  "run; accuracy is against the ground truth over the observed region (0.2 m). The 2026-11-23 "
+                  "`today` run "
                   "shared the machine with a test run for part of its time (its Poisson took 71 s instead of 56 s).",
                   "",
                   wide_table, ""]

@@ -329,7 +329,8 @@ def render(rows: list[dict]) -> str:
             and r.get("suite") not in ("tiles", "wide", "holdout")]
     if not runs:
         return ""
-    out = ["| date | scene | coarse thinning | query pool | points | workers | tiles | wall s | points/s | peak RSS MB | partition s | solve task-s | "
+    out = ["| date | scene | coarse thinning | query pool | points | workers | tiles | wall s | points/s | "
+           "peak RSS MB | partition s | solve task-s | "
            "blend task-s | mesh task-s | merge s | CD-L1 m | NC | F@0.1 m | pieces |",
            "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in runs:

@@ -64,7 +64,8 @@ def build_parser() -> argparse.ArgumentParser:
                                    "global lattice and solved on Dask.")
     r.add_argument("inputs", nargs="+", metavar="INPUT",
                    help="PLY, XYZ/TXT/PTS/CSV, NPY, LAS/LAZ, KITTI .bin or a KITTI sequence directory")
-    r.add_argument("-o", "--output", required=True, help="output mesh (.ply or .obj); a .json sidecar is written beside it")
+    r.add_argument("-o", "--output", required=True,
+                   help="output mesh (.ply or .obj); a .json sidecar is written beside it")
     r.add_argument("--overwrite", action="store_true",
                    help="replace an existing output mesh or sidecar that tiled-gridpull did not write (inputs are "
                         "never replaced)")
@@ -169,8 +170,8 @@ def _setup_logging(args) -> None:
     logging.captureWarnings(True)
     if getattr(args, "verbose", 0) < 2:
         # laspy's own log lines ("Could only read 3 of 5 points", lazrs errors) repeat what our one-line errors
-        # say: -vv shows them (distributed's are quieted by tiled_gridpull.pipeline.job.make_client, after its import has set
-        # their levels)
+        # say: -vv shows them (distributed's are quieted by tiled_gridpull.pipeline.job.make_client, after
+        # its import has set their levels)
         logging.getLogger("laspy").setLevel(logging.CRITICAL)
         # one line per warning, like errors: Python's default adds the source path and the line of code
         import warnings
@@ -420,7 +421,8 @@ def cmd_evaluate(args) -> int:
     res = evaluate(pred, gt, n_samples=args.samples, thresholds=tuple(args.thresholds), exact=not args.no_exact,
                    observed=observed, observed_radius=args.observed_radius / (scale if args.normalize else 1.0))
     if args.json:
-        print(json.dumps(res, indent=2, sort_keys=True, default=lambda o: o.item() if isinstance(o, np.generic) else str(o)))
+        print(json.dumps(res, indent=2, sort_keys=True,
+                         default=lambda o: o.item() if isinstance(o, np.generic) else str(o)))
     else:
         width = max(len(k) for k in res)
         for k, v in res.items():

@@ -96,7 +96,8 @@ def format_plan(info: dict, max_memory: int | None = None) -> str:
         f"lattice:  cell {cell:g}, origin ({', '.join(f'{v:.10g}' for v in lat['origin'])}), "
         f"{' x '.join(str(v - 1) for v in lat['shape'])} cells, {lat['levels']} solver level(s)",
         f"tiles:    {t['with_points']} with points of {t['planned']} planned "
-        f"({' x '.join(str(v) for v in lat['tile_range'])}); core {lat['tile_cells']} cells ({lat['tile_cells'] * cell:g}), "
+        f"({' x '.join(str(v) for v in lat['tile_range'])}); "
+        f"core {lat['tile_cells']} cells ({lat['tile_cells'] * cell:g}), "
         f"overlap {lat['overlap_cells']} cells ({lat['overlap_cells'] * cell:g}) per side",
         f"points per tile: min {t['points_min']:,}, median {t['points_median']:,.0f}, max {t['points_max']:,} "
         f"({t['overlap_points']:,} copies in overlaps; {t['below_min_points']} tile(s) below min_points)",

@@ -27,7 +27,9 @@ KNOWN_PRIVATE_IMPORTS = {"tiled_gridpull.resume imports tiled_gridpull.io.atomic
 
 
 def _modules() -> dict[str, tuple[Path, bool]]:
-    """Module name -> (source file, is a package ``__init__``); ``pipeline/`` installs as ``tiled_gridpull.pipeline``."""
+    """Module name -> (source file, is a package ``__init__``).
+
+    ``pipeline/`` installs as ``tiled_gridpull.pipeline``."""
     out = {}
     for root, prefix in ((REPO / "tiled_gridpull", "tiled_gridpull"), (REPO / "pipeline", "tiled_gridpull.pipeline")):
         for f in sorted(root.rglob("*.py")):
@@ -151,7 +153,7 @@ def test_distributed_is_imported_by_one_module():
 def test_no_private_names_imported_across_modules():
     bad = []
     for m in MODULES:
-        for target, names, line in _imports(m):
+        for target, names, _line in _imports(m):
             if target.startswith("tiled_gridpull"):
                 bad += [f"{m} imports {target}.{n}" for n in names if n.startswith("_") and n != "__version__"]
     assert set(bad) <= KNOWN_PRIVATE_IMPORTS, "\n".join(sorted(set(bad) - KNOWN_PRIVATE_IMPORTS))

@@ -62,7 +62,8 @@ def test_job_on_separately_started_scheduler_and_workers(tmp_path, cluster):
     from tiled_gridpull.pipeline.cli import main
 
     code = main(["reconstruct", str(tmp_path / "ground.npy"), "-o", str(out), "--voxel-size", "0.2",
-                 "--tile-size", "6.4", "--overlap", "1.6", "--set", "m2=8", "--set", "refine_m2=6", "--set", "coarse_iterations=100",
+                 "--tile-size", "6.4", "--overlap", "1.6", "--set", "m2=8", "--set", "refine_m2=6",
+                 "--set", "coarse_iterations=100",
                  "--set", "iterations=100", "--set", "queries=20000", "--scheduler", cluster, "-q"])
     assert code == 0
     side = json.loads(out.with_suffix(".json").read_text())

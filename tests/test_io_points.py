@@ -293,7 +293,8 @@ def test_ply_offset_comment_of_another_tool_is_not_applied(tmp_path):
     xyz = cloud_xyz(12)
     p = tmp_path / "other.ply"
     head = ("ply\nformat ascii 1.0\ncomment offset 1000 2000 3000\nelement vertex 12\nproperty double x\n"
-            "property double y\nproperty double z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n")
+            "property double y\nproperty double z\nelement face 1\nproperty list uchar int vertex_indices\n"
+            "end_header\n")
     rows = "".join(f"{a!r} {b!r} {c!r}\n" for a, b, c in xyz.tolist()) + "3 0 1 2\n"
     p.write_text(head + rows)
     np.testing.assert_array_equal(read_points(p).xyz, xyz)

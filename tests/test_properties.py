@@ -31,7 +31,8 @@ from tiled_gridpull.tiling import TilingConfig
 
 from conftest import SHARED
 
-FAST = settings(max_examples=int(os.environ.get("FUZZ_EXAMPLES", 40)), deadline=None, suppress_health_check=[HealthCheck.too_slow])
+FAST = settings(max_examples=int(os.environ.get("FUZZ_EXAMPLES", 40)), deadline=None,
+                suppress_health_check=[HealthCheck.too_slow])
 
 # ------------------------------------------------------------------------------------------------------ readers
 
@@ -171,7 +172,7 @@ def test_solver_config_accepts_or_raises_config_error(d):
     except ConfigError as exc:
         assert "\n" not in str(exc)
         return
-    for k, v in cfg.to_dict().items():  # what is accepted is a clean, finite value of the declared type
+    for v in cfg.to_dict().values():  # what is accepted is a clean, finite value of the declared type
         assert not isinstance(v, bool)
         if isinstance(v, float):
             assert math.isfinite(v)

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .kernels import BRICK, BRICK_VOLUME, CELL_OCC, CELL_OPT, CELL_PULL, PARAM
+from .kernels import BRICK, BRICK_VOLUME, PARAM
 from .kernels import band as kb
 from .lattice import Lattice
 

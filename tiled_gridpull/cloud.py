@@ -81,7 +81,7 @@ class PointCloud:
     def __len__(self) -> int:
         return len(self.xyz)
 
-    def take(self, idx, *, xyz: np.ndarray | None = None) -> "PointCloud":
+    def take(self, idx, *, xyz: np.ndarray | None = None) -> PointCloud:
         """The rows ``idx`` (index or boolean array, or slice) of every per-point array."""
         return _take(self, idx, xyz=xyz)
 

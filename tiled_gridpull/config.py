@@ -82,7 +82,8 @@ class SolverConfig:
         UDF mode: once the unsigned field is solved, its vertices get signs (the side of the oriented local
         plane of the nearest point, :func:`tiled_gridpull.udf_sign.sign_unsigned_field`) and the signed field is
         refined for this many iterations at the finest level with the signed losses (the refinement levels'
-        settings, ``refine_lr`` in four stages over the run, decaying by ``lr_decay`` between them). A trilinear field cannot bend sharply at
+        settings, ``refine_lr`` in four stages over the run, decaying by ``lr_decay`` between them). A
+        trilinear field cannot bend sharply at
         the sheet, so the unsigned field alone places it coarsely (half-sphere, R = 256: exact CD-L1 0.38e-3,
         NC 0.958); 200 iterations: 0.034e-3, 0.9997. 0 meshes the unsigned field, signed, as it is.
     normal_weight : float
@@ -113,7 +114,8 @@ class SolverConfig:
     min_queries : int
         Floor of the per-iteration query count when ``queries_per_point > 0``.
     query_pool : int
-        0 (paper): fresh queries every iteration. ``B > 0`` (default 200): each level draws ``B`` batches of queries once,
+        0 (paper): fresh queries every iteration. ``B > 0`` (default 200): each level draws ``B`` batches of
+        queries once,
         finds their nearest points in one go, and cycles through them (NeuralPull's precomputed queries), so
         nearest-neighbour search costs ``B`` batches instead of one per iteration. Pays where that search
         dominates: dense LiDAR tiles (see docs/solver.md).
@@ -215,7 +217,7 @@ class SolverConfig:
         if self.resolution < 2 * self.margin + 4:
             raise ConfigError(f"resolution {self.resolution} is too small for margin {self.margin}")
 
-    def replace(self, **changes: Any) -> "SolverConfig":
+    def replace(self, **changes: Any) -> SolverConfig:
         """Copy with some fields changed (validated)."""
         unknown = set(changes) - {f.name for f in fields(self)}
         if unknown:
@@ -248,7 +250,7 @@ class SolverConfig:
             return self.queries
         return int(min(self.queries, max(self.min_queries, math.ceil(self.queries_per_point * n_points))))
 
-    def level_settings(self, level: int, n_levels: int, n_points: int | None = None) -> "LevelSchedule":
+    def level_settings(self, level: int, n_levels: int, n_points: int | None = None) -> LevelSchedule:
         """The schedule of ``level`` (0 = coarsest) out of ``n_levels``, for a level holding ``n_points`` points
         (``None``: the most queries the settings allow)."""
         iterations = self.iterations if level == n_levels - 1 else self.coarse_iterations
@@ -269,7 +271,7 @@ class SolverConfig:
         total = sum(self.level_settings(level, levels).iterations for level in range(levels))
         return total + (self.udf_polish if self.mode == "udf" else 0)
 
-    def polish_settings(self) -> "LevelSchedule":
+    def polish_settings(self) -> LevelSchedule:
         """Schedule of the signed refinement that ends a UDF solve: a refinement level's (even after a one-level
         solve: the polish refines a field that has settled), for ``udf_polish`` iterations, the learning rate
         in four stages over them (as over a refinement level's 800 at 200 each)."""

@@ -64,7 +64,7 @@ class Lattice:
 
     # ------------------------------------------------------------------ constructors
     @classmethod
-    def fit(cls, points: np.ndarray, resolution: int = 256, margin: int = 4, pad: int = 0) -> "Lattice":
+    def fit(cls, points: np.ndarray, resolution: int = 256, margin: int = 4, pad: int = 0) -> Lattice:
         """Lattice for one shape: ``resolution`` cells across the padded longest side, centred on the bbox.
 
         Parameters
@@ -97,7 +97,7 @@ class Lattice:
 
     @classmethod
     def aligned(cls, bounds_lo: np.ndarray, bounds_hi: np.ndarray, cell_size: float,
-                origin: tuple[float, float, float] | None = None, pad: int = 0) -> "Lattice":
+                origin: tuple[float, float, float] | None = None, pad: int = 0) -> Lattice:
         """Lattice for a scene: cell size in world units, vertices on a global grid.
 
         ``origin`` defaults to the low corner snapped down to a multiple of ``cell_size`` (so two runs over
@@ -116,13 +116,13 @@ class Lattice:
         last = np.maximum(last, first + 1)
         return cls(tuple(o), cell_size, tuple(int(v) for v in (last - first + 1)), tuple(int(v) for v in first))
 
-    def block(self, lo: tuple[int, int, int] | np.ndarray, shape: tuple[int, int, int] | np.ndarray) -> "Lattice":
+    def block(self, lo: tuple[int, int, int] | np.ndarray, shape: tuple[int, int, int] | np.ndarray) -> Lattice:
         """Sub-block whose vertex ``(0, 0, 0)`` is this block's vertex ``lo`` (same global lattice)."""
         lo = np.asarray(lo, dtype=np.int64)
         return Lattice(self.origin, self.cell_size, tuple(int(v) for v in shape),
                        tuple(int(v) for v in np.asarray(self.offset) + lo))
 
-    def coarsen(self, factor: int) -> "Lattice":
+    def coarsen(self, factor: int) -> Lattice:
         """The lattice with ``factor`` times larger cells sharing this block's vertex ``(0, 0, 0)``.
 
         Fine vertex ``i`` sits at coarse index ``i / factor``; the coarse block covers the fine one (one more
@@ -187,6 +187,6 @@ class Lattice:
                 "offset": list(self.offset)}
 
     @classmethod
-    def from_dict(cls, d: dict) -> "Lattice":
+    def from_dict(cls, d: dict) -> Lattice:
         """Inverse of :meth:`to_dict`."""
         return cls(tuple(d["origin"]), float(d["cell_size"]), tuple(d["shape"]), tuple(d.get("offset", (0, 0, 0))))

@@ -140,7 +140,7 @@ class Mesh:
         labels, _ = kg.vertex_components(self.n_vertices, self.faces)
         return labels[self.faces[:, 0]]
 
-    def submesh(self, face_mask: np.ndarray) -> "Mesh":
+    def submesh(self, face_mask: np.ndarray) -> Mesh:
         """Mesh of the selected faces, unreferenced vertices dropped."""
         faces = self.faces[face_mask]
         used, inverse = np.unique(faces, return_inverse=True)
@@ -185,7 +185,7 @@ class Mesh:
                                          o3d.utility.Vector3iVector(self.faces.astype(np.int32)))
 
     @classmethod
-    def from_trimesh(cls, mesh) -> "Mesh":
+    def from_trimesh(cls, mesh) -> Mesh:
         """A mesh from a :class:`trimesh.Trimesh` (vertices and faces copied as they are).
 
         Parameters
@@ -201,7 +201,7 @@ class Mesh:
         return cls(np.array(mesh.vertices, dtype=np.float64), np.array(mesh.faces, dtype=np.int64))
 
     @classmethod
-    def from_pyvista(cls, poly, *, triangulate: bool = False) -> "Mesh":
+    def from_pyvista(cls, poly, *, triangulate: bool = False) -> Mesh:
         """A mesh from a :class:`pyvista.PolyData` (needs pyvista).
 
         Parameters
@@ -240,7 +240,7 @@ class Mesh:
         return cls(np.array(poly.points, dtype=np.float64), np.array(faces, dtype=np.int64))
 
     @classmethod
-    def from_open3d(cls, mesh) -> "Mesh":
+    def from_open3d(cls, mesh) -> Mesh:
         """A mesh from an :class:`open3d.geometry.TriangleMesh`.
 
         Parameters
@@ -257,7 +257,7 @@ class Mesh:
                    np.asarray(mesh.triangles, dtype=np.int64).copy())
 
     @classmethod
-    def from_any(cls, obj, *, triangulate: bool = False) -> "Mesh":
+    def from_any(cls, obj, *, triangulate: bool = False) -> Mesh:
         """A mesh from a trimesh, pyvista or Open3D triangle mesh, told apart by the object's package.
 
         Parameters

@@ -22,7 +22,8 @@ def plane_fits(points: np.ndarray, k: int, chunk: int = 200_000, bandwidth: floa
     With ``bandwidth > 0`` the fit is robust: each neighbour is then weighted by
     ``exp(-d^2 / (2 bandwidth^2))``, ``d`` its offset along the current normal from the centre point's
     projection onto the current plane (first the point itself), and the weighted plane refitted ``reweights``
-    times (a bilateral filter's range weight, iterated as a mean shift along the normal). Where two sheets lie within one neighbourhood (the two walls of a thin part, the faces at a sharp
+    times (a bilateral filter's range weight, iterated as a mean shift along the normal). Where two sheets
+    lie within one neighbourhood (the two walls of a thin part, the faces at a sharp
     edge) the plain fit averages them into one plane between; the weighted fit settles on the sheet the centre
     point belongs to.
 

@@ -53,7 +53,7 @@ def partition(chunks: Iterable, plan: TilePlan, out_dir: str | Path | None, has_
     dtype = spill_record(has_sensor)
     counts: dict[tuple, int] = {}
     buffers: dict[tuple, list] = {}
-    hashes: dict[tuple, "hashlib._Hash"] = {}
+    hashes: dict[tuple, hashlib._Hash] = {}
     occ: dict[tuple, np.ndarray] = {}
     bshape = tuple(int(v) for v in -(-np.asarray(plan.spec((0, 0, 0)).block.shape) // BRICK))
     buffered = 0

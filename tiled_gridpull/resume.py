@@ -93,7 +93,7 @@ def input_fingerprint(inputs: list) -> list[dict]:
     return out
 
 
-def partition_key(inputs: list, tiling: "TilingConfig", frames=None) -> str:
+def partition_key(inputs: list, tiling: TilingConfig, frames=None) -> str:
     """Key of a partition: inputs (path, size, mtime), frames, tile grid settings, version."""
     facts = {"inputs": input_fingerprint(inputs), "frames": list(frames) if frames else None,
              "voxel_size": tiling.voxel_size, "tile_cells": tiling.tile_cells,
@@ -103,7 +103,7 @@ def partition_key(inputs: list, tiling: "TilingConfig", frames=None) -> str:
     return digest(facts)
 
 
-def load_partition(paths: "JobPaths", key: str, tiling: "TilingConfig"):
+def load_partition(paths: JobPaths, key: str, tiling: TilingConfig):
     """The plan, tiles and scan facts of a finished partition with this key, or None.
 
     Each tile's spill file must exist with the size its point count implies, and its occupancy mask must exist.
@@ -150,7 +150,7 @@ def scan_record(scan: dict) -> dict:
 # ------------------------------------------------------------------------------------------------ tile results
 
 
-def solve_key(spec: "TileSpec", tiling: "TilingConfig", solver: "SolverConfig", centre=None) -> str:
+def solve_key(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig, centre=None) -> str:
     """Key of a tile's solve: its points (content hash), block, and the settings a tile solve reads."""
     try:
         rule = orientation_rule(tiling, spec.has_sensor)
@@ -164,7 +164,7 @@ def solve_key(spec: "TileSpec", tiling: "TilingConfig", solver: "SolverConfig", 
                    "version": __version__})
 
 
-def mesh_key(spec: "TileSpec", field_sha: str, neighbors: list[tuple[str, str]], tiling: "TilingConfig",
+def mesh_key(spec: TileSpec, field_sha: str, neighbors: list[tuple[str, str]], tiling: TilingConfig,
              key_ref) -> str:
     """Key of a tile's mesh piece: the fields it blends (own and solved neighbours') and the meshing settings."""
     return digest({"tile": spec.name, "field_sha256": field_sha, "neighbors": sorted(neighbors),
@@ -206,7 +206,7 @@ def _record(summary: dict, summary_path: str | Path, key: str, output: str | Pat
     write_json(summary_path, summary)
 
 
-def solve_tile_resumable(spec: "TileSpec", tiling: "TilingConfig", solver: "SolverConfig", field_path: str | Path,
+def solve_tile_resumable(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig, field_path: str | Path,
                          summary_path: str | Path, centre=None, before_solve=None) -> dict:
     """:func:`tiled_gridpull.tile_solve.solve_tile`, unless its summary shows the same key and the field is intact.
 
@@ -232,8 +232,8 @@ def solve_tile_resumable(spec: "TileSpec", tiling: "TilingConfig", solver: "Solv
     return out
 
 
-def mesh_tile_resumable(spec: "TileSpec", own: dict, neighbors: list[tuple["TileSpec", dict, str]],
-                        tiling: "TilingConfig", key_ref, field_path: str | Path, piece_path: str | Path,
+def mesh_tile_resumable(spec: TileSpec, own: dict, neighbors: list[tuple[TileSpec, dict, str]],
+                        tiling: TilingConfig, key_ref, field_path: str | Path, piece_path: str | Path,
                         summary_path: str | Path) -> dict:
     """Blend and mesh a solved tile (:func:`tiled_gridpull.stitch.mesh_tile`) unless an intact piece with the
     same key exists. ``neighbors`` are ``(spec, solve summary, field path)`` of the solved neighbours."""

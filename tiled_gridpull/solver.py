@@ -12,7 +12,6 @@ converge at R=256 in 1600 iterations). World distances are ``value * cell_size``
 
 from __future__ import annotations
 
-import os
 import time
 from collections.abc import Callable
 

@@ -75,7 +75,7 @@ class TileSpec:
         return d
 
     @classmethod
-    def from_dict(cls, d: dict) -> "TileSpec":
+    def from_dict(cls, d: dict) -> TileSpec:
         return cls(tuple(d["index"]), tuple(d["core_lo"]), tuple(d["core_hi"]), Lattice.from_dict(d["block"]),
                    int(d["n_points"]), d["points_path"], bool(d["has_sensor"]), tuple(d["mesh_lo"]),
                    tuple(d["mesh_hi"]), str(d.get("points_sha256", "")), int(d.get("occupied_bricks", 0)))

@@ -369,7 +369,8 @@ def job_metadata(plan: TilePlan, tiling: TilingConfig, solver: SolverConfig, sca
         "crs": scan.get("crs"),
         "tiles": {"planned": int(np.prod(plan.tile_range)), "with_points": len(solve_summaries),
                   "solved": len(solve_summaries) - len(failed),
-                  "not_solved": [{"tile": s["tile"], "status": s["status"], "reason": s.get("reason")} for s in failed]},
+                  "not_solved": [{"tile": s["tile"], "status": s["status"], "reason": s.get("reason")}
+                                 for s in failed]},
         "tile_summaries": [{k: v for k, v in s.items() if k != "loss_curve"} for s in solve_summaries],
         "mesh_summaries": mesh_summaries,
         "timings_s": dict(timings),

@@ -141,7 +141,8 @@ def read_mesh(path: str | Path) -> Mesh:
     except InputError:
         raise
     except Exception as exc:  # malformed files raise anything from the parsers
-        raise InputError(f"{path}: cannot read mesh ({exc.__class__.__name__}: {str(exc).splitlines()[0] if str(exc) else 'malformed'})") from None
+        detail = str(exc).splitlines()[0] if str(exc) else "malformed"
+        raise InputError(f"{path}: cannot read mesh ({exc.__class__.__name__}: {detail})") from None
     if len(V) == 0:
         raise InputError(f"{path}: mesh has no vertices")
     if len(F) == 0:
@@ -208,7 +209,7 @@ def ply_offset(comments: list[str]) -> np.ndarray | None:
 
 def _read_obj(path: Path):
     verts, polys = [], []
-    with open(path, "r", errors="replace") as fh:
+    with open(path, errors="replace") as fh:
         for line in fh:
             if line.startswith("v "):
                 verts.append([float(x) for x in line.split()[1:4]])
@@ -221,7 +222,7 @@ def _read_obj(path: Path):
 
 
 def _read_off(path: Path):
-    with open(path, "r", errors="replace") as fh:
+    with open(path, errors="replace") as fh:
         tokens = [ln for ln in (l.split("#")[0].strip() for l in fh) if ln]
     if not tokens or not tokens[0].startswith("OFF"):
         raise InputError(f"{path}: not an OFF file")

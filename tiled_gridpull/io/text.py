@@ -37,7 +37,7 @@ def _is_comment(line: str) -> bool:
 def _text_layout(p: Path, suffix: str) -> tuple[int, str | None]:
     """(lines to skip, delimiter): skips a header row of column names or a PTS point-count line."""
     delimiter = "," if suffix == ".csv" else None
-    with open(p, "r", encoding="latin-1") as fh:
+    with open(p, encoding="latin-1") as fh:
         for i, line in enumerate(fh):
             if _is_comment(line):
                 if i > 10_000:
@@ -74,7 +74,7 @@ def _text_count(p: Path, suffix: str) -> int:
     skip, _ = _text_layout(p, suffix)
     count = 0
     # text mode: the same universal-newline line splitting as np.loadtxt
-    with open(p, "r", encoding="latin-1") as fh:
+    with open(p, encoding="latin-1") as fh:
         for i, line in enumerate(fh):
             if i < skip:
                 continue
