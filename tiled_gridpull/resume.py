@@ -39,7 +39,7 @@ import numpy as np
 from ._version import __version__
 from .config import SolverConfig
 from .errors import ConfigError, InputError
-from .io.atomic import _json_default, write_json
+from .io.atomic import json_default, write_json
 from .jobdir import JobPaths, spill_record
 from .stitch import mesh_tile
 from .tile_plan import TileSpec, plan_tiles
@@ -54,7 +54,7 @@ SPILL_FORMAT = 2  # bump when the spill/occupancy layout changes
 
 def digest(obj) -> str:
     """SHA-256 of a JSON-serialisable object (sorted keys, so dict order never matters)."""
-    text = json.dumps(obj, sort_keys=True, separators=(",", ":"), default=_json_default)
+    text = json.dumps(obj, sort_keys=True, separators=(",", ":"), default=json_default)
     return hashlib.sha256(text.encode()).hexdigest()
 
 

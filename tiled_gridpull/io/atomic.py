@@ -83,11 +83,13 @@ def dump_json(fh: IO, data: dict) -> None:
     """The JSON document of :func:`write_json`, into an open text file."""
     import json
 
-    json.dump(data, fh, indent=2, sort_keys=True, default=_json_default)
+    json.dump(data, fh, indent=2, sort_keys=True, default=json_default)
     fh.write("\n")
 
 
-def _json_default(obj):
+def json_default(obj):
+    """``json.dump``'s ``default``: NumPy scalars and arrays, and paths, as plain JSON values (shared by the
+    job files written here and the content keys of :mod:`tiled_gridpull.resume`)."""
     import numpy as np
 
     if isinstance(obj, np.integer):
