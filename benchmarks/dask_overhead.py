@@ -1,11 +1,9 @@
 """Overhead of the job's Dask graph with a no-op solve and mesh: the pipeline's own cost per tile.
 
 The graph is the one ``run_job`` runs (:func:`tiled_gridpull.pipeline.job.run_tiles`): a solve task per tile
-and a mesh task per
-tile that takes the solve summaries of the tile and its neighbours, with the arguments the job's tasks carry
-(:func:`tiled_gridpull.pipeline.job.task_arguments`: real ``TileSpec``, ``TilingConfig`` and ``SolverConfig``
-objects, paths), submitted as a sliding window of at most
-``DEFAULT_WINDOW`` tasks, on a LocalCluster of 2 single-threaded worker processes. Results append to
+and a mesh task per tile that takes the solve summaries of the tile and its neighbours, with the arguments the
+job's tasks carry (:func:`tiled_gridpull.tiled_job.task_arguments`: real ``TileSpec``, ``TilingConfig`` and
+``SolverConfig`` objects, paths), submitted as a sliding window of at most ``DEFAULT_WINDOW`` tasks, on a LocalCluster of 2 single-threaded worker processes. Results append to
 ``benchmarks/results/dask.jsonl``.
 
 Usage: ``python -m benchmarks.dask_overhead 1000 10000 100000``
@@ -52,7 +50,8 @@ def run(n: int, workers: int = 2) -> dict:
 
     import numpy as np
 
-    from tiled_gridpull.pipeline.job import DEFAULT_WINDOW, run_tiles, task_arguments
+    from tiled_gridpull.pipeline.job import DEFAULT_WINDOW, run_tiles
+    from tiled_gridpull.tiled_job import task_arguments
     from tiled_gridpull.config import SolverConfig
     from tiled_gridpull.jobdir import JobPaths
     from tiled_gridpull.tiling import TilingConfig

@@ -219,7 +219,7 @@ def dask_section(rows: list[dict]) -> str:
                       "the job now submits tiles as a sliding window in tile order. In the last variant a mesh task "
                       "gets its neighbours' summaries as plain arguments (no futures as dependencies), tasks go to "
                       "the scheduler in batches, and each task carries the job's real arguments "
-                      "(`tiled_gridpull.pipeline.job.task_arguments`).", "", table, ""])
+                      "(`tiled_gridpull.tiled_job.task_arguments`).", "", table, ""])
 
 
 def main() -> None:

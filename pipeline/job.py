@@ -32,12 +32,12 @@ from tiled_gridpull.errors import ClusterError, ConfigError
 from tiled_gridpull.jobdir import JobPaths, neighbors_of
 from tiled_gridpull.mesh import Mesh
 from tiled_gridpull.tile_plan import TileSpec
-from tiled_gridpull.tiled_job import TileEvent, mesh_step, run_tiled_job, solve_step
+from tiled_gridpull.tiled_job import TileEvent, mesh_step, run_tiled_job, solve_step, task_arguments
 from tiled_gridpull.tiling import TilingConfig
 
 log = logging.getLogger("tiled_gridpull")
 
-__all__ = ["JobOptions", "DaskExecutor", "run_job", "run_tiles", "task_arguments", "make_client"]
+__all__ = ["JobOptions", "DaskExecutor", "run_job", "run_tiles", "make_client"]
 
 #: Tasks in flight at once: enough to keep any cluster busy (a task is a whole tile, seconds to minutes of work)
 #: and to cover a slab of tiles, so mesh tasks follow their solves closely.
@@ -314,25 +314,6 @@ def _deferred_interrupt():
         signal.signal(signal.SIGINT, previous)
     if interrupted.is_set():
         raise KeyboardInterrupt
-
-
-def task_arguments(specs: list[TileSpec], tiling: TilingConfig, solver: SolverConfig, paths: JobPaths,
-                   centre, key_ref):
-    """The extra arguments of each tile's solve and mesh task: ``(solve_args, mesh_args)``, two functions of a spec.
-
-    A mesh task gets the field paths of its own tile and its neighbours only: the whole job's map in every task
-    would make each task's message grow with the tile count (megabytes at 100,000 tiles).
-    """
-    by_index = {s.index: s for s in specs}
-
-    def solve_args(s: TileSpec) -> tuple:
-        return tiling, solver, str(paths.field(s)), centre, str(paths.summary("solve", s))
-
-    def mesh_args(s: TileSpec) -> tuple:
-        fields = {t.name: str(paths.field(t)) for t in [s, *neighbors_of(s, by_index)]}
-        return tiling, key_ref, fields, str(paths.piece(s)), str(paths.summary("mesh", s))
-
-    return solve_args, mesh_args
 
 
 def run_tiles(client, specs: list[TileSpec], solve_fn, solve_args, mesh_fn, mesh_args, retries: int = 2,

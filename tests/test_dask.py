@@ -172,7 +172,7 @@ def test_task_arguments_do_not_grow_with_the_tile_count():
 
     import numpy as np
 
-    from tiled_gridpull.pipeline.job import task_arguments
+    from tiled_gridpull.tiled_job import task_arguments
     from tiled_gridpull.config import SolverConfig
     from tiled_gridpull.jobdir import JobPaths, neighbors_of
     from tiled_gridpull.tiling import TilingConfig

@@ -42,7 +42,7 @@ from .tiling import TilingConfig, check_compatible
 log = logging.getLogger("tiled_gridpull")
 
 __all__ = ["run_tiled_job", "reconstruct_scene", "TileExecutor", "SerialExecutor", "solve_step", "mesh_step",
-           "collect_summaries", "finish_job", "job_metadata", "plan_centre", "key_reference",
+           "task_arguments", "collect_summaries", "finish_job", "job_metadata", "plan_centre", "key_reference",
            "check_some_tile_solvable", "check_some_tile_solved"]
 
 #: One finished tile step from an executor: ``(kind, tile index, summary)``, ``kind`` "solve" or "mesh".
@@ -97,6 +97,27 @@ def mesh_step(spec: TileSpec, own: dict, neighbor_specs: list, neighbor_summarie
                                field_paths[spec.name], piece_path, summary_path)
 
 
+def task_arguments(specs: list[TileSpec], tiling: TilingConfig, solver: SolverConfig, paths: JobPaths,
+                   centre, key_ref):
+    """The arguments after the spec of each tile's :func:`solve_step` and, after its own and its neighbours'
+    specs and summaries, of its :func:`mesh_step`: ``(solve_args, mesh_args)``, two functions of a spec; every
+    executor calls the steps with them.
+
+    A mesh task gets the field paths of its own tile and its neighbours only: the whole job's map in every task
+    would make each task's message grow with the tile count (megabytes at 100,000 tiles).
+    """
+    by_index = {s.index: s for s in specs}
+
+    def solve_args(s: TileSpec) -> tuple:
+        return tiling, solver, str(paths.field(s)), centre, str(paths.summary("solve", s))
+
+    def mesh_args(s: TileSpec) -> tuple:
+        fields = {t.name: str(paths.field(t)) for t in [s, *neighbors_of(s, by_index)]}
+        return tiling, key_ref, fields, str(paths.piece(s)), str(paths.summary("mesh", s))
+
+    return solve_args, mesh_args
+
+
 class SerialExecutor:
     """Runs a job's tiles in this process, one after the other: every solve in tile order, then every mesh.
 
@@ -118,20 +139,21 @@ class SerialExecutor:
             centre: tuple[float, float, float], key_ref: np.ndarray) -> Iterator[TileEvent]:
         specs = sorted(specs, key=lambda s: s.index)
         by_index = {s.index: s for s in specs}
+        solve_args, mesh_args = task_arguments(specs, tiling, solver, paths, centre, key_ref)
         summaries: dict[tuple, dict] = {}
         for s in specs:
-            out = solve_step(s, tiling, solver, str(paths.field(s)), centre, str(paths.summary("solve", s)))
+            out = solve_step(s, *solve_args(s))
             if not out.get("reused"):
                 out["worker"] = "local"
             summaries[s.index] = out
             if self.log:
-                self.log(f"{s.name}: {out['status']} ({out.get('reason', '')}{out['time_s']:.1f} s)")
+                reason = f"{out['reason']}; " if out.get("reason") else ""
+                self.log(f"{s.name}: {out['status']} ({reason}{out['time_s']:.1f} s)")
             yield "solve", s.index, out
         for s in specs:
             nbs = neighbors_of(s, by_index)
-            fields = {t.name: str(paths.field(t)) for t in [s, *nbs]}
-            yield "mesh", s.index, mesh_step(s, summaries[s.index], nbs, [summaries[n.index] for n in nbs], tiling,
-                                             key_ref, fields, str(paths.piece(s)), str(paths.summary("mesh", s)))
+            yield "mesh", s.index, mesh_step(s, summaries[s.index], nbs, [summaries[n.index] for n in nbs],
+                                             *mesh_args(s))
 
 
 def reconstruct_scene(inputs: list[str], output: str | Path | None, tiling: TilingConfig, solver: SolverConfig,
