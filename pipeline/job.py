@@ -325,17 +325,17 @@ def run_tiles(client, specs: list[TileSpec], solve_fn, solve_args, mesh_fn, mesh
     and its (up to 26) neighbours. ``solve_fn(spec, *solve_args(spec))`` and ``mesh_fn(spec, own_summary,
     neighbour_specs, neighbour_summaries, *mesh_args(spec))``; tasks carry the small spec objects, never arrays.
 
-    Solves are submitted as a sliding window of at most ``window`` unfinished tasks, in tile order from one window
-    to the next and, within each window's worth of tiles, the costliest first (most occupied bricks, then most
-    points): a short tile, not a long one, is what runs alone at the end (longest-processing-time-first
-    scheduling; in the demo street the 250k-point tile had been started last). A tile's mesh task goes in as soon
-    as the solves of the tile and its neighbours have come back, with their summaries as plain arguments. The
-    scheduler, the workers and this process thus hold state for a window of tiles, not the
-    whole job: submitting all 200,000 tasks of a 100,000-tile job at once overloaded the local scheduler until it
-    dropped the client's connection. Plain summaries rather than solve futures as the mesh task's dependencies
-    spare the scheduler 27 edges per mesh task and the workers fetching summaries from each other; with tasks
-    submitted in batches (one graph update per round, not per task), a no-op graph of 5,000 tiles went from 4.4
-    to 3.4 ms per tile (BENCHMARKS.md).
+    Solves are submitted as a sliding window of at most ``window`` unfinished tasks, in tile order from one
+    window to the next and, within each window's worth of tiles, the costliest first (most occupied bricks, then
+    most points): a short tile, not a long one, is what runs alone at the end (longest-processing-time-first
+    scheduling; in the demo street the 250k-point tile had been started last). A tile's mesh task goes in as
+    soon as the solves of the tile and its neighbours have come back, with their summaries as plain arguments.
+    The scheduler, the workers and this process thus hold state for a window of tiles, not the whole job:
+    submitting all 200,000 tasks of a 100,000-tile job at once overloaded the local scheduler until it dropped
+    the client's connection. Plain summaries rather than solve futures as the mesh task's dependencies spare the
+    scheduler 27 edges per mesh task and the workers fetching summaries from each other; with tasks submitted in
+    batches (one graph update per round, not per task), a no-op graph of 5,000 tiles went from 4.4 to 3.4 ms per
+    tile (BENCHMARKS.md).
 
     Parameters
     ----------

@@ -82,10 +82,10 @@ class SolverConfig:
         UDF mode: once the unsigned field is solved, its vertices get signs (the side of the oriented local
         plane of the nearest point, :func:`tiled_gridpull.udf_sign.sign_unsigned_field`) and the signed field is
         refined for this many iterations at the finest level with the signed losses (the refinement levels'
-        settings, ``refine_lr`` in four stages over the run, decaying by ``lr_decay`` between them). A
-        trilinear field cannot bend sharply at
-        the sheet, so the unsigned field alone places it coarsely (half-sphere, R = 256: exact CD-L1 0.38e-3,
-        NC 0.958); 200 iterations: 0.034e-3, 0.9997. 0 meshes the unsigned field, signed, as it is.
+        settings, ``refine_lr`` in four stages over the run, decaying by ``lr_decay`` between them). A trilinear
+        field cannot bend sharply at the sheet, so the unsigned field alone places it coarsely (half-sphere, R =
+        256: exact CD-L1 0.38e-3, NC 0.958); 200 iterations: 0.034e-3, 0.9997. 0 meshes the unsigned field,
+        signed, as it is.
     normal_weight : float
         Weight of the normal-supervision loss when the input has normals (0 = off). Normals passed to
         :func:`tiled_gridpull.reconstruct` (or ``--normals``) switch it to ``NORMALS_WEIGHT`` (1) when it is
@@ -115,10 +115,9 @@ class SolverConfig:
         Floor of the per-iteration query count when ``queries_per_point > 0``.
     query_pool : int
         0 (paper): fresh queries every iteration. ``B > 0`` (default 200): each level draws ``B`` batches of
-        queries once,
-        finds their nearest points in one go, and cycles through them (NeuralPull's precomputed queries), so
-        nearest-neighbour search costs ``B`` batches instead of one per iteration. Pays where that search
-        dominates: dense LiDAR tiles (see docs/solver.md).
+        queries once, finds their nearest points in one go, and cycles through them (NeuralPull's precomputed
+        queries), so nearest-neighbour search costs ``B`` batches instead of one per iteration. Pays where that
+        search dominates: dense LiDAR tiles (see docs/solver.md).
     seed : int
         Random seed (queries). Results are bitwise reproducible for a given seed.
     noise_cells : float

@@ -18,12 +18,11 @@ The mesh step of a tile blends its field with those of its solved neighbours (up
 one of their finest bands at 5 bytes per vertex slot, plus marching cubes and trimming.
 
 The byte counts per point and per slot below are the arrays the code allocates, rounded up; they were checked
-against per-task peak resident memory measured on Dask workers (``peak_rss_mb`` of the solve and mesh
-summaries) on the synthetic street: the estimate is an upper bound within about 2x there (see
-``tests/test_memory.py``). Time estimates are rough: a per-query and per-slot rate per iteration, a rate per
-nearest-point
-search (the query pool's, or every iteration's without one) and a per-point set-up cost, measured
-single-threaded on the project's 2-core test machine (off by 2x either way elsewhere).
+against per-task peak resident memory measured on Dask workers (``peak_rss_mb`` of the solve and mesh summaries)
+on the synthetic street: the estimate is an upper bound within about 2x there (see ``tests/test_memory.py``).
+Time estimates are rough: a per-query and per-slot rate per iteration, a rate per nearest-point search (the
+query pool's, or every iteration's without one) and a per-point set-up cost, measured single-threaded on the
+project's 2-core test machine (off by 2x either way elsewhere).
 """
 
 from __future__ import annotations

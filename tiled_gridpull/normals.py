@@ -19,13 +19,12 @@ __all__ = ["plane_fits", "local_planes", "estimate_normals", "orient_normals", "
 def plane_fits(points: np.ndarray, k: int, chunk: int = 200_000, bandwidth: float = 0.0, reweights: int = 3):
     """Least-squares plane (PCA) of every point's ``k`` nearest neighbours, ``chunk`` points at a time.
 
-    With ``bandwidth > 0`` the fit is robust: each neighbour is then weighted by
-    ``exp(-d^2 / (2 bandwidth^2))``, ``d`` its offset along the current normal from the centre point's
-    projection onto the current plane (first the point itself), and the weighted plane refitted ``reweights``
-    times (a bilateral filter's range weight, iterated as a mean shift along the normal). Where two sheets
-    lie within one neighbourhood (the two walls of a thin part, the faces at a sharp
-    edge) the plain fit averages them into one plane between; the weighted fit settles on the sheet the centre
-    point belongs to.
+    With ``bandwidth > 0`` the fit is robust: each neighbour is then weighted by ``exp(-d^2 / (2
+    bandwidth^2))``, ``d`` its offset along the current normal from the centre point's projection onto the
+    current plane (first the point itself), and the weighted plane refitted ``reweights`` times (a bilateral
+    filter's range weight, iterated as a mean shift along the normal). Where two sheets lie within one
+    neighbourhood (the two walls of a thin part, the faces at a sharp edge) the plain fit averages them into one
+    plane between; the weighted fit settles on the sheet the centre point belongs to.
 
     Parameters
     ----------

@@ -2,11 +2,10 @@
 
 Every tile is given as its block box, its overlap and a dense brick table over the box of its allocated bricks,
 so a neighbour's value at a global vertex is two array reads; only the bricks of a neighbour that reach into the
-blended region are passed (the overlap strip: a tenth of a neighbour's field on the demo street). Vertices
-are visited brick by brick in parallel
-(each brick writes only its own slots); at each vertex the tiles are summed in the order given (tile index
-order), in float64, exactly as the NumPy expression this replaces, so every tile that holds a shared vertex
-computes the same bits.
+blended region are passed (the overlap strip: a tenth of a neighbour's field on the demo street). Vertices are
+visited brick by brick in parallel (each brick writes only its own slots); at each vertex the tiles are summed
+in the order given (tile index order), in float64, exactly as the NumPy expression this replaces, so every tile
+that holds a shared vertex computes the same bits.
 """
 
 from __future__ import annotations

@@ -2,11 +2,11 @@
 
 Every random number is a hash (splitmix64) of ``(seed, iteration, query index, stream)``, so query ``i`` of
 iteration ``t`` is the same whichever thread draws it. Gaussian offsets are read from a table of 2^16 normal
-quantiles at hashed positions (three 16-bit fields of one hash), which costs no transcendental function.
-Centres are *stratified* over the input points, which
-are stored in Morton order: query ``i`` takes a random point of the ``i``-th of ``n`` equal slices, so each
-point is drawn with the same probability as with i.i.d. sampling, the queries cover the surface evenly, and
-they come out spatially sorted (cache-friendly gathers and scatters downstream).
+quantiles at hashed positions (three 16-bit fields of one hash), which costs no transcendental function. Centres
+are *stratified* over the input points, which are stored in Morton order: query ``i`` takes a random point of
+the ``i``-th of ``n`` equal slices, so each point is drawn with the same probability as with i.i.d. sampling,
+the queries cover the surface evenly, and they come out spatially sorted (cache-friendly gathers and scatters
+downstream).
 """
 
 from __future__ import annotations
