@@ -3,8 +3,8 @@
 The graph is the one ``run_job`` runs (:func:`tiled_gridpull.pipeline.job.run_tiles`): a solve task per tile
 and a mesh task per tile that takes the solve summaries of the tile and its neighbours, with the arguments the
 job's tasks carry (:func:`tiled_gridpull.tiled_job.task_arguments`: real ``TileSpec``, ``TilingConfig`` and
-``SolverConfig`` objects, paths), submitted as a sliding window of at most ``DEFAULT_WINDOW`` tasks, on a LocalCluster of 2 single-threaded worker processes. Results append to
-``benchmarks/results/dask.jsonl``.
+``SolverConfig`` objects, paths), submitted as a sliding window of at most ``DEFAULT_WINDOW`` tasks, on a
+LocalCluster of 2 single-threaded worker processes. Results append to ``benchmarks/results/dask.jsonl``.
 
 Usage: ``python -m benchmarks.dask_overhead 1000 10000 100000``
 """
