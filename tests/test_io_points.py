@@ -982,3 +982,16 @@ def test_laz_declaring_fewer_points_warns(tmp_path):
                                          r"the header declares 40000 points"):
         cloud = read_points(short, clean=False)
     assert len(cloud) == 40_000
+
+
+def test_a_registered_format_is_read_and_listed(tmp_path, monkeypatch):
+    from tiled_gridpull.io import formats
+
+    monkeypatch.setitem(formats.POINT_FORMATS, ".pnp", formats.POINT_FORMATS[".npy"])
+    xyz = np.random.default_rng(3).uniform(0, 1, size=(50, 3))
+    with open(tmp_path / "a.pnp", "wb") as fh:
+        np.save(fh, xyz)
+    assert np.array_equal(read_points(tmp_path / "a.pnp", clean=False).xyz, xyz)
+    (tmp_path / "b.zzz").write_text("0 0 0\n")
+    with pytest.raises(InputError, match=r"unknown point cloud format '\.zzz' \(supported: .*\.pnp"):
+        read_points(tmp_path / "b.zzz")

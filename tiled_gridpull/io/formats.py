@@ -60,8 +60,8 @@ register(".laz", PointFormat("LAZ", las.read, las.count, las.chunks))
 register(".bin", PointFormat("KITTI scan", kitti.read, kitti.count))
 
 SUPPORTED_POINT_FORMATS: tuple[str, ...] = tuple(POINT_FORMATS)
-"""File suffixes :func:`~tiled_gridpull.io.read_points` understands (case-insensitive); a directory is a KITTI
-sequence."""
+"""The built-in file suffixes (case-insensitive); a directory is a KITTI sequence. Formats registered later are
+in :data:`POINT_FORMATS`, which messages list."""
 
 
 def point_format(p: Path) -> PointFormat:
@@ -70,5 +70,5 @@ def point_format(p: Path) -> PointFormat:
     if suffix not in POINT_FORMATS:
         shown = f"'{suffix}'" if suffix else "(no extension)"
         raise InputError(f"{p}: unknown point cloud format {shown} (supported: "
-                         f"{', '.join(SUPPORTED_POINT_FORMATS)}, or a KITTI sequence directory)")
+                         f"{', '.join(POINT_FORMATS)}, or a KITTI sequence directory)")
     return POINT_FORMATS[suffix]
