@@ -167,9 +167,7 @@ def solve(points: np.ndarray, lattice: Lattice, config: SolverConfig, *,
         N = np.ascontiguousarray(np.asarray(normals, dtype=np.float32)[inside])
     udf = config.mode == "udf"
     levels = config.levels_for(max(lattice.n_cells))
-    total = sum(config.level_settings(level, levels).iterations for level in range(levels))
-    if udf:
-        total += config.udf_polish
+    total = config.total_iterations(max(lattice.n_cells))
     fld: Field | None = None
     done = 0
     per_level = []
