@@ -9,16 +9,26 @@ the same in every tile, and each face is decided by the one tile that owns its c
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from .band import Band, dense_brick_table
+from .blend import blend_into
+from .field import Field
 from .io.atomic import atomic_path
+from .isosurface import extract_mesh
+from .kernels import BRICK
+from .kernels.band import brick_neighbors
 from .kernels.graph import vertex_components
+from .memory import peak_rss_mb, reset_peak_rss
 from .mesh import Mesh
 from .mesh_repair import boundary_edges
 from .nearest import distances_to_cloud
+from .partition import read_tile_points
+from .tile_field import load_tile_field
 
 __all__ = ["MeshPiece", "trim_faces", "save_piece", "load_piece", "weld_pieces"]
 
@@ -134,18 +144,6 @@ def mesh_tile(spec, neighbors: list, tiling, key_ref: np.ndarray, field_path: st
     dict
         Summary: faces, vertices, trimmed faces, time (``time_s``; ``blend_s`` of it loading and blending fields).
     """
-    import time
-
-    from .band import Band, dense_brick_table
-    from .blend import blend_into
-    from .field import Field
-    from .kernels import BRICK
-    from .kernels.band import brick_neighbors
-    from .memory import peak_rss_mb, reset_peak_rss
-    from .isosurface import extract_mesh
-    from .partition import read_tile_points
-    from .tile_field import load_tile_field
-
     t0 = time.perf_counter()
     reset_peak_rss()
     O = tiling.overlap_cells
