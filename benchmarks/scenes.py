@@ -35,6 +35,7 @@ import time
 from pathlib import Path
 
 from benchmarks.common import REPO, append_jsonl, machine, markdown_table
+from tiled_gridpull.config import recorded_settings
 
 RESULTS = REPO / "benchmarks" / "results" / "scenes.jsonl"
 CLI = [sys.executable, "-m", "tiled_gridpull"]
@@ -75,7 +76,7 @@ def reconstruct(src: Path, out: Path, workers: int, extra: list[str]) -> dict:
                      "solve_and_mesh_wall": t.get("solve_and_mesh"), "merge": t.get("merge"),
                      "total": t.get("total")},
         "faces": side["mesh"]["n_faces"] if isinstance(side.get("mesh"), dict) else None,
-        "query_pool": side.get("config", {}).get("query_pool", 0),
+        "query_pool": recorded_settings(side.get("config", {})).get("query_pool", 0),
     }
 
 

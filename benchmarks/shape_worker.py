@@ -86,7 +86,7 @@ def run_gridpull(pts: np.ndarray, cfg: dict, normals: np.ndarray | None = None):
 
     mesh = reconstruct(pts, normals=normals, **cfg)
     return mesh, {"solve_s": mesh.metadata["timings_s"]["solve"],
-                  "query_pool": mesh.metadata["config"].get("query_pool", 0)}
+                  "query_pool": mesh.metadata["config"]["sampling"]["query_pool"]}
 
 
 def run_poisson(pts: np.ndarray, cfg: dict):

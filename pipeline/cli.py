@@ -71,7 +71,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "never replaced)")
     r.add_argument("--config", help="YAML file of settings (see configs/)")
     r.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                   help="override one setting (repeatable), e.g. --set alpha=2")
+                   help="override one setting (repeatable), by flat or dotted name: --set alpha=2, --set refine.lr=0.2")
     r.add_argument("--resolution", type=int, help="cells across the longest side (one-shape mode; default 256)")
     r.add_argument("--iterations", type=int, help="optimizer iterations at the finest level (default 800)")
     r.add_argument("--seed", type=int, help="random seed (default 0)")
@@ -196,29 +196,30 @@ def resolve_settings(args) -> tuple:
     Every key is checked before any data is read: unknown keys and bad values are refused with one line.
     """
     from tiled_gridpull.config import (NORMALS_WEIGHT, SolverConfig, drop_removed_settings, load_config_file,
-                                       parse_overrides)
+                                       parse_overrides, split_settings)
     from tiled_gridpull.errors import ConfigError
     from tiled_gridpull.tiling import TilingConfig
 
+    sources = [load_config_file(args.config)] if args.config else []
+    sources.append(parse_overrides(args.overrides))
+    sources.append({key: getattr(args, attr) for attr, key in _CLI_KEYS.items()
+                    if getattr(args, attr, None) is not None})
+    # each source by flat names first: a file's nested `refine: {lr: ..}` and `--set refine_lr=..` are one setting
+    solver_settings: dict = {}
     settings: dict = {}
-    if args.config:
-        settings.update(load_config_file(args.config))
-    settings.update(parse_overrides(args.overrides))
-    for attr, key in _CLI_KEYS.items():
-        value = getattr(args, attr, None)
-        if value is not None:
-            settings[key] = value
+    for source in sources:
+        mine, rest = split_settings(drop_removed_settings(source))
+        solver_settings.update(mine)
+        settings.update(rest)
     if getattr(args, "normals", False):
         if "voxel_size" in settings:
             raise ConfigError("--normals applies to one-shape mode (tiles orient estimated normals instead)")
-        settings.setdefault("normal_weight", NORMALS_WEIGHT)
-    settings = drop_removed_settings(settings)
-    solver_keys = set(SolverConfig.__dataclass_fields__)
+        solver_settings.setdefault("normal_weight", NORMALS_WEIGHT)
     tiling_keys = set(TilingConfig.__dataclass_fields__)
-    unknown = set(settings) - solver_keys - tiling_keys
+    unknown = set(settings) - tiling_keys
     if unknown:
         raise ConfigError(f"unknown setting(s): {', '.join(sorted(_shown_key(k) for k in unknown))}")
-    solver = SolverConfig(**{k: v for k, v in settings.items() if k in solver_keys})
+    solver = SolverConfig(**solver_settings)
     tiling_settings = {k: v for k, v in settings.items() if k in tiling_keys}
     tiling = None
     if "voxel_size" in tiling_settings:

@@ -137,12 +137,12 @@ def test_normals_flag_supervises_with_the_file_normals(tmp_path, capsys):
                         "--iterations", "100", "--set", "coarse_iterations=100"], capsys)
     assert code == 0, err
     side = json.loads(out.with_suffix(".json").read_text())
-    assert side["config"]["normal_weight"] == 1.0
+    assert side["config"]["losses"]["normal_weight"] == 1.0
     assert side["loss_history"][-1]["normal"] > 0  # the normal loss was evaluated
     code, _, err = run(["reconstruct", str(src), "-o", str(out), "-q", "--normals", "--resolution", "40",
                         "--iterations", "100", "--set", "coarse_iterations=100", "--set", "normal_weight=0.25"],
                        capsys)
-    assert code == 0 and json.loads(out.with_suffix(".json").read_text())["config"]["normal_weight"] == 0.25
+    assert code == 0 and json.loads(out.with_suffix(".json").read_text())["config"]["losses"]["normal_weight"] == 0.25
 
 
 @pytest.mark.parametrize("argv,needle", [

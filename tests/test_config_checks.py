@@ -4,6 +4,8 @@
 overlap larger than the tile and a negative voxel size; these are the rest.
 """
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -120,3 +122,85 @@ def test_removed_setting_with_its_remaining_value_is_ignored_with_a_warning(tmp_
     with pytest.warns(UserWarning, match="was removed"):
         solver, tiling = resolve_settings(args)
     assert solver == SolverConfig(alpha=2.0) and tiling is None
+
+
+# ------------------------------------------------------------------------------------ the configuration's shape
+
+def _resolve(tmp_path, text: str, *overrides: str):
+    from tiled_gridpull.pipeline.cli import build_parser, resolve_settings
+
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text(text)
+    argv = ["reconstruct", "x.ply", "-o", "y.ply", "--config", str(cfg)]
+    for item in overrides:
+        argv += ["--set", item]
+    return resolve_settings(build_parser().parse_args(argv))[0]
+
+
+def test_flat_dotted_and_nested_spellings_are_one_setting(tmp_path):
+    from tiled_gridpull.config import SETTINGS
+
+    base = SolverConfig()
+    for name, (section, field) in SETTINGS.items():
+        value = base.get(name)
+        if isinstance(value, str):
+            new = {"sqrt": "squared", "squared": "sqrt", "sdf": "udf"}[value]
+        else:
+            new = value + 1 if isinstance(value, int) else value / 2 + 0.3
+        flat = base.replace(**{name: new})
+        assert flat.get(name) == new != value, name
+        if section is None:
+            continue
+        # the same setting by its place: dotted, as a nested mapping, through its attribute
+        assert base.replace(**{f"{section}.{field}": new}) == flat, name
+        assert SolverConfig(**{section: {field: new}}) == flat, name
+        assert getattr(getattr(flat, section), field) == new, name
+        # everything else unchanged
+        assert {k: v for k, v in flat.to_flat().items() if k != name} == \
+               {k: v for k, v in base.to_flat().items() if k != name}, name
+
+
+def test_nested_config_file_equals_its_flat_form_and_round_trips(tmp_path):
+    nested = _resolve(tmp_path, "schedule:\n  finest_iterations: 300\n  levels: 2\nrefine:\n  lr: 0.2\n"
+                                "  query_sigma: 0.4\nsampling:\n  m1: 2\n")
+    flat = _resolve(tmp_path, "iterations: 300\nlevels: 2\nrefine_lr: 0.2\nrefine_sigma: 0.4\nm1: 2\n")
+    assert nested == flat == SolverConfig(iterations=300, levels=2, refine_lr=0.2, refine_sigma=0.4, m1=2)
+    assert nested.schedule.finest_iterations == 300 and nested.refine.query_sigma == 0.4
+    assert SolverConfig(**nested.to_dict()) == nested == SolverConfig(**nested.to_flat())
+    # a later source overrides an earlier one whatever the spelling: --set after the file
+    assert _resolve(tmp_path, "refine:\n  lr: 0.2\n", "refine_lr=0.1").refine.lr == 0.1
+    assert _resolve(tmp_path, "refine_lr: 0.2\n", "refine.lr=0.05").refine.lr == 0.05
+
+
+def test_shipped_configs_are_valid_and_shape_yaml_is_the_default(tmp_path):
+    from tiled_gridpull.config import load_config_file
+
+    repo = Path(__file__).resolve().parents[1]
+    assert SolverConfig(**load_config_file(repo / "configs" / "shape.yaml")) == SolverConfig()
+    for path in sorted((repo / "configs").glob("*.yaml")):
+        _resolve(tmp_path, path.read_text())  # every key known and valid
+
+
+@pytest.mark.parametrize("text,needle", [
+    ("lr: 0.5\ncoarse:\n  lr: 0.4\n", "lr is given twice"),
+    ("refine:\n  rate: 0.4\n", "refine.rate"),
+    ("refine: 0.4\n", "refine must be a LevelConfig or a mapping"),
+    ("schedule:\n  finest_iterations: 0\n", "iterations must be positive"),
+    ("refine:\n  tv_form: cubic\n", "refine.tv_form must be one of"),
+])
+def test_nested_settings_refused_with_one_line(tmp_path, text, needle):
+    with pytest.raises(ConfigError, match=needle) as exc:
+        _resolve(tmp_path, text)
+    assert "\n" not in str(exc.value)
+
+
+def test_a_section_object_replaces_its_section_and_sidecars_record_sections():
+    from tiled_gridpull.config import REFINE_DEFAULTS, LevelConfig, recorded_settings
+
+    cfg = SolverConfig(refine=LevelConfig(m2=6, lr=0.1, lr_step=50, gamma=1.0, query_sigma=0.3, tv_form="sqrt"))
+    assert cfg.level_settings(1, 2).m2 == 6 and cfg.level_settings(0, 2).m2 == 14
+    assert cfg.replace(refine=REFINE_DEFAULTS) == SolverConfig()
+    record = cfg.to_dict()
+    assert record["refine"]["m2"] == 6 and record["sampling"]["m1"] == 3 and "refine_m2" not in record
+    # a sidecar of this version and a flat one of an earlier version read back the same settings
+    assert recorded_settings(record) == cfg.to_flat() == recorded_settings(cfg.to_flat())

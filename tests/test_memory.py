@@ -151,7 +151,7 @@ def test_time_estimate_counts_one_search_per_pooled_query():
     pooled = SolverConfig(query_pool=100)
     fresh = SolverConfig(query_pool=0)
     levels = [pooled.level_settings(i, 3) for i in range(3)]
-    searches_saved = sum(st.iterations - st.query_pool for st in levels) * pooled.queries
+    searches_saved = sum(st.iterations - st.query_pool for st in levels) * pooled.sampling.queries
     assert searches_saved > 0
     assert tile_time(spec, bricks, fresh) - tile_time(spec, bricks, pooled) == pytest.approx(searches_saved * RATE_NN_S)
     # more band bricks and more points cost more

@@ -107,12 +107,10 @@ def test_denoise_is_recorded_checked_and_refused_in_tiled_mode():
         SolverConfig(denoise=-1)
     with pytest.raises(ConfigError, match="denoise_neighbors"):
         SolverConfig(denoise_neighbors=2)
-    preset = load_config_file(REPO / "configs" / "noisy.yaml")
-    assert preset["denoise"] == 2 and preset["denoise_bandwidth"] > 0
-    very = load_config_file(REPO / "configs" / "very_noisy.yaml")
-    assert very["denoise"] == 2 and very["denoise_bandwidth"] == 0
-    for cfg in (preset, very):
-        SolverConfig(**cfg)  # every key a valid setting
+    preset = SolverConfig(**load_config_file(REPO / "configs" / "noisy.yaml")).noise
+    assert preset.denoise_passes == 2 and preset.denoise_bandwidth > 0
+    very = SolverConfig(**load_config_file(REPO / "configs" / "very_noisy.yaml")).noise
+    assert very.denoise_passes == 2 and very.denoise_bandwidth == 0
 
 
 def thin_part(gap: float, sigma: float, n: int = 40_000, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:

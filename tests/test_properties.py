@@ -160,7 +160,7 @@ _values = st.one_of(
     st.text(max_size=12), st.sampled_from(["sqrt", "squared", "abs", "sdf", "udf", "sphere", "flood", "auto", "up"]),
     st.lists(st.integers(), max_size=3), st.dictionaries(st.text(max_size=4), st.integers(), max_size=2),
 )
-SOLVER_KEYS = sorted(SolverConfig.__dataclass_fields__)
+SOLVER_KEYS = sorted(SolverConfig.setting_names())  # flat, dotted and section names
 TILING_KEYS = sorted(TilingConfig.__dataclass_fields__)
 
 
@@ -172,7 +172,7 @@ def test_solver_config_accepts_or_raises_config_error(d):
     except ConfigError as exc:
         assert "\n" not in str(exc)
         return
-    for v in cfg.to_dict().values():  # what is accepted is a clean, finite value of the declared type
+    for v in cfg.to_flat().values():  # what is accepted is a clean, finite value of the declared type
         assert not isinstance(v, bool)
         if isinstance(v, float):
             assert math.isfinite(v)

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tiled_gridpull.config import SolverConfig
+from tiled_gridpull.config import SECTIONS, SETTINGS, SolverConfig
 from tiled_gridpull.resume import mesh_key, solve_key, solve_tile_resumable
 from tiled_gridpull.jobdir import JobPaths
 from tiled_gridpull.prepare import prepare_job
@@ -54,16 +54,18 @@ def test_solve_key_follows_exactly_the_settings_marked_solve(tmp_path, ground):
     _, specs, _ = prepare_job([str(ground)], TILING, JobPaths(tmp_path / "job"))
     s = specs[0]
     sphere = TilingConfig(voxel_size=0.2, tile_size=6.4, overlap=1.6, orientation="sphere")
-    fields = dataclasses.fields(SolverConfig)
-    assert all(set(f.metadata) == {"solve", "sphere_only"} for f in fields)  # every setting classified
-    assert {f.name for f in fields if not f.metadata["solve"]} == {"resolution", "margin", "normal_weight"}
-    assert {f.name for f in fields if f.metadata["sphere_only"]} == {"init_radius"}
+    # every setting of the one table, with the dataclass field that declares it (top level or in a section)
+    fields = {name: {f.name: f for f in dataclasses.fields(SECTIONS[sec] if sec else SolverConfig)}[fname]
+              for name, (sec, fname) in SETTINGS.items()}
+    assert all(set(f.metadata) == {"solve", "sphere_only"} for f in fields.values())  # every setting classified
+    assert {n for n, f in fields.items() if not f.metadata["solve"]} == {"resolution", "margin", "normal_weight"}
+    assert {n for n, f in fields.items() if f.metadata["sphere_only"]} == {"init_radius"}
     for tiling in (TILING, sphere):
         base = solve_key(s, tiling, SOLVER)
-        for f in fields:
-            changed = SOLVER.replace(**{f.name: _changed(f.name, getattr(SOLVER, f.name))})
+        for name, f in fields.items():
+            changed = SOLVER.replace(**{name: _changed(name, SOLVER.get(name))})
             counts = f.metadata["solve"] and (tiling is sphere or not f.metadata["sphere_only"])
-            assert (solve_key(s, tiling, changed) != base) == counts, f.name
+            assert (solve_key(s, tiling, changed) != base) == counts, name
 
 
 def test_partition_is_reused_only_for_the_same_inputs_and_grid(tmp_path, ground):

@@ -49,7 +49,7 @@ def test_a_small_cloud_draws_fewer_queries_and_the_solve_records_them():
     fld = solve(pts, Lattice.fit(pts, cfg.resolution, cfg.margin), cfg)
     for lv in fld.info["levels"]:
         assert lv["queries"] == cfg.queries_for(lv["points"])
-        assert lv["queries"] < cfg.queries
+        assert lv["queries"] < cfg.sampling.queries
     # the coarse level is thinned (at most 4 points per coarse cell): fewer points, fewer queries
     coarse, fine = fld.info["levels"]
     assert fine["points"] == 1500 and coarse["points"] <= fine["points"]

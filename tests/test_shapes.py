@@ -114,7 +114,7 @@ def test_passing_normals_turns_the_normal_loss_on_unless_a_weight_is_given():
 
     def run(**kw):
         mesh = reconstruct(pts, **{**quick, **kw})
-        return mesh.metadata["config"]["normal_weight"], mesh.metadata["loss_history"][-1]["normal"]
+        return mesh.metadata["config"]["losses"]["normal_weight"], mesh.metadata["loss_history"][-1]["normal"]
 
     weight, normal_loss = run(normals=normals)
     assert NORMALS_WEIGHT > 0 and weight == NORMALS_WEIGHT and normal_loss > 0

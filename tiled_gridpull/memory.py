@@ -147,7 +147,7 @@ def band_bricks_bound(occupancy: np.ndarray, block_shape, solver: SolverConfig) 
 
 def _knn_bound(n_points: int, solver: SolverConfig) -> int:
     """The solver's candidate-list size: a power of two in [knn, 64], at most the point count."""
-    return int(min(max(KNN_MAX, solver.knn), max(n_points, 1)))
+    return int(min(max(KNN_MAX, solver.sampling.knn), max(n_points, 1)))
 
 
 def tile_memory(spec: TileSpec, occupancy: np.ndarray, solver: SolverConfig, tiling: TilingConfig,
@@ -180,7 +180,7 @@ def tile_memory(spec: TileSpec, occupancy: np.ndarray, solver: SolverConfig, til
         phases.append(b * SLOT * INIT_BYTES_PER_SLOT + coarser)  # initial values / transfer
         phases.append(n * KNN_BYTES_PER_NEIGHBOUR * k + b * SLOT * FIELD_BYTES_PER_SLOT + coarser)  # NN cache
         phases.append(b * SLOT * OPT_BYTES_PER_SLOT + n * KNN_KEPT_BYTES_PER_NEIGHBOUR * k
-                      + solver.queries * (QUERY_BYTES + pool * POOL_BYTES_PER_QUERY) + coarser)  # iterations
+                      + solver.sampling.queries * (QUERY_BYTES + pool * POOL_BYTES_PER_QUERY) + coarser)  # iterations
         prev = b
     solve = base + UNTRACKED * (points + max(phases))
     own = bricks[-1]

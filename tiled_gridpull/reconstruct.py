@@ -16,7 +16,7 @@ import numpy as np
 
 from ._version import __version__
 from .cloud import PointCloud, as_points, clean_points
-from .config import NORMALS_WEIGHT, SolverConfig
+from .config import NORMALS_WEIGHT, SolverConfig, split_settings
 from .errors import ConfigError, InputError
 from .isosurface import extract_mesh
 from .kernels.graph import vertex_components
@@ -162,26 +162,27 @@ def reconstruct(points: Any, *, config: SolverConfig | None = None, normals: np.
         cfg = cfg.replace(**options)
     # only normals the caller hands over switch the loss on: an object's own normals (often estimated and
     # unoriented, e.g. Open3D's) are treated like a PointCloud's, used when a weight is set
-    if normals is not None and cfg.normal_weight == 0 and "normal_weight" not in options:
+    if normals is not None and cfg.losses.normal_weight == 0 and "normal_weight" not in split_settings(options)[0]:
         cfg = cfg.replace(normal_weight=NORMALS_WEIGHT)
     if min_component_cells < 0:
         raise ConfigError(f"min_component_cells must be >= 0, got {min_component_cells!r}")
     points, own_normals = as_points(points)
     xyz, nrm, report = prepare_points(points, own_normals if normals is None else normals)
-    if cfg.normal_weight > 0 and nrm is None:
+    if cfg.losses.normal_weight > 0 and nrm is None:
         raise InputError("normal_weight > 0 needs input normals, but the cloud has none")
-    if cfg.denoise > 0:
-        xyz = project_to_local_planes(xyz, cfg.denoise_neighbors, cfg.denoise, cfg.denoise_bandwidth)
+    if cfg.noise.denoise_passes > 0:
+        xyz = project_to_local_planes(xyz, cfg.noise.denoise_neighbors, cfg.noise.denoise_passes,
+                                      cfg.noise.denoise_bandwidth)
     noise = estimate_noise(xyz)
     if lattice is None:
-        if cfg.noise_cells > 0 and noise.sigma > 0:
+        if cfg.noise.cell_sigmas > 0 and noise.sigma > 0:
             extent = float((xyz.max(axis=0) - xyz.min(axis=0)).max())
-            coarse = max(MIN_NOISY_RESOLUTION, int(extent / (cfg.noise_cells * noise.sigma)))
+            coarse = max(MIN_NOISY_RESOLUTION, int(extent / (cfg.noise.cell_sigmas * noise.sigma)))
             if coarse < cfg.resolution:
                 cfg = cfg.replace(resolution=coarse)
         lattice = shape_lattice(xyz, cfg)
     # measured: bunny with noise of 0.8 cell at R = 128 already came out rough (NC 0.69)
-    if noise.noisy and cfg.beta > 0 and noise.sigma > 0.5 * lattice.cell_size:
+    if noise.noisy and cfg.losses.beta > 0 and noise.sigma > 0.5 * lattice.cell_size:
         warnings.warn(f"the cloud looks noisy (sigma ~ {noise.sigma:.3g}, {noise.sigma / lattice.cell_size:.1f} "
                       f"cells at this resolution): the surface will follow the noise; try configs/noisy.yaml "
                       f"(configs/very_noisy.yaml for noise near 1 % of the bounding-box diagonal)",
@@ -196,7 +197,7 @@ def reconstruct(points: Any, *, config: SolverConfig | None = None, normals: np.
                                                         UDF_TRIM_SPACINGS * noise.spacing))
     closed = 0
     if cfg.mode == "sdf" and close_band_holes and mesh.n_faces:
-        mesh, closed = _close_band_edge_holes(mesh, xyz, cfg.m1 * lattice.cell_size)
+        mesh, closed = _close_band_edge_holes(mesh, xyz, cfg.sampling.m1 * lattice.cell_size)
     # The losses are unchanged by f -> -f, so the sign comes only from the initialisation: a sphere at the lattice
     # centre lies in the hole of a torus or a mug's handle and ends up *outside*. A closed surface whose enclosed
     # volume comes out negative is therefore inside out; flip it (nested shells keep their relative orientation).

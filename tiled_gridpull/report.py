@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .config import recorded_settings
 from .errors import InputError
 from .io.atomic import write_json
 from .jobdir import sample_job_points
@@ -280,7 +281,7 @@ def format_report_table(report: dict) -> str:
                      f"{til.get('overlap'):g} overlap ({til.get('overlap_cells')} cells), "
                      f"{tot.get('tiles_planned')} planned, {tot.get('tiles_with_points')} with points, "
                      f"{tot.get('tiles_solved')} solved")
-    cfg = report.get("config") or {}
+    cfg = recorded_settings(report.get("config") or {})
     if cfg:
         lines.append(f"solver:  {cfg.get('mode')}, {cfg.get('levels')} levels, {cfg.get('coarse_iterations')}+"
                      f"{cfg.get('iterations')} iterations, m1 {cfg.get('m1')}, m2 {cfg.get('m2')}, "

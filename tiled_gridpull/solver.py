@@ -139,10 +139,10 @@ def solve(points: np.ndarray, lattice: Lattice, config: SolverConfig, *,
     points : (N, 3) float64
         Input points, world coordinates (outside points are ignored).
     lattice : Lattice
-        The finest lattice; coarser levels (``config.levels > 1``) coarsen it by powers of 2.
+        The finest lattice; coarser levels (``config.schedule.levels > 1``) coarsen it by powers of 2.
     config : SolverConfig
     normals : (N, 3) float, optional
-        Unit normals of the points, used when ``config.normal_weight > 0`` (in UDF mode they then also orient
+        Unit normals of the points, used when ``config.losses.normal_weight > 0`` (in UDF mode they then also orient
         the signs).
     init : callable, optional
         ``init(band) -> (n_bricks, 512) float32`` initial field (cells) on the coarsest band; default: the
@@ -163,7 +163,7 @@ def solve(points: np.ndarray, lattice: Lattice, config: SolverConfig, *,
     if len(idx) < MIN_POINTS:
         raise InputError(f"too few points to solve: {len(idx)} inside the lattice (need at least {MIN_POINTS})")
     N = None
-    if normals is not None and config.normal_weight > 0:
+    if normals is not None and config.losses.normal_weight > 0:
         N = np.ascontiguousarray(np.asarray(normals, dtype=np.float32)[inside])
     udf = config.mode == "udf"
     levels = config.levels_for(max(lattice.n_cells))
@@ -179,11 +179,11 @@ def solve(points: np.ndarray, lattice: Lattice, config: SolverConfig, *,
         # an unsigned field has no direction to compare with a normal: UDF levels skip the normal loss
         Nl = None if udf else N
         if factor > 1:
-            P, keep = _thin(P, config.seed + level)
+            P, keep = _thin(P, config.sampling.seed + level)
             Nl = Nl[keep] if Nl is not None else None
         st = config.level_settings(level, levels, len(P))
         tb = time.perf_counter()
-        band = build_band(P, lat, config.m1, st.m2)
+        band = build_band(P, lat, config.sampling.m1, st.m2)
         t_band = time.perf_counter() - tb
         if fld is not None:
             values = upsample(fld, band)
@@ -203,7 +203,7 @@ def solve(points: np.ndarray, lattice: Lattice, config: SolverConfig, *,
         # P: the finest level's points, all of them
         fld, udf_info = _sign_and_polish(fld, P, N, config, levels, progress, history_every, done, total,
                                          history)
-        if config.udf_polish:
+        if config.schedule.udf_polish:
             per_level.append({"level": levels, "polish": True,
                               **{k: v for k, v in fld.info.items() if k != "history"}})
     fld.info = {
@@ -221,15 +221,15 @@ def solve(points: np.ndarray, lattice: Lattice, config: SolverConfig, *,
 def _sign_and_polish(fld: Field, P: np.ndarray, N: np.ndarray | None, config: SolverConfig, levels: int,
                      progress: ProgressFn | None, history_every: int, done: int, total: int,
                      history: list) -> tuple[Field, dict]:
-    """End of a UDF solve: sign the unsigned field, then refine it as a signed one (``config.udf_polish``).
+    """End of a UDF solve: sign the unsigned field, then refine it as a signed one (``config.schedule.udf_polish``).
 
     ``N``: the input normals, present when the normal loss is on (``--normals``): they then orient the signs
     too; a file's normals are not trusted otherwise."""
     from .udf_sign import sign_unsigned_field
 
     values, info = sign_unsigned_field(fld.band, fld.values, P, N)
-    info["polish_iterations"] = config.udf_polish
-    if config.udf_polish == 0:
+    info["polish_iterations"] = config.schedule.udf_polish
+    if config.schedule.udf_polish == 0:
         return Field(fld.band, values, signed=True, info=fld.info), info
     signed = config.replace(mode="sdf")
     out = _optimize(P, N, fld.band, values, signed, signed.polish_settings(), progress, history_every,
@@ -248,9 +248,9 @@ def _optimize(P: np.ndarray, N: np.ndarray | None, band: Band, values: np.ndarra
     if N is not None:
         N = np.ascontiguousarray(N[order])
     gamma = 0.0 if cfg.mode == "udf" else st.gamma
-    beta = cfg.udf_beta if cfg.mode == "udf" else cfg.beta
+    beta = cfg.losses.udf_beta if cfg.mode == "udf" else cfg.losses.beta
     sigma = np.float32(st.sigma)
-    nn = NearestPoints(P, cfg.knn, sigma=float(sigma))
+    nn = NearestPoints(P, cfg.sampling.knn, sigma=float(sigma))
     flat_flags = band.flags.reshape(-1)
     d_a = values.reshape(-1).copy()
     d_b = d_a.copy()
@@ -260,7 +260,7 @@ def _optimize(P: np.ndarray, N: np.ndarray | None, band: Band, values: np.ndarra
     inv = np.zeros_like(d_a) if st.tv_form == "sqrt" else np.zeros(1, np.float32)
     n_params = max(band.n_params, 1)
     form = ks.TV_SQRT if st.tv_form == "sqrt" else ks.TV_SQUARED
-    tv_scale = (cfg.alpha if form == ks.TV_SQRT else 2.0 * cfg.alpha) / n_params
+    tv_scale = (cfg.losses.alpha if form == ks.TV_SQRT else 2.0 * cfg.losses.alpha) / n_params
     clamp = cfg.mode == "udf"
     shape = np.asarray(band.lattice.shape, np.int64)
     nq = st.queries
@@ -280,21 +280,21 @@ def _optimize(P: np.ndarray, N: np.ndarray | None, band: Band, values: np.ndarra
         # time it comes round (0.2 ms), so the pool holds 4 bytes per query
         pool_nn = np.empty((pool, nq), np.int32)
         for b in range(pool):
-            ksamp.draw_queries(P, cfg.seed, it0 + b, sigma, centres, q)
+            ksamp.draw_queries(P, cfg.sampling.seed, it0 + b, sigma, centres, q)
             pool_nn[b] = nn.query(q, centres)[0]
     t_pool = time.perf_counter() - tp
     for it in range(iterations):
         ta = time.perf_counter()
         # the iteration number seeds the queries: levels draw different queries
         batch = it % pool if pool else it
-        ksamp.draw_queries(P, cfg.seed, it0 + batch, sigma, centres, q)
+        ksamp.draw_queries(P, cfg.sampling.seed, it0 + batch, sigma, centres, q)
         nn_idx = pool_nn[batch] if pool else nn.query(q, centres)[0]
         n_valid = kl.query_losses(d_a, flat_flags, band.brick_table, shape, q, P, nn_idx, nrm, CELL_PULL,
-                                  beta, gamma, cfg.normal_weight, slots, grads, losses)
+                                  beta, gamma, cfg.losses.normal_weight, slots, grads, losses)
         if n_valid:
             kl.scatter_add(qgrad, slots, grads, np.float32(1.0 / n_valid))
         tb = time.perf_counter()
-        lr = lr0 * cfg.lr_decay ** (it // lr_step)
+        lr = lr0 * cfg.schedule.lr_decay ** (it // lr_step)
         t = it + 1
         lr_t = lr * np.sqrt(1.0 - beta2 ** t) / (1.0 - beta1 ** t)
         tv_sum = 0.0

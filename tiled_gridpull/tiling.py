@@ -123,14 +123,14 @@ def check_compatible(tiling: TilingConfig, solver: SolverConfig) -> None:
     if solver.mode == "udf":
         raise ConfigError("mode udf applies to one-shape mode (tiles orient estimated normals and trim "
                           "faces farther than trim_distance from the points: open ground stays open)")
-    if solver.noise_cells > 0:
+    if solver.noise.cell_sigmas > 0:
         raise ConfigError("noise_cells applies to one-shape mode (tiled mode fixes the cell size with voxel_size)")
-    if solver.denoise > 0:
+    if solver.noise.denoise_passes > 0:
         raise ConfigError("denoise applies to one-shape mode (tiles are not denoised; it is untested across tile "
                           "borders)")
-    if solver.normal_weight > 0:
+    if solver.losses.normal_weight > 0:
         raise ConfigError("normal_weight applies to one-shape mode (tiles orient estimated normals instead)")
-    m2 = solver.refine_m2 if solver.levels > 1 else solver.m2
+    m2 = solver.finest_m2()
     if tiling.overlap_cells < m2 + 1:
         raise ConfigError(f"overlap of {tiling.overlap_cells} cells is too small for a TV band of {m2} cells at "
                           f"the finest level: use overlap >= {(m2 + 1) * tiling.voxel_size:g} "

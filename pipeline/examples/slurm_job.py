@@ -60,14 +60,18 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
 
     from tiled_gridpull.pipeline.job import JobOptions, run_job
-    from tiled_gridpull.config import SolverConfig, load_config_file
+    from tiled_gridpull.config import SolverConfig, drop_removed_settings, load_config_file, split_settings
     from tiled_gridpull.tiling import check_compatible, TilingConfig
 
     settings = load_config_file(a.config)
     if a.voxel_size:
         settings["voxel_size"] = a.voxel_size
-    solver = SolverConfig(**{k: v for k, v in settings.items() if k in SolverConfig.__dataclass_fields__})
-    tiling = TilingConfig(**{k: v for k, v in settings.items() if k in TilingConfig.__dataclass_fields__})
+    solver_settings, rest = split_settings(drop_removed_settings(settings))
+    unknown = set(rest) - set(TilingConfig.__dataclass_fields__)
+    if unknown:
+        raise SystemExit(f"{a.config}: unknown setting(s): {', '.join(sorted(map(str, unknown)))}")
+    solver = SolverConfig(**solver_settings)
+    tiling = TilingConfig(**rest)
     check_compatible(tiling, solver)
     cluster = build_cluster(a.system, a.cores, a.memory, a.queue, a.walltime, a.account)
     cluster.scale(jobs=a.jobs)
