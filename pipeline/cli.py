@@ -303,6 +303,9 @@ def _reconstruct_tiled(args, out: Path, solver, tiling) -> int:
     for p in args.inputs:
         if not Path(p).exists():
             raise InputError(f"{p}: file not found")
+    from tiled_gridpull.prepare import check_registered
+
+    check_registered(args.inputs)  # before the job directory is made
     work = Path(args.work_dir) if args.work_dir else out.with_suffix(".job")
     max_memory = None
     if args.max_memory is not None:

@@ -216,3 +216,20 @@ def test_disk_full_while_writing_is_one_line_exit_3_and_leaves_no_file(tmp_path,
     assert code == 3, err
     assert err.strip() == f"error: {out}: No space left on device"
     assert sorted(p.name for p in tmp_path.iterdir()) == [sphere_xyz.name]  # no mesh, sidecar or temporary
+
+
+def test_separate_kitti_scans_are_refused_not_merged_unregistered(tmp_path, capsys):
+    """Two KITTI scan files, each in its own sensor frame: merging them would overlay unregistered scans."""
+    rng = np.random.default_rng(0)
+    scans = []
+    for i in range(2):
+        xyz = rng.uniform(-20, 20, size=(3000, 3)).astype("<f4")
+        scans.append(tmp_path / f"{i:06d}.bin")
+        np.column_stack([xyz, np.zeros(len(xyz), "<f4")]).tofile(scans[-1])
+    out = tmp_path / "mesh.ply"
+    tiled = ["--voxel-size", "0.5", "--overlap", "5", "-q"]
+    code, _, err = run(["reconstruct", *map(str, scans), "-o", str(out), *tiled], capsys)
+    assert code == 3 and "own sensor frame" in err and "poses.txt" in err and len(err.strip().splitlines()) == 1
+    assert not out.exists() and not out.with_suffix(".job").exists()
+    code, _, err = run(["reconstruct", *map(str, scans), "-o", str(out), *tiled, "--dry-run"], capsys)
+    assert code == 3 and "own sensor frame" in err

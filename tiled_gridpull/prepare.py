@@ -25,7 +25,25 @@ from .resume import load_partition, partition_key, scan_record
 from .tile_plan import LatticeSpanError, TilePlan, TileSpec, plan_tiles
 from .tiling import TilingConfig
 
-__all__ = ["scan_inputs", "plan_inputs", "prepare_job"]
+__all__ = ["check_registered", "scan_inputs", "plan_inputs", "prepare_job"]
+
+
+def check_registered(inputs: list[str]) -> None:
+    """Refuse inputs that are not in one frame: a single KITTI scan (``.bin``) holds points in its own sensor
+    frame, so merging it with any other input would overlay scans taken from different places as if they were
+    registered. A KITTI sequence directory (its ``poses.txt`` places every frame) is the way to give several.
+
+    Raises
+    ------
+    InputError
+        Naming the scans, when a ``.bin`` scan is one of several inputs.
+    """
+    scans = [str(p) for p in inputs if Path(p).suffix.lower() == ".bin" and not Path(p).is_dir()]
+    if scans and len(inputs) > 1:
+        shown = ", ".join(scans[:3]) + (f" and {len(scans) - 3} more" if len(scans) > 3 else "")
+        raise InputError(f"{shown}: a KITTI scan file is in its own sensor frame and cannot be merged with other "
+                         f"inputs ({len(inputs)} given) without poses; give the sequence directory (velodyne/*.bin "
+                         f"with poses.txt) instead, or one scan alone")
 
 
 def scan_inputs(inputs: list[str], chunk_size: int = 2_000_000, frames=None) -> dict:
@@ -129,6 +147,7 @@ def plan_inputs(inputs: list[str], tiling: TilingConfig, *, chunk_size: int = 2_
     chunks : callable
         ``chunks()`` streams the input's points again (without the dropped ones), for the partition.
     """
+    check_registered(inputs)
     scan = scan_inputs(inputs, chunk_size, frames)
     sample = scan.pop("sample")
     # the body is only needed to drop far points or to explain a refused span: no quantiles on a plain job
