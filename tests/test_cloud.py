@@ -9,7 +9,7 @@ import pytest
 import tiled_gridpull.cloud as cloud_mod
 from tiled_gridpull.cloud import PointCloud, as_points, clean_points, duplicate_mask
 from tiled_gridpull.errors import InputError
-from test_io_points import cloud_xyz, unit_normals
+from test_io_formats import cloud_xyz, unit_normals
 
 
 def test_duplicates_dropped_keep_first_and_order():

@@ -3,7 +3,7 @@
 * Readers: real LAS/LAZ/PLY/OBJ files cut at any point of their header and first records, or with bytes of
   their header overwritten, go through every public read function of :mod:`tiled_gridpull.io`; the only
   error allowed is :class:`~tiled_gridpull.errors.InputError`, one line naming the file. (Random bytes behind
-  fixed prefixes and cuts at fixed fractions are in ``test_io_points.py``.)
+  fixed prefixes and cuts at fixed fractions are in ``test_io_formats.py``.)
 * Settings: random values for every key of ``SolverConfig`` / ``TilingConfig``, random mappings in a config
   file and random ``--set`` strings: the only error allowed is :class:`~tiled_gridpull.errors.ConfigError`,
   raised before any input is read.

@@ -182,7 +182,7 @@ def test_solve_result_reused_only_while_its_field_is_intact(tmp_path, ground):
 def test_kitti_partition_key_ignores_outputs_written_inside_the_sequence(tmp_path):
     """A job whose mesh, sidecar and job directory lie inside the KITTI sequence directory reuses its partition:
     the key covers the files the reader reads (scans, poses, calib), not whatever else the directory holds."""
-    from test_io_points import make_sequence
+    from test_io_formats import make_sequence
 
     from tiled_gridpull.resume import partition_key
 

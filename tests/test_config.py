@@ -1,6 +1,6 @@
 """Bad settings are refused with one line (exit 2) before any work: no input read, no job directory, no output.
 
-``test_cli.py`` covers resolution 0, negative iterations and alpha, an unknown ``--set`` key, a bad choice, an
+``test_pipeline_cli.py`` covers resolution 0, negative iterations and alpha, an unknown ``--set`` key, a bad choice, an
 overlap larger than the tile and a negative voxel size; these are the rest.
 """
 
