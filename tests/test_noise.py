@@ -158,8 +158,8 @@ def test_robust_projection_still_denoises_a_single_sheet():
     radial = lambda p: np.linalg.norm(p - p.mean(axis=0), axis=1) - 0.5  # noqa: E731
     robust = np.std(radial(project_to_local_planes(pts, k=64, iterations=2, bandwidth=1.0)))
     assert robust < 0.25 * np.std(radial(pts))
-    preset = load_config_file(REPO / "configs" / "noisy.yaml")
-    out = project_to_local_planes(pts, preset["denoise_neighbors"], preset["denoise"], preset["denoise_bandwidth"])
+    preset = SolverConfig(**load_config_file(REPO / "configs" / "noisy.yaml")).noise
+    out = project_to_local_planes(pts, preset.denoise_neighbors, preset.denoise_passes, preset.denoise_bandwidth)
     assert np.std(radial(out)) < 0.35 * np.std(radial(pts))
     with pytest.raises(ConfigError, match="denoise_bandwidth"):
         SolverConfig(denoise_bandwidth=-1.0)
