@@ -83,8 +83,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="store vertices as float32 relative to an offset recorded in the header (half the size)")
     t = r.add_argument_group("tiled mode (scenes; enabled by --voxel-size or a config that sets voxel_size)")
     t.add_argument("--voxel-size", type=float, help="cell size in the data's units (e.g. 0.1 for 10 cm)")
-    t.add_argument("--tile-size", type=float, help="tile core size in the data's units (default 25.6)")
-    t.add_argument("--overlap", type=float, help="overlap solved around each tile (default 3.2)")
+    t.add_argument("--tile-size", type=float, help="tile core size in the data's units (default: 256 cells, following --voxel-size)")
+    t.add_argument("--overlap", type=float, help="overlap solved around each tile core, in the data's units (default: 32 cells)")
     t.add_argument("--workers", type=int, help="worker processes of the local Dask cluster (default: one per core)")
     t.add_argument("--scheduler", metavar="ADDR", help="run on an existing Dask scheduler, e.g. tcp://host:8786")
     t.add_argument("--work-dir", help="job directory for intermediate files (default: OUTPUT with .job suffix)")
@@ -215,7 +215,7 @@ def resolve_settings(args) -> tuple:
         if "voxel_size" in settings:
             raise ConfigError("--normals applies to one-shape mode (tiles orient estimated normals instead)")
         solver_settings.setdefault("normal_weight", NORMALS_WEIGHT)
-    tiling_keys = set(TilingConfig.__dataclass_fields__)
+    tiling_keys = set(TilingConfig.__dataclass_fields__) - {"derived"}  # recorded, not a setting
     unknown = set(settings) - tiling_keys
     if unknown:
         raise ConfigError(f"unknown setting(s): {', '.join(sorted(_shown_key(k) for k in unknown))}")

@@ -50,6 +50,7 @@ def plan_job(inputs: list[str], tiling: TilingConfig, solver: SolverConfig, work
         "lattice": {"origin": list(plan.lattice.origin), "cell_size": plan.lattice.cell_size,
                     "shape": list(plan.lattice.shape), "tile_cells": tiling.tile_cells,
                     "overlap_cells": tiling.overlap_cells, "tile_range": list(plan.tile_range),
+                    "derived": list(tiling.derived),
                     "levels": solver.levels_for(tiling.tile_cells + 2 * tiling.overlap_cells)},
         "tiles": {"planned": int(np.prod(plan.tile_range)), "with_points": len(specs),
                   "below_min_points": int(np.sum(counts < tiling.min_points)),
@@ -98,7 +99,7 @@ def format_plan(info: dict, max_memory: int | None = None) -> str:
         f"tiles:    {t['with_points']} with points of {t['planned']} planned "
         f"({' x '.join(str(v) for v in lat['tile_range'])}); "
         f"core {lat['tile_cells']} cells ({lat['tile_cells'] * cell:g}), "
-        f"overlap {lat['overlap_cells']} cells ({lat['overlap_cells'] * cell:g}) per side",
+        f"overlap {lat['overlap_cells']} cells ({lat['overlap_cells'] * cell:g}) per side{_derived(lat)}",
         f"points per tile: min {t['points_min']:,}, median {t['points_median']:,.0f}, max {t['points_max']:,} "
         f"({t['overlap_points']:,} copies in overlaps; {t['below_min_points']} tile(s) below min_points)",
         f"memory:   peak per worker about {format_size(m['peak_bytes'])} (largest tile, {m['peak_tile']}); "
@@ -112,3 +113,11 @@ def format_plan(info: dict, max_memory: int | None = None) -> str:
         lines.append(f"--max-memory {format_size(max_memory)}: "
                      + (f"{len(over)} tile(s) over budget" if over else "every tile fits"))
     return "\n".join(lines)
+
+
+def _derived(lattice: dict) -> str:
+    """What the tile line says about sizes that were not given: they follow the cell size."""
+    names = [{"tile_size": "core", "overlap": "overlap"}[n] for n in lattice.get("derived", [])]
+    if not names:
+        return ""
+    return f" ({' and '.join(names)} not given: {'they follow' if len(names) > 1 else 'it follows'} the cell size)"

@@ -31,7 +31,7 @@ TILED = ["--voxel-size", "0.1"]
     ([*TILED, "--overlap", "-1"], "overlap must be >= 0"),
     (["--voxel-size", "0"], "voxel_size must be positive"),
     (["--voxel-size", "nan"], "voxel_size must be a finite number"),
-    (["--voxel-size", "1e-300"], "tile_size 25.6 is"),
+    (["--voxel-size", "1e-300", "--tile-size", "25.6"], "tile_size 25.6 is"),
     ([*TILED, "--tile-size", "6.4", "--overlap", "6.4"], "overlap"),
     ([*TILED, "--overlap", "0.8"], "too small for a TV band"),
     ([*TILED, "--set", "trim_distance=40"], "trim_distance"),
@@ -91,7 +91,7 @@ def test_settings_are_checked_before_the_input_is_read(tmp_path, capsys):
 @pytest.mark.parametrize("kw", [dict(tile_size=-1.0), dict(tile_size=0.0), dict(overlap=-0.1),
                                 dict(trim_distance=-1.0), dict(min_points=0), dict(normal_neighbors=0),
                                 dict(voxel_size=0.0), dict(voxel_size=float("inf")), dict(tile_size=True),
-                                dict(tile_size="25"), dict(voxel_size=1e-9), dict(min_points=1 << 70)])
+                                dict(tile_size="25"), dict(voxel_size=1e-9, tile_size=25.6), dict(min_points=1 << 70)])
 def test_tiling_config_refuses(kw):
     with pytest.raises(ConfigError):
         TilingConfig(**kw)

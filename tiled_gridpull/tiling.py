@@ -10,16 +10,22 @@ global brick grid and overlapping tiles store the very same vertices in the very
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 
 from .config import SolverConfig, finite_number
 from .errors import ConfigError
 from .kernels import BRICK
 
-__all__ = ["TilingConfig", "check_compatible", "ORIENTATIONS", "MAX_TILE_CELLS"]
+__all__ = ["TilingConfig", "check_compatible", "ORIENTATIONS", "MAX_TILE_CELLS", "DEFAULT_TILE_CELLS",
+           "DEFAULT_OVERLAP_CELLS"]
 
 ORIENTATIONS = ("auto", "sensor", "up", "outward", "sphere")
 MAX_TILE_CELLS = 1 << 18  # a block (core + 2 overlaps) must stay within the 2^19 vertices edge keys count on z
+#: Tile core and overlap when not given, in cells: they follow the cell size. 256 cells keep a dense street tile
+#: within a worker's memory and its solve around half a minute; 32 cells of overlap is the finest TV band
+#: (M2 + 1 = 9 cells) rounded up to bricks, with room for the blend's ramp (docs/tiling.md).
+DEFAULT_TILE_CELLS = 256
+DEFAULT_OVERLAP_CELLS = 32
 
 
 @dataclass(frozen=True)
@@ -30,11 +36,13 @@ class TilingConfig:
     ----------
     voxel_size : float
         Cell size in world units (metres for most LiDAR; feet for data in feet).
-    tile_size : float
-        Core size of a tile in world units (rounded to a multiple of 8 cells).
-    overlap : float
+    tile_size : float, optional
+        Core size of a tile in world units (rounded to a multiple of 8 cells). Default (None):
+        ``DEFAULT_TILE_CELLS`` cells, so the tile follows the cell size.
+    overlap : float, optional
         Extra margin solved around each core, in world units (rounded up to a multiple of 8 cells); the
-        partition-of-unity blend runs over twice this width around every shared face.
+        partition-of-unity blend runs over twice this width around every shared face. Default (None):
+        ``DEFAULT_OVERLAP_CELLS`` cells.
     min_points : int
         Tiles with fewer points are skipped and reported (too little data for a solve).
     trim_distance : float
@@ -50,18 +58,30 @@ class TilingConfig:
     drop_outliers : bool
         Drop the points far from the rest of the input before planning (:mod:`tiled_gridpull.outliers`: outside
         the box of all but 0.1 % of a sample per axis, widened by half its size and at least a tile).
+    derived : tuple of str
+        Which of ``tile_size`` and ``overlap`` were not given and so follow the cell size (set here; recorded in
+        the sidecar and shown by ``--dry-run``).
     """
 
     voxel_size: float = 0.1
-    tile_size: float = 25.6
-    overlap: float = 3.2
+    tile_size: float | None = None
+    overlap: float | None = None
     min_points: int = 100
     trim_distance: float = 3.0
     orientation: str = "auto"
     normal_neighbors: int = 16
     drop_outliers: bool = False
+    derived: tuple[str, ...] = field(default=(), compare=False)
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "voxel_size", finite_number("voxel_size", self.voxel_size))
+        derived = [name for name in self.derived if name in ("tile_size", "overlap")]
+        for name, cells in (("tile_size", DEFAULT_TILE_CELLS), ("overlap", DEFAULT_OVERLAP_CELLS)):
+            if getattr(self, name) is None:
+                # exact: the cell counts are powers of two
+                object.__setattr__(self, name, cells * self.voxel_size if self.voxel_size > 0 else 0.0)
+                derived.append(name)
+        object.__setattr__(self, "derived", tuple(n for n in ("tile_size", "overlap") if n in derived))
         for name in ("voxel_size", "tile_size", "overlap", "trim_distance"):
             object.__setattr__(self, name, finite_number(name, getattr(self, name)))
         if self.voxel_size <= 0:
@@ -108,6 +128,7 @@ class TilingConfig:
     def to_dict(self) -> dict:
         """Plain dict of the settings (plus the derived cell counts)."""
         d = asdict(self)
+        d["derived"] = list(self.derived)
         d["tile_cells"] = self.tile_cells
         d["overlap_cells"] = self.overlap_cells
         return d
