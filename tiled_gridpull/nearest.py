@@ -63,9 +63,20 @@ class NearestPoints:
         The input cloud (index coordinates; any frame works).
     k : int
         Size of the per-point candidate list.
+    sigma : float, optional
+        Spread of the queries around their centres (same units as ``points``): the list size and the share of
+        queries the lists would answer are then predicted (:meth:`candidates_for`) and the lists are built only
+        where they pay.
+    k_max : int
+        Largest list size ``sigma`` may ask for.
+    expected_queries : int, optional
+        How many queries this object will answer: lists of ``N`` points x ``k`` candidates cost about as much
+        to build as ``N k / LIST_BUILD_RATIO`` tree queries, so they are not built for fewer queries than that
+        saves (the predicted share of them, needs ``sigma``).
     """
 
-    def __init__(self, points: np.ndarray, k: int = 8, sigma: float | None = None, k_max: int = 64):
+    def __init__(self, points: np.ndarray, k: int = 8, sigma: float | None = None, k_max: int = 64,
+                 expected_queries: int | None = None):
         self.points = np.ascontiguousarray(points, dtype=np.float32)
         self.tree = KDTree(self.points)
         self.fallbacks = 0
@@ -74,8 +85,17 @@ class NearestPoints:
         self.fast_share: float | None = None
         if sigma is not None:
             k, self.fast_share = self.candidates_for(sigma, k, k_max)
+        #: why the candidate lists were not built (None: they were)
+        self.lists_skipped: str | None = None
         if self.fast_share is not None and self.fast_share < self.MIN_FAST_SHARE:
             # every query goes to the KD-tree: a list scan that mostly fails costs more than it saves
+            self.lists_skipped = "share"
+        elif (self.fast_share is not None and expected_queries is not None
+              and len(self.points) * min(k, len(self.points))
+              > self.LIST_BUILD_RATIO * self.fast_share * expected_queries):
+            # a dense cloud answering few queries per point: building the lists costs more than they save
+            self.lists_skipped = "cost"
+        if self.lists_skipped is not None:
             self.knn = self.knn_dist = None
             return
         k = int(min(k, len(self.points)))
@@ -89,6 +109,14 @@ class NearestPoints:
     #: at R = 256, sigma 2 cells, 62 % answered by the lists: 11.8 ms with lists vs 12.4 ms KD-tree alone; a dense
     #: LiDAR tile (26 points per cell), sigma 0.5 cells, 21 % answered: 22.5 ms vs 19.1 ms (same process).
     MIN_FAST_SHARE = 0.45
+
+    #: Lists are built when ``N k <= LIST_BUILD_RATIO * share * queries``. Measured on the finest level of the
+    #: demo street's densest tile (2 threads, same process): building the 64-candidate lists of 250,654 points
+    #: costs about 6 us a point (0.09 us a candidate), and a query answered by a list instead of the tree saves
+    #: about 0.18 us, so the lists pay when a candidate is read for fewer than 2 answered queries. There, with
+    #: 5M pooled queries and a 64 % share, the level's solve went from 6.5-7.3 s with lists to 5.1-5.5 s
+    #: without; its middle level (44,432 points, 2.8M candidates, 95 % share) stayed 2x faster with them.
+    LIST_BUILD_RATIO = 2.0
 
     def candidates_for(self, sigma: float, k_min: int, k_max: int, sample: int = 2000) -> tuple[int, float]:
         """Smallest list size (power of two in ``[k_min, k_max]``) whose radius covers most queries, and the
