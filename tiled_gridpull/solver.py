@@ -250,7 +250,9 @@ def _optimize(P: np.ndarray, N: np.ndarray | None, band: Band, values: np.ndarra
     gamma = 0.0 if cfg.mode == "udf" else st.gamma
     beta = cfg.losses.udf_beta if cfg.mode == "udf" else cfg.losses.beta
     sigma = np.float32(st.sigma)
-    nn = NearestPoints(P, cfg.sampling.knn, sigma=float(sigma))
+    pool = st.query_pool
+    nn = NearestPoints(P, cfg.sampling.knn, sigma=float(sigma),
+                       expected_queries=st.queries * (pool if pool else st.iterations))
     flat_flags = band.flags.reshape(-1)
     d_a = values.reshape(-1).copy()
     d_b = d_a.copy()
@@ -273,7 +275,6 @@ def _optimize(P: np.ndarray, N: np.ndarray | None, band: Band, values: np.ndarra
     beta1, beta2, eps = 0.9, 0.999, 1e-8
     iterations, lr0, lr_step = st.iterations, st.lr, st.lr_step
     t_query = t_step = 0.0
-    pool = st.query_pool
     tp = time.perf_counter()
     if pool:
         # nearest points found once per batch; the batch's queries are re-drawn from the counter-based RNG each
@@ -328,6 +329,7 @@ def _optimize(P: np.ndarray, N: np.ndarray | None, band: Band, values: np.ndarra
         "nn_fallback_fraction": nn.fallbacks / max(nn.queries, 1),
         "nn_candidates": int(nn.knn.shape[1]) if nn.knn is not None else 0,
         "nn_fast_share_predicted": nn.fast_share,
+        "nn_lists_skipped": nn.lists_skipped,
         "threads": _threads(),
     }
     return Field(band, d_a.reshape(band.n_bricks, 512), signed=cfg.mode == "sdf", info=info)
