@@ -82,7 +82,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--float32", action="store_true",
                    help="store vertices as float32 relative to an offset recorded in the header (half the size)")
     t = r.add_argument_group("tiled mode (scenes; enabled by --voxel-size or a config that sets voxel_size)")
-    t.add_argument("--voxel-size", type=float, help="cell size in the data's units (e.g. 0.1 for 10 cm)")
+    t.add_argument("--voxel-size", metavar="SIZE",
+                   help="cell size in the data's units (0.1), or with a unit (0.1m, 0.33ft; m, cm, mm, ft, us-ft) "
+                        "converted to the unit of the input's CRS (metres when it declares none)")
     t.add_argument("--tile-size", type=float, help="tile core size in the data's units (default: 256 cells, following --voxel-size)")
     t.add_argument("--overlap", type=float, help="overlap solved around each tile core, in the data's units (default: 32 cells)")
     t.add_argument("--workers", type=int, help="worker processes of the local Dask cluster (default: one per core)")
@@ -215,7 +217,7 @@ def resolve_settings(args) -> tuple:
         if "voxel_size" in settings:
             raise ConfigError("--normals applies to one-shape mode (tiles orient estimated normals instead)")
         solver_settings.setdefault("normal_weight", NORMALS_WEIGHT)
-    tiling_keys = set(TilingConfig.__dataclass_fields__) - {"derived"}  # recorded, not a setting
+    tiling_keys = set(TilingConfig.__dataclass_fields__) - {"derived", "units"}  # recorded, not settings
     unknown = set(settings) - tiling_keys
     if unknown:
         raise ConfigError(f"unknown setting(s): {', '.join(sorted(_shown_key(k) for k in unknown))}")
@@ -303,9 +305,14 @@ def _reconstruct_tiled(args, out: Path, solver, tiling) -> int:
     for p in args.inputs:
         if not Path(p).exists():
             raise InputError(f"{p}: file not found")
-    from tiled_gridpull.prepare import check_registered
+    from tiled_gridpull.prepare import check_registered, resolve_units
+    from tiled_gridpull.tiling import check_compatible
 
     check_registered(args.inputs)  # before the job directory is made
+    tiling = resolve_units(args.inputs, tiling, frames)  # voxel_size auto, or with a unit
+    check_compatible(tiling, solver)
+    if "voxel_size" in tiling.derived:
+        log.info("voxel_size %g (%s)", tiling.voxel_size, tiling.units)
     work = Path(args.work_dir) if args.work_dir else out.with_suffix(".job")
     max_memory = None
     if args.max_memory is not None:

@@ -23,10 +23,12 @@ def plan_job(inputs: list[str], tiling: TilingConfig, solver: SolverConfig, work
     from tiled_gridpull.jobdir import JobPaths
     from tiled_gridpull.memory import estimate_tiles
     from tiled_gridpull.partition import partition
-    from tiled_gridpull.prepare import plan_inputs
+    from tiled_gridpull.prepare import check_registered, plan_inputs, resolve_units
     from tiled_gridpull.resume import load_partition, partition_key
     from tiled_gridpull.tiling import check_compatible
 
+    check_registered(inputs)
+    tiling = resolve_units(inputs, tiling, frames)
     check_compatible(tiling, solver)
     paths = JobPaths(work_dir)
     reused = load_partition(paths, partition_key(inputs, tiling, frames), tiling)
@@ -50,7 +52,7 @@ def plan_job(inputs: list[str], tiling: TilingConfig, solver: SolverConfig, work
         "lattice": {"origin": list(plan.lattice.origin), "cell_size": plan.lattice.cell_size,
                     "shape": list(plan.lattice.shape), "tile_cells": tiling.tile_cells,
                     "overlap_cells": tiling.overlap_cells, "tile_range": list(plan.tile_range),
-                    "derived": list(tiling.derived),
+                    "derived": list(tiling.derived), "units": tiling.units,
                     "levels": solver.levels_for(tiling.tile_cells + 2 * tiling.overlap_cells)},
         "tiles": {"planned": int(np.prod(plan.tile_range)), "with_points": len(specs),
                   "below_min_points": int(np.sum(counts < tiling.min_points)),
@@ -90,11 +92,12 @@ def format_plan(info: dict, max_memory: int | None = None) -> str:
 
     lat, t, m, tm = info["lattice"], info["tiles"], info["memory"], info["time"]
     cell = lat["cell_size"]
+    units = f" ({lat['units']})" if lat.get("units") else ""
     lines = [
         f"dry run: nothing is solved{' (partition of the job directory reused)' if info['partition_reused'] else ''}",
         f"input:    {info['points']:,} points{' with sensor origins' if info['has_sensor'] else ''} "
         f"in {len(info['inputs'])} file(s)",
-        f"lattice:  cell {cell:g}, origin ({', '.join(f'{v:.10g}' for v in lat['origin'])}), "
+        f"lattice:  cell {cell:g}{units}, origin ({', '.join(f'{v:.10g}' for v in lat['origin'])}), "
         f"{' x '.join(str(v - 1) for v in lat['shape'])} cells, {lat['levels']} solver level(s)",
         f"tiles:    {t['with_points']} with points of {t['planned']} planned "
         f"({' x '.join(str(v) for v in lat['tile_range'])}); "
@@ -117,7 +120,8 @@ def format_plan(info: dict, max_memory: int | None = None) -> str:
 
 def _derived(lattice: dict) -> str:
     """What the tile line says about sizes that were not given: they follow the cell size."""
-    names = [{"tile_size": "core", "overlap": "overlap"}[n] for n in lattice.get("derived", [])]
+    shown = {"tile_size": "core", "overlap": "overlap"}  # a converted cell size is on the lattice line
+    names = [shown[n] for n in lattice.get("derived", []) if n in shown]
     if not names:
         return ""
     return f" ({' and '.join(names)} not given: {'they follow' if len(names) > 1 else 'it follows'} the cell size)"

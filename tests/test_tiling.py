@@ -81,3 +81,84 @@ def test_coarser_cells_with_the_scene_config_need_no_scaled_sizes(tmp_path, caps
     out, err = capsys.readouterr()
     line = next(ln for ln in (out + err).splitlines() if ln.startswith("tiles:"))
     assert code == 0 and "core 128 cells (64)" in line and "overlap not given: it follows" in line
+
+
+def test_a_cell_size_in_metres_follows_the_data_unit():
+    from tiled_gridpull.crs import LinearUnit
+
+    t = TilingConfig(voxel_size="0.1 m")
+    assert (t.voxel_size, t.voxel_unit) == (0.1, "m")
+    feet = t.in_data_units(LinearUnit("foot", 0.3048))
+    assert feet.voxel_size == pytest.approx(0.1 / 0.3048) and feet.voxel_unit is None
+    assert (feet.tile_cells, feet.overlap_cells) == (DEFAULT_TILE_CELLS, DEFAULT_OVERLAP_CELLS)
+    assert feet.derived == ("voxel_size", "tile_size", "overlap") and "foot" in feet.units
+    # no CRS: metres, and the very grid a bare 0.1 gives
+    plain = t.in_data_units(None)
+    assert plain == TilingConfig(voxel_size=0.1) and "no CRS" in plain.units
+    # a bare number is already in the data's units
+    assert TilingConfig(voxel_size=0.3).in_data_units(LinearUnit("foot", 0.3048)).voxel_size == 0.3
+    with pytest.raises(ConfigError, match="geographic"):
+        t.in_data_units(LinearUnit("degree", None))
+    with pytest.raises(ConfigError, match="voxel_size must be a number"):
+        TilingConfig(voxel_size="0.1 furlong")
+
+
+def test_scene_config_on_a_survey_in_feet_plans_ten_centimetre_cells(tmp_path, capsys):
+    """The issue's Autzen case: configs/scene.yaml on data in feet used 0.1 ft cells (8,979 tiles)."""
+    from test_crs import FEET_WKT1
+
+    from tiled_gridpull.synthetic.lidar_files import write_las
+
+    rng = np.random.default_rng(2)
+    xyz = np.c_[rng.uniform(0, 300, 20_000), rng.uniform(0, 120, 20_000), rng.normal(0, 0.1, 20_000)]
+    feet, metres = tmp_path / "feet.laz", tmp_path / "metres.laz"
+    write_las(feet, xyz + [1_312_000.0, 400_000.0, 0.0], crs_wkt=FEET_WKT1)
+    write_las(metres, xyz)
+
+    def tiles_line(path, *extra):
+        code = main(["reconstruct", str(path), "-o", str(tmp_path / f"{path.stem}.ply"), "--config", SCENE,
+                     "--dry-run", *extra])
+        out, err = capsys.readouterr()
+        assert code == 0, err
+        lines = (out + err).splitlines()
+        return next(ln for ln in lines if ln.startswith("lattice:")), next(ln for ln in lines
+                                                                          if ln.startswith("tiles:"))
+
+    lattice, tiles = tiles_line(feet)
+    assert "cell 0.328084 (0.1 m = 0.328084 foot (the input's CRS))" in lattice
+    assert "core 256 cells (83.9895)" in tiles and "(4 x 2 x 1)" in tiles
+    lattice, tiles = tiles_line(metres)
+    assert "cell 0.1 (0.1 m = 0.1 (the input declares no CRS: taken as metres))" in lattice
+    assert "core 256 cells (25.6)" in tiles and "(12 x 5 x 1)" in tiles
+    # a bare number on the command line is the data's unit, whatever the CRS
+    lattice, _ = tiles_line(feet, "--voxel-size", "2")
+    assert lattice.startswith("lattice:  cell 2, ")
+
+
+def test_voxel_size_auto_measures_the_points_and_says_so(tmp_path, capsys):
+    from tiled_gridpull.prepare import resolve_units
+
+    rng = np.random.default_rng(3)
+    n = 30_000
+    xyz = np.c_[rng.uniform(0, 60, n), rng.uniform(0, 30, n), rng.normal(0, 0.01, n)]  # 0.245 spacing
+    p = tmp_path / "ground.npy"
+    np.save(p, xyz)
+    auto = TilingConfig(voxel_size="auto", overlap=10.0)
+    assert not auto.resolved and auto.voxel_size == "auto"
+    with pytest.raises(ValueError, match="not resolved"):
+        auto.tile_cells
+    t = resolve_units([str(p)], auto)
+    assert t.resolved and t.voxel_size == 0.25 and t.tile_cells == DEFAULT_TILE_CELLS
+    assert t.overlap == 10.0 and t.overlap_cells == 40  # given: data units
+    assert t.derived == ("voxel_size", "tile_size") and t.units.startswith("auto: sample spacing")
+    code = main(["reconstruct", str(p), "-o", str(tmp_path / "o.ply"), "--config", SCENE, "--voxel-size", "auto",
+                 "--dry-run"])
+    out, err = capsys.readouterr()
+    assert code == 0, err
+    lattice = next(ln for ln in (out + err).splitlines() if ln.startswith("lattice:"))
+    assert lattice.startswith("lattice:  cell 0.25 (auto: sample spacing 0.2")
+    # a cloud whose points are all one: one line, no traceback
+    np.save(p, np.ones((500, 3)))
+    code = main(["reconstruct", str(p), "-o", str(tmp_path / "o.ply"), "--voxel-size", "auto", "--dry-run"])
+    err = capsys.readouterr().err
+    assert code == 2 and "no measurable spacing" in err and "Traceback" not in err

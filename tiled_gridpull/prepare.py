@@ -23,9 +23,9 @@ from .outliers import SAMPLE_STRIDE, body_box, describe, far_mask
 from .partition import partition
 from .resume import load_partition, partition_key, scan_record
 from .tile_plan import LatticeSpanError, TilePlan, TileSpec, plan_tiles
-from .tiling import TilingConfig
+from .tiling import AUTO, TilingConfig, auto_cell_size
 
-__all__ = ["check_registered", "scan_inputs", "plan_inputs", "prepare_job"]
+__all__ = ["check_registered", "resolve_units", "scan_inputs", "plan_inputs", "prepare_job"]
 
 
 def check_registered(inputs: list[str]) -> None:
@@ -44,6 +44,38 @@ def check_registered(inputs: list[str]) -> None:
         raise InputError(f"{shown}: a KITTI scan file is in its own sensor frame and cannot be merged with other "
                          f"inputs ({len(inputs)} given) without poses; give the sequence directory (velodyne/*.bin "
                          f"with poses.txt) instead, or one scan alone")
+
+
+def resolve_units(inputs: list[str], tiling: TilingConfig, frames=None,
+                  chunk_size: int = 2_000_000) -> TilingConfig:
+    """``tiling`` with its cell size in the inputs' units: ``auto`` measured from the points, a length with a
+    unit (``voxel_size: 0.1 m``) converted; an already resolved config is returned as it is.
+
+    * A unit comes from the CRS in the header of the first input declaring one (no points are read; inputs in
+      different CRSs are refused later, by the scan); inputs without a CRS are taken to be in metres.
+    * ``auto`` measures the sample spacing (:mod:`tiled_gridpull.spacing`) on the first ``chunk_size`` points
+      of the inputs, one region of a large scan (a scan's density pattern repeats along it), and picks
+      :func:`tiled_gridpull.tiling.auto_cell_size`.
+    """
+    if tiling.resolved:
+        return tiling
+    if tiling.voxel_unit != AUTO:
+        from .crs import linear_unit
+        from .io import read_crs
+
+        crs = next((c for c in map(read_crs, inputs) if c), None)
+        return tiling.in_data_units(linear_unit(crs))
+    from .spacing import point_spacing
+
+    first = next(_chunks(inputs, chunk_size, frames), None)
+    if first is None or len(first.xyz) < 16:
+        raise InputError(f"voxel_size auto: too few points in {', '.join(map(str, inputs))} to measure their "
+                         "spacing; give voxel_size")
+    sp = point_spacing(first.xyz)
+    cell = auto_cell_size(sp)
+    note = (f"auto: sample spacing {sp.median:.3g} by point, {sp.area_median:.3g} by area, over "
+            f"{sp.measured:,} of the first {sp.points:,} points")
+    return tiling.with_cell_size(cell, note)
 
 
 def scan_inputs(inputs: list[str], chunk_size: int = 2_000_000, frames=None) -> dict:

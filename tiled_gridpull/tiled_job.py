@@ -31,7 +31,7 @@ from .io import write_mesh, write_mesh_and_sidecar
 from .jobdir import JobPaths, job_lock, neighbors_of
 from .memory import check_memory, peak_rss_mb
 from .mesh import Mesh
-from .prepare import prepare_job
+from .prepare import check_registered, prepare_job, resolve_units
 from .report import write_report
 from .resume import mesh_tile_resumable, solve_tile_resumable
 from .stitch import load_piece, mesh_tile, weld_pieces
@@ -228,6 +228,8 @@ def run_tiled_job(inputs: list[str], output: str | Path | None, tiling: TilingCo
     progress : bool
         Show a progress bar with an ETA.
     """
+    check_registered(inputs)  # before a KITTI scan's points are read to measure them
+    tiling = resolve_units(inputs, tiling, frames)  # auto, or a cell size in metres on data in feet
     check_compatible(tiling, solver)
     executor.check()  # before the partition, not after it
     work_dir = Path(work_dir).resolve()  # workers of an external cluster do not share this process's cwd

@@ -32,12 +32,15 @@ class PointFormat:
         ``count(path) -> int``: points stored in the file, as cheaply as possible.
     chunks : callable, optional
         ``chunks(path, chunk_size) -> iterator of PointCloud`` with bounded memory; None: read, then slice.
+    crs : callable, optional
+        ``crs(path) -> str | None``: the CRS the file declares (WKT), from its header; None: the format has none.
     """
 
     name: str
     read: Callable[[Path], PointCloud]
     count: Callable[[Path], int]
     chunks: Callable[[Path, int], Iterator[PointCloud]] | None = None
+    crs: Callable[[Path], str | None] | None = None
 
 
 POINT_FORMATS: dict[str, PointFormat] = {}
@@ -55,8 +58,8 @@ register(".txt", PointFormat("text", text.read, text.count))
 register(".pts", PointFormat("PTS", text.read, text.count))
 register(".csv", PointFormat("CSV", text.read, text.count))
 register(".npy", PointFormat("NPY", npy.read, npy.count, npy.chunks))
-register(".las", PointFormat("LAS", las.read, las.count, las.chunks))
-register(".laz", PointFormat("LAZ", las.read, las.count, las.chunks))
+register(".las", PointFormat("LAS", las.read, las.count, las.chunks, las.crs))
+register(".laz", PointFormat("LAZ", las.read, las.count, las.chunks, las.crs))
 register(".bin", PointFormat("KITTI scan", kitti.read, kitti.count))
 
 SUPPORTED_POINT_FORMATS: tuple[str, ...] = tuple(POINT_FORMATS)

@@ -38,6 +38,15 @@ def count(p: Path) -> int:
         return int(reader.header.point_count)
 
 
+def crs(p: Path) -> str | None:
+    """The CRS in the header (WKT), without reading points; None when it has none."""
+    import laspy
+
+    _las_precheck(p)
+    with laspy.open(str(p), laz_backend=_laz_backend()) as reader:
+        return _las_crs(reader.header)
+
+
 def _las_crs(header) -> str | None:
     """WKT from the header if present, else whatever description it has; never raises."""
     try:

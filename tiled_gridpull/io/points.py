@@ -148,6 +148,25 @@ def point_count(path: str | os.PathLike) -> int:
         return fmt.count(p)
 
 
+def read_crs(path: str | os.PathLike) -> str | None:
+    """The coordinate reference system a file declares (WKT), from its header only; None for formats without
+    one (PLY, NPY, text, KITTI) and files that declare none.
+
+    Raises
+    ------
+    InputError
+        As :func:`point_count`.
+    """
+    p = check_path(path)
+    if p.is_dir():
+        return None
+    fmt = point_format(p)
+    if fmt.crs is None:
+        return None
+    with input_errors(p, fmt.name):
+        return fmt.crs(p)
+
+
 def _read_file(p: Path, fmt: PointFormat) -> PointCloud:
     return fmt.read(p)
 
