@@ -311,7 +311,7 @@ def _reconstruct_tiled(args, out: Path, solver, tiling) -> int:
     check_registered(args.inputs)  # before the job directory is made
     tiling = resolve_units(args.inputs, tiling, frames)  # voxel_size auto, or with a unit
     check_compatible(tiling, solver)
-    if "voxel_size" in tiling.derived:
+    if "voxel_size" in tiling.derived and not args.dry_run:  # the dry run prints it on its lattice line
         log.info("voxel_size %g (%s)", tiling.voxel_size, tiling.units)
     work = Path(args.work_dir) if args.work_dir else out.with_suffix(".job")
     max_memory = None

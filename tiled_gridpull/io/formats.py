@@ -13,7 +13,7 @@ from pathlib import Path
 
 from ..cloud import PointCloud
 from ..errors import InputError
-from . import kitti, las, npy, ply, text
+from . import kitti, las, npy, pcd, ply, text
 
 __all__ = ["PointFormat", "POINT_FORMATS", "SUPPORTED_POINT_FORMATS", "register", "point_format"]
 
@@ -61,6 +61,7 @@ register(".npy", PointFormat("NPY", npy.read, npy.count, npy.chunks))
 register(".las", PointFormat("LAS", las.read, las.count, las.chunks, las.crs))
 register(".laz", PointFormat("LAZ", las.read, las.count, las.chunks, las.crs))
 register(".bin", PointFormat("KITTI scan", kitti.read, kitti.count))
+register(".pcd", PointFormat("PCD", pcd.read, pcd.count))
 
 SUPPORTED_POINT_FORMATS: tuple[str, ...] = tuple(POINT_FORMATS)
 """The built-in file suffixes (case-insensitive); a directory is a KITTI sequence. Formats registered later are

@@ -1,0 +1,95 @@
+"""PCD point clouds (PCL, ROS): ``ascii``, ``binary`` and ``binary_compressed`` (LZF) data, read with pypcd4.
+
+Fields ``x y z`` are required; ``normal_x normal_y normal_z`` become normals and ``intensity`` an attribute. The
+header's ``VIEWPOINT`` is where the sensor stood (translation, then orientation): every point gets that position
+as its sensor origin, so tiled mode's ``orientation: auto`` faces the outside towards the sensor, as for KITTI.
+Organised clouds (``HEIGHT > 1``, e.g. a depth camera's 640 x 480 image) mark pixels without a return with NaN
+coordinates; those rows are dropped like every non-finite row (counted in the cloud's report).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..cloud import PointCloud, unit_normals
+from ..errors import InputError
+
+__all__ = ["read", "count"]
+
+_HEADER_KEYS = ("VERSION", "FIELDS", "SIZE", "TYPE", "COUNT", "WIDTH", "HEIGHT", "VIEWPOINT", "POINTS", "DATA")
+
+
+def header(p: Path) -> dict[str, list[str]]:
+    """The header's entries (keyword -> words), read as text up to and including ``DATA``.
+
+    Raises
+    ------
+    InputError
+        Not a PCD header (no ``FIELDS``/``POINTS``/``DATA`` line before the data, or over 64 kB of header).
+    """
+    entries: dict[str, list[str]] = {}
+    with open(p, "rb") as fh:
+        for _ in range(256):
+            raw = fh.readline(65536)
+            if not raw:
+                break
+            line = raw.decode("ascii", "replace").strip()
+            if not line or line.startswith("#"):
+                continue
+            key, *words = line.split()
+            entries[key.upper()] = words
+            if key.upper() == "DATA":
+                break
+    missing = [k for k in ("FIELDS", "POINTS", "DATA") if k not in entries]
+    if missing:
+        raise InputError(f"{p}: not a PCD file (no {', '.join(missing)} line in its header)")
+    return entries
+
+
+def count(p: Path) -> int:
+    """The header's ``POINTS`` (NaN rows of an organised cloud included)."""
+    h = header(p)
+    try:
+        n = int(h["POINTS"][0])
+    except (IndexError, ValueError):
+        raise InputError(f"{p}: PCD header's POINTS is not a number: {' '.join(h['POINTS'])!r}") from None
+    if n < 0:
+        raise InputError(f"{p}: PCD header's POINTS is negative ({n})")
+    return n
+
+
+def read(p: Path) -> PointCloud:
+    """The whole file as one cloud (float64 coordinates; NaN rows are dropped later, like every reader's)."""
+    from pypcd4 import PointCloud as PcdCloud
+
+    h = header(p)
+    fields = [f.lower() for f in h["FIELDS"]]
+    if not {"x", "y", "z"} <= set(fields):
+        raise InputError(f"{p}: PCD file without x y z fields (it has {' '.join(h['FIELDS'])})")
+    expected = count(p)
+    pc = PcdCloud.from_path(p)
+    data = pc.pc_data
+    if len(data) != expected:
+        raise InputError(f"{p}: truncated PCD file ({len(data):,} of the {expected:,} points its header declares)")
+    names = {n.lower(): n for n in data.dtype.names}
+    xyz = np.stack([np.asarray(data[names[c]], dtype=np.float64) for c in ("x", "y", "z")], axis=1)
+    normals = None
+    if all(f"normal_{c}" in names for c in "xyz"):
+        normals = unit_normals(np.stack([np.asarray(data[names[f"normal_{c}"]], dtype=np.float64)
+                                         for c in "xyz"], axis=1))
+    attrs = {}
+    if "intensity" in names:
+        attrs["intensity"] = np.asarray(data[names["intensity"]], dtype=np.float32)
+    sensor = None
+    view = h.get("VIEWPOINT")
+    if view:
+        try:
+            origin = np.array([float(v) for v in view[:3]], dtype=np.float64)
+        except ValueError:
+            raise InputError(f"{p}: PCD header's VIEWPOINT is not 7 numbers: {' '.join(view)!r}") from None
+        if len(origin) == 3 and np.all(np.isfinite(origin)):
+            sensor = np.broadcast_to(origin, xyz.shape).copy()
+    return PointCloud(xyz, normals=normals, sensor=sensor, attributes=attrs, source=str(p),
+                      report={"points_read": len(xyz)})
