@@ -84,9 +84,12 @@ def build_parser() -> argparse.ArgumentParser:
     t = r.add_argument_group("tiled mode (scenes; enabled by --voxel-size or a config that sets voxel_size)")
     t.add_argument("--voxel-size", metavar="SIZE",
                    help="cell size in the data's units (0.1), or with a unit (0.1m, 0.33ft; m, cm, mm, ft, us-ft) "
-                        "converted to the unit of the input's CRS (metres when it declares none)")
-    t.add_argument("--tile-size", type=float, help="tile core size in the data's units (default: 256 cells, following --voxel-size)")
-    t.add_argument("--overlap", type=float, help="overlap solved around each tile core, in the data's units (default: 32 cells)")
+                        "converted to the unit of the input's CRS (metres when it declares none), or auto "
+                        "(from the points' spacing)")
+    t.add_argument("--tile-size", type=float,
+                   help="tile core size in the data's units (default: 256 cells, following --voxel-size)")
+    t.add_argument("--overlap", type=float,
+                   help="overlap solved around each tile core, in the data's units (default: 32 cells)")
     t.add_argument("--workers", type=int, help="worker processes of the local Dask cluster (default: one per core)")
     t.add_argument("--scheduler", metavar="ADDR", help="run on an existing Dask scheduler, e.g. tcp://host:8786")
     t.add_argument("--work-dir", help="job directory for intermediate files (default: OUTPUT with .job suffix)")

@@ -120,10 +120,18 @@ def write_cloud(path: Path, xyz) -> Path:
         return path
     if s == ".bin":
         return write_bin(path, xyz)
+    if s == ".pcd":
+        from pypcd4 import Encoding
+        from pypcd4 import PointCloud as PcdCloud
+
+        a = np.asarray(xyz, dtype=np.float64)  # 8-byte fields: exact, like the other formats
+        PcdCloud.from_points([a[:, 0], a[:, 1], a[:, 2]], ("x", "y", "z"), (np.float64,) * 3).save(
+            path, encoding=Encoding.BINARY_COMPRESSED)
+        return path
     return write_text(path, xyz, delimiter="," if s == ".csv" else " ")
 
 
-ALL_SUFFIXES = [".ply", ".xyz", ".txt", ".pts", ".csv", ".npy", ".las", ".laz", ".bin"]
+ALL_SUFFIXES = [".ply", ".xyz", ".txt", ".pts", ".csv", ".npy", ".las", ".laz", ".bin", ".pcd"]
 
 
 # ------------------------------------------------------------------------------------------------ round trips
@@ -663,10 +671,12 @@ def test_empty_file(tmp_path, suffix):
         read_points(p)
 
 
-@pytest.mark.parametrize("suffix", [".ply", ".xyz", ".npy", ".las", ".bin"])
+@pytest.mark.parametrize("suffix", [".ply", ".xyz", ".npy", ".las", ".bin", ".pcd"])
 def test_file_with_zero_points(tmp_path, suffix):
     p = tmp_path / f"zero{suffix}"
-    if suffix == ".ply":
+    if suffix == ".pcd":
+        write_cloud(p, np.zeros((0, 3)))
+    elif suffix == ".ply":
         write_ply(p, np.zeros((0, 3)))
     elif suffix == ".las":
         write_las(p, np.zeros((0, 3)), offset=[0, 0, 0])
@@ -682,7 +692,7 @@ def test_file_with_zero_points(tmp_path, suffix):
         list(iter_point_chunks(p))
 
 
-@pytest.mark.parametrize("suffix", [".xyz", ".npy", ".las", ".ply"])
+@pytest.mark.parametrize("suffix", [".xyz", ".npy", ".las", ".ply", ".pcd"])
 def test_utm_coordinates_keep_millimetres(tmp_path, suffix):
     xyz = cloud_xyz(30, offset=(512_345.0, 4_123_456.0, 123.0)) + np.array([0.001, 0.002, 0.003])
     p = tmp_path / f"utm{suffix}"

@@ -146,7 +146,7 @@ def test_voxel_size_auto_measures_the_points_and_says_so(tmp_path, capsys):
     auto = TilingConfig(voxel_size="auto", overlap=10.0)
     assert not auto.resolved and auto.voxel_size == "auto"
     with pytest.raises(ValueError, match="not resolved"):
-        auto.tile_cells
+        _ = auto.tile_cells
     t = resolve_units([str(p)], auto)
     assert t.resolved and t.voxel_size == 0.25 and t.tile_cells == DEFAULT_TILE_CELLS
     assert t.overlap == 10.0 and t.overlap_cells == 40  # given: data units

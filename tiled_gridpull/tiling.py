@@ -18,8 +18,8 @@ from .spacing import Spacing
 from .errors import ConfigError
 from .kernels import BRICK
 
-__all__ = ["TilingConfig", "check_compatible", "auto_cell_size", "AUTO", "ORIENTATIONS", "MAX_TILE_CELLS", "DEFAULT_TILE_CELLS",
-           "DEFAULT_OVERLAP_CELLS"]
+__all__ = ["TilingConfig", "check_compatible", "auto_cell_size", "AUTO", "ORIENTATIONS", "MAX_TILE_CELLS",
+           "DEFAULT_TILE_CELLS", "DEFAULT_OVERLAP_CELLS"]
 
 ORIENTATIONS = ("auto", "sensor", "up", "outward", "sphere")
 MAX_TILE_CELLS = 1 << 18  # a block (core + 2 overlaps) must stay within the 2^19 vertices edge keys count on z
@@ -107,7 +107,12 @@ class TilingConfig:
                               ) from None
         if unit is not None and self.voxel_unit is not None and unit != self.voxel_unit:
             raise ConfigError(f"voxel_size {self.voxel_size!r} and voxel_unit {self.voxel_unit!r} disagree")
-        if self.voxel_unit is not None and self.voxel_unit not in LENGTH_UNITS:
+        if not isinstance(self.derived, (tuple, list)) or not all(isinstance(n, str) for n in self.derived):
+            raise ConfigError(f"derived must be a list of setting names, got {self.derived!r}")
+        if self.units is not None and not isinstance(self.units, str):
+            raise ConfigError(f"units must be text, got {self.units!r}")
+        if self.voxel_unit is not None and (not isinstance(self.voxel_unit, str)
+                                            or self.voxel_unit not in LENGTH_UNITS):
             raise ConfigError(f"voxel_unit must be one of {', '.join(LENGTH_UNITS)}; got {self.voxel_unit!r}")
         object.__setattr__(self, "voxel_size", finite_number("voxel_size", voxel))
         object.__setattr__(self, "voxel_unit", unit or self.voxel_unit)
