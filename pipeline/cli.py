@@ -94,6 +94,10 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--scheduler", metavar="ADDR", help="run on an existing Dask scheduler, e.g. tcp://host:8786")
     t.add_argument("--work-dir", help="job directory for intermediate files (default: OUTPUT with .job suffix)")
     t.add_argument("--frames", metavar="START:STOP", help="KITTI sequences: frame range, e.g. 3000:4000")
+    t.add_argument("--trajectory", metavar="FILE",
+                   help="sensor trajectory for LAS/LAZ points with GPS time: text/CSV 'time x y z' in the points' "
+                        "coordinates, or SBET (.sbet/.out, projected into the points' CRS); every point gets its "
+                        "sensor origin, so walls face the street they were scanned from")
     t.add_argument("--fail-fast", action="store_true", help="stop at the first tile that fails")
     t.add_argument("--drop-outliers", action="store_true", default=None,
                    help="drop points far from the rest of the input (a stray (0,0,0) in a UTM cloud) before planning")
@@ -254,7 +258,7 @@ def cmd_reconstruct(args) -> int:
         check_outputs(args.inputs, out, overwrite=args.overwrite)
     if tiling is not None:
         return _reconstruct_tiled(args, out, cfg, tiling)
-    for opt in ("workers", "scheduler", "work_dir", "frames", "max_memory"):
+    for opt in ("workers", "scheduler", "work_dir", "frames", "max_memory", "trajectory"):
         if getattr(args, opt, None) is not None:
             raise ConfigError(f"--{opt.replace('_', '-')} applies to tiled mode: give --voxel-size too")
     if getattr(args, "dry_run", False):
@@ -312,6 +316,13 @@ def _reconstruct_tiled(args, out: Path, solver, tiling) -> int:
     from tiled_gridpull.tiling import check_compatible
 
     check_registered(args.inputs)  # before the job directory is made
+    if args.trajectory is not None:
+        from tiled_gridpull.trajectory import read_trajectory
+
+        not_las = [p for p in args.inputs if Path(p).suffix.lower() not in (".las", ".laz")]
+        if not_las:
+            raise InputError(f"--trajectory applies to LAS/LAZ points with GPS time; {not_las[0]} is not one")
+        read_trajectory(args.trajectory)  # a bad file is refused before the job directory is made
     tiling = resolve_units(args.inputs, tiling, frames)  # voxel_size auto, or with a unit
     check_compatible(tiling, solver)
     if "voxel_size" in tiling.derived and not args.dry_run:  # the dry run prints it on its lattice line
@@ -325,7 +336,8 @@ def _reconstruct_tiled(args, out: Path, solver, tiling) -> int:
     if args.dry_run:
         from tiled_gridpull.pipeline.dryrun import format_plan, plan_job
 
-        info = plan_job(args.inputs, tiling, solver, work, frames=frames, workers=args.workers)
+        info = plan_job(args.inputs, tiling, solver, work, frames=frames, trajectory=args.trajectory,
+                        workers=args.workers)
         print(format_plan(info, max_memory))
         if max_memory is not None:
             from tiled_gridpull.memory import check_memory
@@ -335,7 +347,7 @@ def _reconstruct_tiled(args, out: Path, solver, tiling) -> int:
     opts = JobOptions(workers=args.workers, scheduler=args.scheduler, fail_fast=args.fail_fast,
                       tile_meshes=args.tile_meshes,
                       float32=args.float32, progress=not args.quiet, max_memory=max_memory)
-    mesh = run_job(args.inputs, out, tiling, solver, work, opts, frames=frames)
+    mesh = run_job(args.inputs, out, tiling, solver, work, opts, frames=frames, trajectory=args.trajectory)
     topo = mesh.topology
     tiles = mesh.metadata["tiles"]
     log.info("wrote %s: %d vertices, %d faces, %d boundary edges; %d/%d tiles solved in %.1f s (job files in %s)",

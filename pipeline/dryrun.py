@@ -18,7 +18,8 @@ __all__ = ["plan_job", "format_plan"]
 
 
 def plan_job(inputs: list[str], tiling: TilingConfig, solver: SolverConfig, work_dir: str | Path, *, frames=None,
-             workers: int | None = None, chunk_size: int = 2_000_000) -> dict:
+             trajectory: str | Path | None = None, workers: int | None = None,
+             chunk_size: int = 2_000_000) -> dict:
     """Everything the dry run reports (see :func:`format_plan`)."""
     from tiled_gridpull.jobdir import JobPaths
     from tiled_gridpull.memory import estimate_tiles
@@ -31,12 +32,13 @@ def plan_job(inputs: list[str], tiling: TilingConfig, solver: SolverConfig, work
     tiling = resolve_units(inputs, tiling, frames)
     check_compatible(tiling, solver)
     paths = JobPaths(work_dir)
-    reused = load_partition(paths, partition_key(inputs, tiling, frames), tiling)
+    reused = load_partition(paths, partition_key(inputs, tiling, frames, trajectory), tiling)
     occupancy = None
     if reused is not None:
         plan, specs, scan = reused
     else:
-        plan, scan, chunks = plan_inputs(inputs, tiling, chunk_size=chunk_size, frames=frames)
+        plan, scan, chunks = plan_inputs(inputs, tiling, chunk_size=chunk_size, frames=frames,
+                                         trajectory=trajectory)
         occupancy = {}
         specs = partition(chunks(), plan, None, scan["has_sensor"], occupancy=occupancy)
     est = estimate_tiles(specs, solver, tiling, occupancy)

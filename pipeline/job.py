@@ -240,10 +240,11 @@ def mesh_task(spec: TileSpec, own: dict, neighbor_specs: list, neighbor_summarie
 
 
 def run_job(inputs: list[str], output: str | Path, tiling: TilingConfig, solver: SolverConfig, work_dir: str | Path,
-            options: JobOptions = JobOptions(), *, frames=None) -> Mesh:
+            options: JobOptions = JobOptions(), *, frames=None, trajectory: str | Path | None = None) -> Mesh:
     """Tiled reconstruction on Dask (:func:`tiled_gridpull.tiled_job.run_tiled_job` with a :class:`DaskExecutor`);
     writes ``output`` and its sidecar, returns the welded mesh."""
     return run_tiled_job(inputs, output, tiling, solver, work_dir, DaskExecutor(options), frames=frames,
+                         trajectory=trajectory,
                          float32=options.float32, tile_meshes=options.tile_meshes, fail_fast=options.fail_fast,
                          max_memory=options.max_memory, progress=options.progress)
 

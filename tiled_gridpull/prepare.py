@@ -24,6 +24,7 @@ from .partition import partition
 from .resume import load_partition, partition_key, scan_record
 from .tile_plan import LatticeSpanError, TilePlan, TileSpec, plan_tiles
 from .tiling import AUTO, TilingConfig, auto_cell_size
+from .trajectory import Trajectory, read_trajectory
 
 __all__ = ["check_registered", "resolve_units", "scan_inputs", "plan_inputs", "prepare_job"]
 
@@ -78,7 +79,8 @@ def resolve_units(inputs: list[str], tiling: TilingConfig, frames=None,
     return tiling.with_cell_size(cell, note)
 
 
-def scan_inputs(inputs: list[str], chunk_size: int = 2_000_000, frames=None) -> dict:
+def scan_inputs(inputs: list[str], chunk_size: int = 2_000_000, frames=None,
+                trajectory: Trajectory | None = None) -> dict:
     """One streaming pass: bounds, point count and whether sensor origins are known."""
     lo = np.full(3, np.inf)
     hi = np.full(3, -np.inf)
@@ -86,7 +88,7 @@ def scan_inputs(inputs: list[str], chunk_size: int = 2_000_000, frames=None) -> 
     sample = []
     has_sensor = True
     crs = crs_source = None
-    for chunk in _chunks(inputs, chunk_size, frames):
+    for chunk in _chunks(inputs, chunk_size, frames, trajectory):
         if chunk.crs:
             if crs is None:
                 crs, crs_source = chunk.crs, chunk.source
@@ -109,13 +111,14 @@ def scan_inputs(inputs: list[str], chunk_size: int = 2_000_000, frames=None) -> 
             "sample": np.concatenate(sample)}
 
 
-def _far_points(inputs, chunk_size, frames, box) -> tuple[np.ndarray | None, np.ndarray | None, int]:
+def _far_points(inputs, chunk_size, frames, box, trajectory=None) -> tuple[np.ndarray | None, np.ndarray | None,
+                                                                           int]:
     """One pass: the first point outside ``box`` (for the message; None when none), the bounds of the points
     inside it (None when none), and how many lie outside."""
     lo = np.full(3, np.inf)
     hi = np.full(3, -np.inf)
     example, n_far = None, 0
-    for chunk in _chunks(inputs, chunk_size, frames):
+    for chunk in _chunks(inputs, chunk_size, frames, trajectory):
         far = far_mask(chunk.xyz, box)
         n_far += int(far.sum())
         if example is None and far.any():
@@ -151,7 +154,17 @@ def _crs_name(crs: str) -> str:
     return m.group(1) if m else crs.split("\n")[0][:60]
 
 
-def _chunks(inputs, chunk_size, frames):
+def _chunks(inputs, chunk_size, frames, trajectory: Trajectory | None = None):
+    """The inputs' points chunk by chunk; with a trajectory, every point gets its sensor origin by GPS time."""
+    if trajectory is not None:
+        for path in inputs:
+            projected = None
+            for chunk in iter_point_chunks([path], chunk_size, gps_time=True):
+                if projected is None:  # an SBET's latitudes and longitudes, into this file's CRS
+                    projected = trajectory.projected(chunk.crs)
+                chunk.sensor = projected.sensor_at(chunk.attributes.pop("gps_time"), what=str(path))
+                yield chunk
+        return
     for path in inputs:
         p = Path(path)
         if p.is_dir():
@@ -164,7 +177,7 @@ def _chunks(inputs, chunk_size, frames):
 
 
 def plan_inputs(inputs: list[str], tiling: TilingConfig, *, chunk_size: int = 2_000_000,
-                frames=None) -> tuple[TilePlan, dict, Callable[[], Iterator]]:
+                frames=None, trajectory: str | Path | None = None) -> tuple[TilePlan, dict, Callable[[], Iterator]]:
     """Scan the inputs and lay the tile plan over them (the job's and ``--dry-run``'s first step).
 
     Points far from the rest (:mod:`tiled_gridpull.outliers`) are dropped when ``tiling.drop_outliers`` is set
@@ -180,17 +193,20 @@ def plan_inputs(inputs: list[str], tiling: TilingConfig, *, chunk_size: int = 2_
         ``chunks()`` streams the input's points again (without the dropped ones), for the partition.
     """
     check_registered(inputs)
-    scan = scan_inputs(inputs, chunk_size, frames)
+    traj = read_trajectory(trajectory) if trajectory is not None else None
+    scan = scan_inputs(inputs, chunk_size, frames, traj)
+    if traj is not None:
+        scan["trajectory"] = str(Path(trajectory).resolve())
     sample = scan.pop("sample")
     # the body is only needed to drop far points or to explain a refused span: no quantiles on a plain job
     box = body_box(sample, pad=tiling.tile_size) if tiling.drop_outliers else None
 
     def chunks():
-        raw = _chunks(inputs, chunk_size, frames)
+        raw = _chunks(inputs, chunk_size, frames, traj)
         return _without_far(raw, box) if scan.get("far_points_dropped") else raw
 
     if tiling.drop_outliers:
-        example, inside, n_far = _far_points(inputs, chunk_size, frames, box)
+        example, inside, n_far = _far_points(inputs, chunk_size, frames, box, traj)
         scan["far_points_dropped"] = n_far
         if n_far:
             if inside is None:
@@ -202,7 +218,7 @@ def plan_inputs(inputs: list[str], tiling: TilingConfig, *, chunk_size: int = 2_
         plan = plan_tiles(scan["bounds"], scan["points"], tiling)
     except LatticeSpanError as exc:
         box = body_box(sample, pad=tiling.tile_size)
-        example, _, n_far = _far_points(inputs, chunk_size, frames, box)
+        example, _, n_far = _far_points(inputs, chunk_size, frames, box, traj)
         if not n_far:
             raise
         span = str(exc).split(": stray points")[0]
@@ -212,7 +228,7 @@ def plan_inputs(inputs: list[str], tiling: TilingConfig, *, chunk_size: int = 2_
 
 
 def prepare_job(inputs: list[str], tiling: TilingConfig, paths: JobPaths, *, frames=None,
-                chunk_size: int = 2_000_000,
+                trajectory: str | Path | None = None, chunk_size: int = 2_000_000,
                 check: Callable[[list[TileSpec], dict], None] | None = None) -> tuple[TilePlan, list[TileSpec], dict]:
     """Scan and partition the inputs into tiles; writes the manifest. Returns the plan, tiles and scan facts.
 
@@ -223,12 +239,12 @@ def prepare_job(inputs: list[str], tiling: TilingConfig, paths: JobPaths, *, fra
     written) before the partition writes its spill files: it refuses a job (e.g. ``--max-memory``) by raising,
     so a refused job leaves no partition behind. It costs one more read of the inputs.
     """
-    key = partition_key(inputs, tiling, frames)
+    key = partition_key(inputs, tiling, frames, trajectory)
     reused = load_partition(paths, key, tiling)
     if reused is not None:
         return reused
     paths.manifest.unlink(missing_ok=True)  # the manifest commits a partition: none while one is under way
-    plan, scan, chunks = plan_inputs(inputs, tiling, chunk_size=chunk_size, frames=frames)
+    plan, scan, chunks = plan_inputs(inputs, tiling, chunk_size=chunk_size, frames=frames, trajectory=trajectory)
     if check is not None:
         occupancy: dict = {}
         check(partition(chunks(), plan, None, scan["has_sensor"], occupancy=occupancy), occupancy)

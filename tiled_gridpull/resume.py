@@ -93,11 +93,13 @@ def input_fingerprint(inputs: list) -> list[dict]:
     return out
 
 
-def partition_key(inputs: list, tiling: TilingConfig, frames=None) -> str:
-    """Key of a partition: inputs (path, size, mtime), frames, tile grid settings, version."""
+def partition_key(inputs: list, tiling: TilingConfig, frames=None, trajectory=None) -> str:
+    """Key of a partition: inputs (path, size, mtime), frames, trajectory file, tile grid settings, version."""
     facts = {"inputs": input_fingerprint(inputs), "frames": list(frames) if frames else None,
              "voxel_size": tiling.voxel_size, "tile_cells": tiling.tile_cells,
              "overlap_cells": tiling.overlap_cells, "version": __version__, "format": SPILL_FORMAT}
+    if trajectory is not None:  # only when set, likewise
+        facts["trajectory"] = input_fingerprint([trajectory])
     if tiling.drop_outliers:  # only when set: keys of partitions made without it stay as they were
         facts["drop_outliers"] = True
     return digest(facts)
@@ -144,7 +146,8 @@ def scan_record(scan: dict) -> dict:
     """The scan facts a manifest keeps (so a reused partition needs no new pass over the inputs)."""
     return {"bounds": np.asarray(scan["bounds"]).tolist(), "points": int(scan["points"]),
             "has_sensor": bool(scan["has_sensor"]), "crs": scan.get("crs"),
-            "far_points_dropped": int(scan.get("far_points_dropped", 0))}
+            "far_points_dropped": int(scan.get("far_points_dropped", 0)),
+            **({"trajectory": scan["trajectory"]} if scan.get("trajectory") else {})}
 
 
 # ------------------------------------------------------------------------------------------------ tile results

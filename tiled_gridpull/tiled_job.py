@@ -157,9 +157,10 @@ class SerialExecutor:
 
 
 def reconstruct_scene(inputs: list[str], output: str | Path | None, tiling: TilingConfig, solver: SolverConfig,
-                      work_dir: str | Path, *, frames=None, float32: bool = False,
-                      log: Callable[[str], None] | None = None, tile_meshes: str | Path | None = None,
-                      fail_fast: bool = False, max_memory: int | None = None) -> Mesh:
+                      work_dir: str | Path, *, frames=None, trajectory: str | Path | None = None,
+                      float32: bool = False, log: Callable[[str], None] | None = None,
+                      tile_meshes: str | Path | None = None, fail_fast: bool = False,
+                      max_memory: int | None = None) -> Mesh:
     """Tiled reconstruction, one tile after the other in this process (no Dask): :func:`run_tiled_job` with a
     :class:`SerialExecutor`.
 
@@ -177,6 +178,9 @@ def reconstruct_scene(inputs: list[str], output: str | Path | None, tiling: Tili
         The job directory; a rerun there reuses the partition and every tile whose inputs are unchanged.
     frames : slice, optional
         KITTI frames to read.
+    trajectory : str or Path, optional
+        A sensor trajectory (:mod:`tiled_gridpull.trajectory`) giving every LAS/LAZ point its sensor origin by
+        GPS time.
     float32 : bool
         Write float32 vertices relative to an offset recorded in the file (smaller; exact for our reader).
     log : callable, optional
@@ -195,12 +199,13 @@ def reconstruct_scene(inputs: list[str], output: str | Path | None, tiling: Tili
         settings, per-tile summaries, timings).
     """
     return run_tiled_job(inputs, output, tiling, solver, work_dir, SerialExecutor(log), frames=frames,
-                         float32=float32, tile_meshes=tile_meshes, fail_fast=fail_fast, max_memory=max_memory,
-                         progress=False)
+                         trajectory=trajectory, float32=float32, tile_meshes=tile_meshes, fail_fast=fail_fast,
+                         max_memory=max_memory, progress=False)
 
 
 def run_tiled_job(inputs: list[str], output: str | Path | None, tiling: TilingConfig, solver: SolverConfig,
-                  work_dir: str | Path, executor: TileExecutor, *, frames=None, float32: bool = False,
+                  work_dir: str | Path, executor: TileExecutor, *, frames=None,
+                  trajectory: str | Path | None = None, float32: bool = False,
                   tile_meshes: str | Path | None = None, fail_fast: bool = False, max_memory: int | None = None,
                   progress: bool = True) -> Mesh:
     """A tiled reconstruction whose tiles ``executor`` runs; writes ``output`` (when given) with its sidecar and
@@ -217,6 +222,8 @@ def run_tiled_job(inputs: list[str], output: str | Path | None, tiling: TilingCo
     executor : TileExecutor
     frames : optional
         KITTI frame range.
+    trajectory : str or Path, optional
+        Sensor trajectory file for LAS/LAZ inputs with GPS time (:mod:`tiled_gridpull.trajectory`).
     float32 : bool
         Write float32 vertices with a recorded offset.
     tile_meshes : str or Path, optional
@@ -234,12 +241,13 @@ def run_tiled_job(inputs: list[str], output: str | Path | None, tiling: TilingCo
     executor.check()  # before the partition, not after it
     work_dir = Path(work_dir).resolve()  # workers of an external cluster do not share this process's cwd
     with job_lock(work_dir):
-        return _run(inputs, output, tiling, solver, JobPaths(work_dir), executor, frames=frames, float32=float32,
+        return _run(inputs, output, tiling, solver, JobPaths(work_dir), executor, frames=frames,
+                    trajectory=trajectory, float32=float32,
                     tile_meshes=tile_meshes, fail_fast=fail_fast, max_memory=max_memory, progress=progress)
 
 
 def _run(inputs, output, tiling: TilingConfig, solver: SolverConfig, paths: JobPaths, executor: TileExecutor, *,
-         frames, float32, tile_meshes, fail_fast, max_memory, progress) -> Mesh:
+         frames, trajectory, float32, tile_meshes, fail_fast, max_memory, progress) -> Mesh:
     t0 = time.perf_counter()
     check = None
     if max_memory is not None:
@@ -247,7 +255,7 @@ def _run(inputs, output, tiling: TilingConfig, solver: SolverConfig, paths: JobP
         def check(planned, occupancy):
             check_some_tile_solvable(planned, tiling)
             check_memory(planned, tiling, solver, max_memory, occupancy=occupancy)
-    plan, specs, scan = prepare_job(inputs, tiling, paths, frames=frames, check=check)
+    plan, specs, scan = prepare_job(inputs, tiling, paths, frames=frames, trajectory=trajectory, check=check)
     t_part = time.perf_counter()
     log.info("%s %d points into %d tiles (%d planned) in %.1f s",
              "reused the partition of" if scan.get("partition_reused") else "partitioned", scan["points"],

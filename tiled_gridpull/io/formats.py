@@ -34,6 +34,8 @@ class PointFormat:
         ``chunks(path, chunk_size) -> iterator of PointCloud`` with bounded memory; None: read, then slice.
     crs : callable, optional
         ``crs(path) -> str | None``: the CRS the file declares (WKT), from its header; None: the format has none.
+    timed_chunks : callable, optional
+        As ``chunks``, with each point's GPS time in ``attributes["gps_time"]``; None: the format has none.
     """
 
     name: str
@@ -41,6 +43,7 @@ class PointFormat:
     count: Callable[[Path], int]
     chunks: Callable[[Path, int], Iterator[PointCloud]] | None = None
     crs: Callable[[Path], str | None] | None = None
+    timed_chunks: Callable[[Path, int], Iterator[PointCloud]] | None = None
 
 
 POINT_FORMATS: dict[str, PointFormat] = {}
@@ -58,8 +61,8 @@ register(".txt", PointFormat("text", text.read, text.count))
 register(".pts", PointFormat("PTS", text.read, text.count))
 register(".csv", PointFormat("CSV", text.read, text.count))
 register(".npy", PointFormat("NPY", npy.read, npy.count, npy.chunks))
-register(".las", PointFormat("LAS", las.read, las.count, las.chunks, las.crs))
-register(".laz", PointFormat("LAZ", las.read, las.count, las.chunks, las.crs))
+register(".las", PointFormat("LAS", las.read, las.count, las.chunks, las.crs, las.timed_chunks))
+register(".laz", PointFormat("LAZ", las.read, las.count, las.chunks, las.crs, las.timed_chunks))
 register(".bin", PointFormat("KITTI scan", kitti.read, kitti.count))
 register(".pcd", PointFormat("PCD", pcd.read, pcd.count))
 

@@ -71,7 +71,7 @@ def read_points(path: str | os.PathLike, *, clean: bool = True,
 
 
 def iter_point_chunks(paths: str | os.PathLike | Iterable[str | os.PathLike],
-                      chunk_size: int = 1_000_000) -> Iterator[PointCloud]:
+                      chunk_size: int = 1_000_000, *, gps_time: bool = False) -> Iterator[PointCloud]:
     """Stream points from one or more files in chunks of at most ``chunk_size`` points.
 
     LAS/LAZ files are decoded chunk by chunk (``laspy`` chunk iterator), so memory is bounded by the chunk,
@@ -87,6 +87,9 @@ def iter_point_chunks(paths: str | os.PathLike | Iterable[str | os.PathLike],
     paths : path or iterable of paths
     chunk_size : int
         Maximum number of points per chunk (> 0).
+    gps_time : bool
+        Also read each point's GPS time into ``attributes["gps_time"]`` (LAS/LAZ; other formats, and LAS point
+        formats without GPS time, raise InputError).
 
     Yields
     ------
@@ -108,11 +111,15 @@ def iter_point_chunks(paths: str | os.PathLike | Iterable[str | os.PathLike],
     for path in paths:
         p = check_path(path)
         if p.is_dir():
+            if gps_time:
+                raise InputError(f"{p}: a KITTI sequence has its poses already; a trajectory applies to LAS/LAZ")
             chunks = kitti_chunks(p, None, chunk_size)
             kind = "KITTI sequence"
         else:
             fmt = point_format(p)
-            chunks = _file_chunks(p, fmt, chunk_size)
+            if gps_time and fmt.timed_chunks is None:
+                raise InputError(f"{p}: {fmt.name} files carry no GPS time, which a trajectory needs (LAS/LAZ)")
+            chunks = fmt.timed_chunks(p, chunk_size) if gps_time else _file_chunks(p, fmt, chunk_size)
             kind = fmt.name
         rows = yielded = 0
         with input_errors(p, kind):

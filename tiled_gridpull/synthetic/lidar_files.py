@@ -10,7 +10,7 @@ from ..errors import InputError
 from ..io.atomic import atomic_open, atomic_path
 from .lidar import Scan
 
-__all__ = ["write_las", "write_kitti_sequence", "KITTI_TR"]
+__all__ = ["write_las", "write_trajectory", "write_kitti_sequence", "KITTI_TR"]
 
 # KITTI odometry sequence 00 velodyne -> camera-0 calibration (rows of the 3x4 [R|t]). Its rotation maps the
 # velodyne axes (x forward, y left, z up) to the camera axes (x right, y down, z forward), up to ~0.5 degree.
@@ -25,7 +25,7 @@ _KITTI_P = np.array([7.188560000000e+02, 0.0, 6.071928000000e+02, 0.0,
 
 
 def write_las(path: str | Path, xyz: np.ndarray, *, intensity: np.ndarray | None = None,
-              crs_wkt: str | None = None, chunk_size: int = 2_000_000) -> Path:
+              crs_wkt: str | None = None, gps_time: np.ndarray | None = None, chunk_size: int = 2_000_000) -> Path:
     """Write points as LAS 1.4 (point format 6), LAZ-compressed when the suffix is ``.laz``, atomically.
 
     Coordinates are stored with scale 0.001 (millimetres) and offset ``floor(min)``, so float64 inputs at
@@ -41,6 +41,8 @@ def write_las(path: str | Path, xyz: np.ndarray, *, intensity: np.ndarray | None
         Stored as uint16 (clipped to 0..65535).
     crs_wkt : str, optional
         OGC WKT of the coordinate system, stored in a WKT VLR (global encoding WKT bit set).
+    gps_time : (N,) float64, optional
+        Each point's GPS time (s).
     chunk_size : int
         Points per write (bounds memory for large clouds).
 
@@ -62,6 +64,10 @@ def write_las(path: str | Path, xyz: np.ndarray, *, intensity: np.ndarray | None
         intensity = np.clip(np.asarray(intensity).reshape(-1), 0, 65535).astype(np.uint16)
         if len(intensity) != len(xyz):
             raise ValueError("intensity must have one value per point")
+    if gps_time is not None:
+        gps_time = np.asarray(gps_time, dtype=np.float64).reshape(-1)
+        if len(gps_time) != len(xyz):
+            raise ValueError("gps_time must have one value per point")
     offset = np.floor(xyz.min(axis=0)) if len(xyz) else np.zeros(3)
     if len(xyz) and np.any((xyz.max(axis=0) - offset) / 0.001 >= 2 ** 31 - 1):
         raise InputError(f"{path}: extent too large for millimetre LAS integers")
@@ -85,8 +91,21 @@ def write_las(path: str | Path, xyz: np.ndarray, *, intensity: np.ndarray | None
                 rec.z = part[:, 2]
                 if intensity is not None:
                     rec.intensity = intensity[s:s + int(chunk_size)]
+                if gps_time is not None:
+                    rec.gps_time = gps_time[s:s + int(chunk_size)]
                 writer.write_points(rec)
     return path
+
+
+def write_trajectory(path: str | Path, time: np.ndarray, positions: np.ndarray) -> Path:
+    """Write a sensor trajectory as CSV (``time,x,y,z`` header, then one sample per line, full precision),
+    the text form :func:`tiled_gridpull.trajectory.read_trajectory` reads."""
+    rows = np.column_stack([np.asarray(time, np.float64), np.asarray(positions, np.float64).reshape(-1, 3)])
+    with atomic_path(Path(path)) as tmp, open(tmp, "w") as fh:
+        fh.write("time,x,y,z\n")
+        for r in rows:
+            fh.write(",".join(repr(float(v)) for v in r) + "\n")
+    return Path(path)
 
 
 def write_kitti_sequence(root: str | Path, scan: Scan) -> Path:

@@ -10,12 +10,17 @@ import numpy as np
 from ..io.atomic import write_json
 from ..io.meshes import write_mesh
 from .lidar import SENSOR_HEIGHT_M, grid_passes, scan_street, street_length_for_frames
-from .lidar_files import write_kitti_sequence, write_las
+from .lidar_files import write_kitti_sequence, write_las, write_trajectory
 from .street import GRID_STREETS, LAYOUTS, StreetScene, build_street
 
 __all__ = ["make_street_sample", "grid_frames_for_points"]
 
 _FORMATS = ("laz", "las", "kitti")
+
+
+#: GPS time of the first frame (s; GPS week seconds, a Tuesday morning) and between frames (a 10 Hz sensor)
+GPS_TIME_START_S = 200_000.0
+FRAME_PERIOD_S = 0.1
 
 
 def grid_frames_for_points(n_points: int, n_passes: int = 2 * GRID_STREETS) -> int:
@@ -58,7 +63,8 @@ def make_street_sample(out_dir: str | Path, n_points: int = 100_000, seed: int =
     origin : (3,) float
         Scene origin added to every output coordinate.
     formats : sequence of {"laz", "las", "kitti"}
-        ``street.laz`` / ``street.las`` (intensity = reflectance x 65535) and/or a ``kitti/`` sequence.
+        ``street.laz`` / ``street.las`` (intensity = reflectance x 65535, GPS time of the point's frame) with
+        ``street_trajectory.csv`` (time, x, y, z of the sensor at every frame), and/or a ``kitti/`` sequence.
     range_noise : float
         Gaussian range noise (m).
     crs_wkt : str, optional
@@ -71,7 +77,8 @@ def make_street_sample(out_dir: str | Path, n_points: int = 100_000, seed: int =
     Returns
     -------
     dict
-        ``points`` (the first LAS/LAZ written, else None), ``laz`` / ``las`` / ``kitti`` paths when written,
+        ``points`` (the first LAS/LAZ written, else None), ``laz`` / ``las`` / ``kitti`` / ``trajectory`` paths
+        when written,
         ``gt_mesh`` (``street_gt.ply``, float64 vertices), ``meta`` (``street.json``), ``n_points``,
         ``n_frames``, ``azimuth_steps``, ``n_faces``, ``scene``, ``layout``, ``n_passes``.
     """
@@ -100,12 +107,19 @@ def make_street_sample(out_dir: str | Path, n_points: int = 100_000, seed: int =
     del probe  # freed before the full-resolution cast, which is what sets the peak memory
     scan = scan_street(scene, mesh, n_frames, azimuth_steps=azimuth_steps, range_noise=range_noise, seed=seed)
     result: dict = {"points": None}
+    # a mapping car's record: GPS time per point (one per frame: the simulated sensor moves between sweeps, not
+    # during one) and the trajectory beside the points, as mobile-mapping deliveries come
+    frame_time = GPS_TIME_START_S + FRAME_PERIOD_S * np.arange(scan.n_frames)
     for fmt in ("laz", "las"):
         if fmt in formats:
             p = write_las(out_dir / f"street.{fmt}", scan.xyz,
-                          intensity=np.round(scan.reflectance * 65535.0), crs_wkt=crs_wkt)
+                          intensity=np.round(scan.reflectance * 65535.0), crs_wkt=crs_wkt,
+                          gps_time=frame_time[scan.frame])
             result[fmt] = p
             result["points"] = result["points"] or p
+    if result["points"] is not None:
+        result["trajectory"] = write_trajectory(out_dir / "street_trajectory.csv", frame_time,
+                                                scan.poses[:, :3, 3])
     if "kitti" in formats:
         result["kitti"] = write_kitti_sequence(out_dir / "kitti", scan)
     result["gt_mesh"] = write_mesh(mesh, out_dir / "street_gt.ply")

@@ -1,0 +1,157 @@
+"""trajectory: a sensor path by GPS time gives LAS/LAZ points their sensor origins (issue 19)."""
+
+import json
+
+import numpy as np
+import pytest
+
+from tiled_gridpull.config import SolverConfig
+from tiled_gridpull.errors import InputError
+from tiled_gridpull.pipeline.cli import main
+from tiled_gridpull.prepare import plan_inputs
+from tiled_gridpull.synthetic.lidar import scan_street
+from tiled_gridpull.synthetic.lidar_files import write_las, write_trajectory
+from tiled_gridpull.synthetic.street import StreetScene, build_street
+from tiled_gridpull.tiled_job import reconstruct_scene
+from tiled_gridpull.tiling import TilingConfig
+from tiled_gridpull.trajectory import SBET_RECORD, TIME_SLACK_S, read_trajectory
+
+ORIGIN = (500_000.0, 4_000_000.0, 100.0)
+T0 = 300_000.0
+UTM31 = ('PROJCS["WGS 84 / UTM zone 31N",GEOGCS["WGS 84",DATUM["WGS_1984",SPHEROID["WGS 84",6378137,'
+         '298.257223563]],PRIMEM["Greenwich",0],UNIT["degree",0.0174532925199433]],PROJECTION["Transverse_Mercator"],'
+         'PARAMETER["latitude_of_origin",0],PARAMETER["central_meridian",3],PARAMETER["scale_factor",0.9996],'
+         'PARAMETER["false_easting",500000],PARAMETER["false_northing",0],UNIT["metre",1],AUTHORITY["EPSG","32631"]]')
+
+
+@pytest.fixture(scope="module")
+def street(tmp_path_factory):
+    """A short street scanned from 3 poses, as LAZ with GPS times and its trajectory (CSV)."""
+    d = tmp_path_factory.mktemp("traj")
+    scene = StreetScene(seed=2, length_m=40.0, width_m=30.0, origin=ORIGIN)
+    scan = scan_street(scene, build_street(scene), 3, azimuth_steps=500, max_range=20.0)
+    times = T0 + 0.1 * np.arange(scan.n_frames)
+    laz = write_las(d / "street.laz", scan.xyz, gps_time=times[scan.frame], crs_wkt=UTM31)
+    csv = write_trajectory(d / "path.csv", times, scan.poses[:, :3, 3])
+    return d, scan, laz, csv, times
+
+
+def test_text_trajectory_gives_every_point_its_sensor(street):
+    d, scan, laz, csv, _ = street
+    tiling = TilingConfig(voxel_size=0.2, tile_size=12.8, overlap=3.2)
+    plan, info, chunks = plan_inputs([str(laz)], tiling, trajectory=csv)
+    assert info["has_sensor"] and info["trajectory"] == str(csv.resolve())
+    sensor = np.concatenate([c.sensor for c in chunks()])
+    xyz = np.concatenate([c.xyz for c in chunks()])
+    # the file stores millimetres: match points to the scan's, then compare their sensors
+    order_file, order_scan = np.lexsort(xyz.T), np.lexsort(np.round(scan.xyz, 3).T)
+    np.testing.assert_allclose(sensor[order_file], scan.sensor[order_scan], atol=1e-9)
+    # without the trajectory the same file has no sensor origins
+    _, plain, _ = plan_inputs([str(laz)], tiling)
+    assert not plain["has_sensor"]
+
+
+def test_interpolation_between_samples_and_the_slack_at_the_ends(tmp_path):
+    p = tmp_path / "t.txt"
+    p.write_text("# time x y z roll\n10.0 0 0 0 5\n12.0 2 4 -2 5\n\n14.0 2 8 -2 5  # last\n")
+    tr = read_trajectory(p)
+    s = tr.sensor_at(np.array([10.0, 11.0, 13.0, 14.0, 14.0 + 0.5 * TIME_SLACK_S]))
+    np.testing.assert_allclose(s, [[0, 0, 0], [1, 2, -1], [2, 6, -2], [2, 8, -2], [2, 8, -2]])
+    with pytest.raises(InputError, match=r"pts: 2 of 3 points have GPS times outside the trajectory .*t\.txt "
+                                         r"\(10\.000000 to 14\.000000 s\): from 9\.000000 to 15\.000000 s"):
+        tr.sensor_at(np.array([9.0, 12.0, 15.0]), what="pts")
+    with pytest.raises(InputError, match="not finite"):
+        tr.sensor_at(np.array([np.nan]))
+
+
+@pytest.mark.parametrize("text,needle", [
+    ("", "has no samples"),
+    ("time,x,y,z\n1,0,0,0\n", "at least 2 samples"),
+    ("1,0,0,0\n1,1,1,1\n", "share the time 1.000000"),
+    ("1,0,0\n2,0,0\n", "has 3 columns"),
+    ("1 0 0 0\nabc def\n", "line 2 of the trajectory is not numbers"),
+    ("1 0 0 0\n2 0 0 nan\n", "line 2 of the trajectory is not numbers"),
+])
+def test_bad_text_trajectories_are_one_line(tmp_path, text, needle):
+    p = tmp_path / "t.csv"
+    p.write_text(text)
+    with pytest.raises(InputError, match=needle) as err:
+        read_trajectory(p)
+    assert "\n" not in str(err.value) and str(p) in str(err.value)
+
+
+def test_sbet_is_projected_into_the_points_crs(street, tmp_path):
+    pyproj = pytest.importorskip("pyproj", reason="SBET trajectories need pyproj (the geo extra)")
+    d, scan, laz, csv, times = street
+    pos = scan.poses[:, :3, 3]
+    to_geo = pyproj.Transformer.from_crs(pyproj.CRS.from_wkt(UTM31), pyproj.CRS.from_epsg(4326), always_xy=True)
+    lon, lat = to_geo.transform(pos[:, 0], pos[:, 1])
+    rec = np.zeros((len(times), SBET_RECORD))
+    rec[:, 0], rec[:, 1], rec[:, 2], rec[:, 3] = times, np.radians(lat), np.radians(lon), pos[:, 2]
+    sbet = tmp_path / "path.sbet"
+    rec.astype("<f8").tofile(sbet)
+    tiling = TilingConfig(voxel_size=0.2, tile_size=12.8, overlap=3.2)
+    _, info, chunks = plan_inputs([str(laz)], tiling, trajectory=sbet)
+    from_sbet = np.concatenate([c.sensor for c in chunks()])
+    _, _, chunks_csv = plan_inputs([str(laz)], tiling, trajectory=csv)
+    np.testing.assert_allclose(from_sbet, np.concatenate([c.sensor for c in chunks_csv()]), atol=1e-3)
+    # an SBET for points without a CRS cannot be placed
+    bare = write_las(tmp_path / "bare.laz", scan.xyz, gps_time=times[scan.frame])
+    with pytest.raises(InputError, match="declare no CRS"):
+        plan_inputs([str(bare)], tiling, trajectory=sbet)
+    bad = tmp_path / "bad.sbet"
+    bad.write_bytes(b"\0" * 100)
+    with pytest.raises(InputError, match="not a whole number of 136-byte records"):
+        read_trajectory(bad)
+
+
+def test_cli_refuses_what_a_trajectory_cannot_serve(street, tmp_path, capsys):
+    d, scan, laz, csv, times = street
+
+    def one_line(argv):
+        code = main(["reconstruct", *map(str, argv), "-o", str(tmp_path / "o.ply"), "--voxel-size", "0.2",
+                     "--dry-run"])
+        err = capsys.readouterr().err
+        lines = [ln for ln in err.strip().splitlines() if ln.strip()]
+        assert code == 3 and len(lines) == 1 and "Traceback" not in err, err
+        assert not (tmp_path / "o.job").exists()
+        return lines[0]
+
+    late = tmp_path / "late.csv"
+    write_trajectory(late, times + 60.0, scan.poses[:, :3, 3])
+    assert "GPS times outside the trajectory" in one_line([laz, "--trajectory", late])
+    assert "trajectory file not found" in one_line([laz, "--trajectory", tmp_path / "nope.csv"])
+    npy = tmp_path / "pts.npy"
+    np.save(npy, scan.xyz)
+    assert "--trajectory applies to LAS/LAZ" in one_line([npy, "--trajectory", csv])
+    no_time = write_las(tmp_path / "no_time.las", scan.xyz)  # format 6 has the field; zeros are not covered
+    assert "GPS times outside" in one_line([no_time, "--trajectory", csv])
+    code = main(["reconstruct", str(laz), "-o", str(tmp_path / "o.ply"), "--voxel-size", "0.2", "--dry-run",
+                 "--trajectory", str(csv)])
+    out = capsys.readouterr().out
+    assert code == 0 and "with sensor origins" in out
+
+
+@pytest.mark.slow
+def test_sensor_origins_from_the_trajectory_orient_every_tile(street):
+    """With the trajectory every tile orients its outside towards the sensor and none has to be flipped after
+    its solve; the surface is as close to the truth as with 'up' and its normals agree with it better
+    (measured: CD-L1 0.0983 against 0.1005 m, NC 0.923 against 0.917, one of 12 tiles flipped with 'up')."""
+    from tiled_gridpull.metrics import evaluate
+
+    d, scan, laz, csv, _ = street
+    solver = SolverConfig(m2=8, coarse_iterations=200, iterations=200)
+    tiling = TilingConfig(voxel_size=0.2, tile_size=12.8, overlap=3.2, trim_distance=3.0)
+    runs = {}
+    for name, trajectory in (("sensor", csv), ("up", None)):
+        mesh = reconstruct_scene([str(laz)], d / f"{name}.ply", tiling, solver, d / f"job_{name}",
+                                 trajectory=trajectory)
+        side = json.loads((d / f"{name}.json").read_text())
+        runs[name] = (evaluate(mesh, build_street(StreetScene(seed=2, length_m=40.0, width_m=30.0, origin=ORIGIN)),
+                               observed=scan.xyz, observed_radius=0.4, thresholds=(0.1,)),
+                      side["tile_summaries"])
+    metrics, tiles = runs["sensor"]
+    assert {t["orientation"] for t in tiles} == {"sensor"} and not any(t["flipped"] for t in tiles)
+    assert {t["orientation"] for t in runs["up"][1]} == {"up"}
+    assert metrics["normal_consistency"] >= runs["up"][0]["normal_consistency"]
+    assert metrics["chamfer_l1"] <= runs["up"][0]["chamfer_l1"]
