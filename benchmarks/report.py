@@ -265,7 +265,7 @@ def main() -> None:
                       "band-hole closing; scratch measurement, 2026-11-22). R = 512 is not the default.", "",
                       grid_md, ""]
         parts += [compile_section(shapes), ""]
-    from benchmarks import floor, paper_eval, scenes
+    from benchmarks import estimate, floor, paper_eval, scenes
 
     floor_table = floor.render(load("floor"))
     if floor_table:
@@ -317,6 +317,14 @@ def main() -> None:
                   "(seeded): each method meshes the other 90 %, and the held-out points' distance to the mesh "
                   "(file units) scores it; Poisson (depth 10, same normals and trim as above) in the same run.", "",
                   holdout_table, ""]
+    estimates_table = estimate.render(load("estimates"))
+    if estimates_table:
+        parts += ["## The dry run's time estimate against finished jobs (`benchmarks/estimate.py`)", "",
+                  "What `--dry-run` predicts for a finished job's inputs and settings (from the partition alone, "
+                  "with the rates in `tiled_gridpull/memory.py`), beside the wall time the job measured on its "
+                  "default local cluster. The 2026-11-24 rates were fitted to the tiles of the first four jobs "
+                  "listed that day; the others were not in the fit.", "",
+                  estimates_table, ""]
     paper_tables = paper_eval.render(load("paper_eval"))
     if paper_tables:
         parts += ["## The paper's evaluation, re-run (`benchmarks/paper_eval.py`)", "",

@@ -111,7 +111,7 @@ def format_plan(info: dict, max_memory: int | None = None) -> str:
         f"median tile {format_size(m['median_bytes'])} (estimates are upper bounds)",
         f"time:     roughly {_duration(tm['wall_seconds'])} with {tm['workers']} one-thread worker(s) "
         f"({_duration(tm['cpu_seconds'])} of solving on one core), at rates measured on a 2-core Intel Xeon "
-        f"(2026-11-23) with nothing else running: a loaded or slower machine takes longer",
+        f"(2026-11-24) with nothing else running: a loaded or slower machine takes longer",
     ]
     if max_memory is not None:
         over = [e for e in info["estimates"] if e["peak"] > max_memory]

@@ -72,17 +72,21 @@ QUERY_BYTES = 16 * 8 + 16 * 4 + 4 * 4 + 8 + 3 * 4 * 3 + 8 + 4  # slots, grads, l
 POOL_BYTES_PER_QUERY = 4  # int32 nearest-point index per pooled query
 UNTRACKED = 1.15  # allocations numpy does not see (KD-trees, numba's per-brick buffers) and heap fragmentation
 # Rough rates of a job on its default local cluster (one-thread workers, two of them sharing the memory bus),
-# fitted by benchmarks/calibrate_time.py to 72 tiles of two jobs with the content-scaled scene schedule (the
-# 300k-point demo street and the 1M-point grid of streets; 2-core Intel Xeon, 2026-11-23): a query costs 240 ns
-# per iteration (drawing, losses, scatter), a nearest-point search 200 ns (once per pooled query, or every
-# iteration without a pool), a band slot 5 ns per iteration (TV + Adam), a point 13 us of set-up (reading,
-# normals, orientation, band building). The mesh step (blend with the neighbours, marching cubes, trim) costs
-# about 0.4 ms per finest band brick, and the weld 30 us per finest band brick of the job.
-RATE_QUERY_S = 2.4e-7
+# fitted by benchmarks/calibrate_time.py (non-negative least squares) to the 32 tiles of four jobs run with
+# configs/scene.yaml on a 2-core Intel Xeon, 2026-11-24: the 300k-point demo street, a quarter of the 1M-point grid
+# of streets, and the shared AHN3 (0.5 m cells) and Autzen (2 ft) files. A nearest-point search is held at the
+# 200 ns measured alone (once per pooled query, or every iteration without a pool: these jobs all pool, so the fit
+# cannot see it); then a query costs 85 ns per iteration (drawing, losses, scatter), a band slot 3.4 ns per
+# iteration (TV + Adam), a point 51 us of set-up (reading, duplicates, normals, orientation, band building).
+# Per tile, measured / estimate stayed within 0.70-1.14, and 0.82-1.30 on 40 tiles of four other jobs (the
+# rates of 2026-11-23 overestimated by 1.2-2.7x, after the faster query kernel and nearest-point search). The
+# mesh step (blend with the neighbours, marching cubes, trim) costs about 0.4 ms per finest band brick, and the
+# weld 30 us per finest band brick of the job.
+RATE_QUERY_S = 8.5e-8
 RATE_NN_S = 2e-7
-RATE_SLOT_S = 5e-9
-RATE_POINT_S = 1.3e-5
-TILE_SETUP_S = 0.3
+RATE_SLOT_S = 3.37e-9
+RATE_POINT_S = 5.07e-5
+TILE_SETUP_S = 0.0
 MESH_SETUP_S = 0.1
 RATE_MESH_BRICK_S = 4e-4
 JOB_SETUP_S = 4.0  # local cluster start, imports and numba's cached kernels loaded in each worker
