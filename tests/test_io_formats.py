@@ -120,6 +120,14 @@ def write_cloud(path: Path, xyz) -> Path:
         return path
     if s == ".bin":
         return write_bin(path, xyz)
+    if s == ".e57":
+        import pye57
+
+        a = np.asarray(xyz, dtype=np.float64)
+        e57 = pye57.E57(str(path), mode="w")
+        e57.write_scan_raw({"cartesianX": a[:, 0], "cartesianY": a[:, 1], "cartesianZ": a[:, 2]})
+        e57.close()
+        return path
     if s == ".pcd":
         from pypcd4 import Encoding
         from pypcd4 import PointCloud as PcdCloud
@@ -131,7 +139,7 @@ def write_cloud(path: Path, xyz) -> Path:
     return write_text(path, xyz, delimiter="," if s == ".csv" else " ")
 
 
-ALL_SUFFIXES = [".ply", ".xyz", ".txt", ".pts", ".csv", ".npy", ".las", ".laz", ".bin", ".pcd"]
+ALL_SUFFIXES = [".ply", ".xyz", ".txt", ".pts", ".csv", ".npy", ".las", ".laz", ".bin", ".pcd", ".e57"]
 
 
 # ------------------------------------------------------------------------------------------------ round trips
@@ -709,10 +717,10 @@ def test_utm_coordinates_keep_millimetres(tmp_path, suffix):
 
 
 def test_unknown_extension(tmp_path):
-    p = tmp_path / "cloud.e57"
+    p = tmp_path / "cloud.rcp"
     p.write_bytes(b"x")
     with pytest.raises(InputError,
-                       match=r"cloud\.e57: unknown point cloud format '\.e57' \(supported: \.ply"):
+                       match=r"cloud\.rcp: unknown point cloud format '\.rcp' \(supported: \.ply.*\.e57"):
         read_points(p)
     with pytest.raises(InputError, match="unknown point cloud format"):
         point_count(p)

@@ -1,4 +1,4 @@
-"""Soft imports for heavy optional dependencies (pyvista, manifold3d, open3d).
+"""Soft imports for heavy optional dependencies (pyvista, manifold3d, open3d, pye57, pyproj).
 
 ``import tiled_gridpull`` never imports them; the first use raises a one-line
 :class:`~tiled_gridpull.errors.MissingDependencyError` telling the user what to install.
@@ -17,6 +17,8 @@ _HINTS = {
     "open3d": "pip install 'tiled-gridpull[bench]'",
     "matplotlib": "pip install 'tiled-gridpull[viz]'",
     "PIL.Image": "pip install pillow",
+    "pye57": "pip install 'tiled-gridpull[e57]'",
+    "pyproj": "pip install 'tiled-gridpull[geo]'",
 }
 
 

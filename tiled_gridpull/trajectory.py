@@ -76,11 +76,10 @@ class Trajectory:
             raise InputError(f"{self.source}: an SBET trajectory is in latitude and longitude, and the points "
                              "declare no CRS to project it into; give the trajectory as text (time x y z in the "
                              "points' coordinates)")
-        try:
-            from pyproj import CRS, Transformer
-        except ImportError:
-            raise InputError(f"{self.source}: projecting an SBET trajectory needs pyproj "
-                             "(pip install 'tiled-gridpull[geo]')") from None
+        from ._optional import require
+
+        pyproj = require("pyproj", f"{self.source}: projecting an SBET trajectory")
+        CRS, Transformer = pyproj.CRS, pyproj.Transformer
         try:
             target = CRS.from_wkt(crs_wkt)
             tr = Transformer.from_crs(CRS.from_epsg(4326), target.to_2d() if hasattr(target, "to_2d") else target,
