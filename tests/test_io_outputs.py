@@ -186,3 +186,18 @@ def test_lattice_beyond_the_edge_keys_is_refused_when_planning(tmp_path, capsys,
         _one_line(err, "more than the lattice can hold")
         assert "stray points" in err
     assert not out.exists() and not (tmp_path / "m.job" / "fields").exists()
+
+
+def test_a_crs_with_non_ascii_names_and_several_lines_goes_into_one_header_line(tmp_path):
+    """The CRS rides in the PLY header as one ASCII comment; a pretty-printed WKT with an accented name used to
+    stop the job at its very end (UnicodeEncodeError writing the header)."""
+    from tiled_gridpull.io import read_mesh, write_mesh
+    from tiled_gridpull.mesh import Mesh
+
+    m = Mesh(np.eye(3), np.array([[0, 1, 2]]))
+    m.metadata["crs"] = 'PROJCS["RGF93 / Lambert-93 (Réseau)",\n  GEOGCS["RGF93"],\n  UNIT["metre",1]]'
+    p = write_mesh(m, tmp_path / "m.ply")
+    header = p.read_bytes().split(b"end_header")[0].decode("ascii")
+    crs_lines = [ln for ln in header.splitlines() if ln.startswith("comment crs ")]
+    assert crs_lines == ['comment crs PROJCS["RGF93 / Lambert-93 (R?seau)", GEOGCS["RGF93"], UNIT["metre",1]]']
+    np.testing.assert_array_equal(read_mesh(p).vertices, m.vertices)

@@ -82,8 +82,11 @@ def _write_ply(mesh: Mesh, fh, float32: bool, offset) -> None:
         verts = V.astype("<f8")
         vtype = "double"
     for key in ("generator", "crs"):
-        if key in mesh.metadata:
-            comments.append(f"{key} {str(mesh.metadata[key]).splitlines()[0]}")
+        if mesh.metadata.get(key):
+            # one header line, ASCII: a pretty-printed WKT is joined, a non-ASCII name (Réseau, ...) keeps its
+            # place with '?' (the sidecar holds the exact text)
+            text = " ".join(part.strip() for part in str(mesh.metadata[key]).splitlines() if part.strip())
+            comments.append(f"{key} {text.encode('ascii', 'replace').decode('ascii')}")
     if float32 and "generator" not in mesh.metadata:
         # the offset is trusted on reading only beside this package's marker (see ply_offset)
         comments.append("generator tiled_gridpull.io")
