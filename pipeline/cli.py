@@ -252,7 +252,9 @@ def cmd_reconstruct(args) -> int:
         raise ConfigError(f"output {out}: use a .ply or .obj file name")
     cfg, tiling = resolve_settings(args)  # validated before any file is read
     if tiling is not None:
-        check_outputs(args.inputs, out, work_dir=args.work_dir or out.with_suffix(".job"),
+        # the trajectory is read as much as the points are: never an output
+        reads = [*args.inputs, *([args.trajectory] if getattr(args, "trajectory", None) else [])]
+        check_outputs(reads, out, work_dir=args.work_dir or out.with_suffix(".job"),
                       tile_meshes=args.tile_meshes, overwrite=args.overwrite)
     else:
         check_outputs(args.inputs, out, overwrite=args.overwrite)

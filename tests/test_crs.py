@@ -19,9 +19,22 @@ US_FEET_WKT2 = ('PROJCRS["NAD83 / Oregon North (ftUS)",BASEGEOGCRS["NAD83",DATUM
 UTM_WITH_FEET_HEIGHTS = ('COMPD_CS["UTM 31N + height in feet",PROJCS["WGS 84 / UTM zone 31N",GEOGCS["WGS 84",'
                          'UNIT["degree",0.0174532925199433]],UNIT["metre",1]],'
                          'VERT_CS["height",VERT_DATUM["x",2005],UNIT["foot",0.3048]]]')
+GEOCENTRIC_WKT1 = ('GEOCCS["WGS 84",DATUM["WGS_1984",SPHEROID["WGS 84",6378137,298.257223563]],PRIMEM["Greenwich",0],'
+                   'UNIT["metre",1],AXIS["Geocentric X",OTHER],AXIS["Geocentric Y",OTHER],AXIS["Geocentric Z",NORTH]]')
+GEOCENTRIC_WKT2 = ('GEODCRS["WGS 84",DATUM["World Geodetic System 1984",ELLIPSOID["WGS 84",6378137,298.257223563,'
+                   'LENGTHUNIT["metre",1]]],PRIMEM["Greenwich",0,ANGLEUNIT["degree",0.0174532925199433]],'
+                   'CS[Cartesian,3],AXIS["(X)",geocentricX,ORDER[1],LENGTHUNIT["metre",1]],'
+                   'AXIS["(Y)",geocentricY,ORDER[2],LENGTHUNIT["metre",1]],'
+                   'AXIS["(Z)",geocentricZ,ORDER[3],LENGTHUNIT["metre",1]]]')
+GEOG_WKT2 = ('GEOGCRS["WGS 84",DATUM["World Geodetic System 1984",ELLIPSOID["WGS 84",6378137,298.257223563,'
+             'LENGTHUNIT["metre",1]]],PRIMEM["Greenwich",0,ANGLEUNIT["degree",0.0174532925199433]],'
+             'CS[ellipsoidal,2],AXIS["latitude",north,ORDER[1],ANGLEUNIT["degree",0.0174532925199433]]]')
 
 
 @pytest.mark.parametrize("wkt,name,metres", [
+    (GEOCENTRIC_WKT1, "metre", 1.0),  # earth-centred X Y Z: metres, not degrees
+    (GEOCENTRIC_WKT2, "metre", 1.0),
+    (GEOG_WKT2, "degree", None),
     (FEET_WKT1, "foot", 0.3048),
     (US_FEET_WKT2, "US survey foot", 0.304800609601219),
     (UTM_WITH_FEET_HEIGHTS, "metre", 1.0),  # the horizontal part decides, not the last UNIT in the text

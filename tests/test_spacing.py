@@ -44,3 +44,13 @@ def test_auto_refuses_clouds_without_spacing():
         auto_cell_size(Spacing(0.0, 0.0, 100, 100))
     with pytest.raises(ValueError, match="more than 8 points"):
         point_spacing(np.zeros((5, 3)))
+
+
+def test_a_few_stray_points_do_not_decide_the_spacing_by_area():
+    """Ten points scattered over 90 m each stand for a disc of hundreds of square metres: uncapped they held
+    most of the area and made the by-area spacing 36 m for a survey sampled every 0.25 m."""
+    rng = np.random.default_rng(2)
+    ground = plane(30_000, np.sqrt(1800.0), rng)
+    strays = np.c_[rng.uniform(0, 90, 10), rng.uniform(0, 90, 10), rng.uniform(20, 40, 10)]
+    clean, with_strays = point_spacing(ground), point_spacing(np.r_[strays, ground])
+    assert with_strays.area_median == pytest.approx(clean.area_median, rel=0.05)

@@ -162,3 +162,52 @@ def test_voxel_size_auto_measures_the_points_and_says_so(tmp_path, capsys):
     code = main(["reconstruct", str(p), "-o", str(tmp_path / "o.ply"), "--voxel-size", "auto", "--dry-run"])
     err = capsys.readouterr().err
     assert code == 2 and "no measurable spacing" in err and "Traceback" not in err
+
+
+def test_voxel_size_auto_reads_every_input_not_only_the_first(tmp_path):
+    """A sliver of 10 points first, then the survey: neither "too few points" nor a cell from the sliver."""
+    from tiled_gridpull.prepare import resolve_units
+
+    rng = np.random.default_rng(4)
+    sliver, ground = tmp_path / "a_sliver.npy", tmp_path / "b_ground.npy"
+    np.save(sliver, np.c_[rng.uniform(0, 90, 10), rng.uniform(0, 90, 10), np.zeros(10)])
+    np.save(ground, np.c_[rng.uniform(0, 60, 30_000), rng.uniform(0, 30, 30_000), np.zeros(30_000)])
+    t = resolve_units([str(sliver), str(ground)], TilingConfig(voxel_size="auto"))
+    assert t.voxel_size == 0.25 and "of 2 inputs" in t.units
+    # and a budget split over many inputs still reads each one's start
+    t = resolve_units([str(sliver), str(ground)], TilingConfig(voxel_size="auto"), chunk_size=1_000)
+    assert t.voxel_size == 0.25
+
+
+def test_a_crs_whose_unit_cannot_be_read_refuses_a_length_with_a_unit(tmp_path):
+    """Taking metres for a CRS that declares some other, unread, unit would silently scale the cells."""
+    from tiled_gridpull.errors import ConfigError as Refused
+    from tiled_gridpull.prepare import resolve_units
+    from tiled_gridpull.synthetic.lidar_files import write_las
+
+    rng = np.random.default_rng(3)
+    site = write_las(tmp_path / "site.laz", rng.uniform(0, 50, (2_000, 3)), crs_wkt='LOCAL_CS["my site"]')
+    with pytest.raises(Refused, match=r"0\.1 m: the input's CRS \(my site\) does not state its unit") as err:
+        resolve_units([str(site)], TilingConfig(voxel_size="0.1 m"))
+    assert "\n" not in str(err.value)
+    # a bare number is the data's own unit and needs no conversion
+    assert resolve_units([str(site)], TilingConfig(voxel_size=0.1)).voxel_size == 0.1
+
+
+def test_geotiff_keys_that_cannot_be_read_still_count_as_a_crs(monkeypatch):
+    import laspy
+    from laspy.vlrs.known import GeoKeyDirectoryVlr
+
+    from tiled_gridpull.io import las
+
+    header = laspy.LasHeader(point_format=3, version="1.2")
+    keys = GeoKeyDirectoryVlr()
+    header.vlrs.append(keys)
+
+    def no_pyproj():
+        raise ImportError("pyproj")
+
+    monkeypatch.setattr(header, "parse_crs", no_pyproj)
+    assert las._las_crs(header) == las.GEOTIFF_UNREAD
+    header.vlrs.remove(keys)
+    assert las._las_crs(header) is None

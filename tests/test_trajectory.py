@@ -120,6 +120,10 @@ def test_cli_refuses_what_a_trajectory_cannot_serve(street, tmp_path, capsys):
     late = tmp_path / "late.csv"
     write_trajectory(late, times + 60.0, scan.poses[:, :3, 3])
     assert "GPS times outside the trajectory" in one_line([laz, "--trajectory", late])
+    # found only when the points are read, after the job's directory is taken: it leaves nothing behind
+    code = main(["reconstruct", str(laz), "-o", str(tmp_path / "o.ply"), "--voxel-size", "0.2", "--trajectory",
+                 str(late)])
+    assert code == 3 and "GPS times outside" in capsys.readouterr().err and not (tmp_path / "o.job").exists()
     assert "trajectory file not found" in one_line([laz, "--trajectory", tmp_path / "nope.csv"])
     npy = tmp_path / "pts.npy"
     np.save(npy, scan.xyz)
@@ -130,6 +134,13 @@ def test_cli_refuses_what_a_trajectory_cannot_serve(street, tmp_path, capsys):
                  "--trajectory", str(csv)])
     out = capsys.readouterr().out
     assert code == 0 and "with sensor origins" in out
+    # the trajectory is an input: --overwrite never replaces it with the mesh's sidecar
+    as_json = tmp_path / "path.json"
+    as_json.write_bytes(csv.read_bytes())
+    code = main(["reconstruct", str(laz), "-o", str(tmp_path / "path.ply"), "--voxel-size", "0.2", "--overwrite",
+                 "--trajectory", str(as_json)])
+    err = capsys.readouterr().err
+    assert code == 2 and "is the input" in err and as_json.read_bytes() == csv.read_bytes(), err
 
 
 @pytest.mark.slow
@@ -155,3 +166,18 @@ def test_sensor_origins_from_the_trajectory_orient_every_tile(street):
     assert {t["orientation"] for t in runs["up"][1]} == {"up"}
     assert metrics["normal_consistency"] >= runs["up"][0]["normal_consistency"]
     assert metrics["chamfer_l1"] <= runs["up"][0]["chamfer_l1"]
+
+
+@pytest.mark.parametrize("epsg,metres_per_unit", [(32610, 1.0), (2994, 0.3048), (2227, 1200 / 3937)])
+def test_sbet_heights_come_out_in_the_crs_unit(epsg, metres_per_unit):
+    """A survey in feet has its heights in feet: an SBET's ellipsoidal metres would put every sensor 3.3x too
+    low against its points."""
+    pyproj = pytest.importorskip("pyproj", reason="SBET trajectories need pyproj (the geo extra)")
+    from tiled_gridpull.trajectory import Trajectory
+
+    lat, lon = np.radians([45.0, 45.001]), np.radians([-123.0, -123.001])
+    geo = Trajectory(np.array([0.0, 1.0]), np.c_[lat, lon, [100.0, 130.0]], "t.sbet", geodetic=True)
+    xyz = geo.projected(pyproj.CRS.from_epsg(epsg).to_wkt()).xyz
+    np.testing.assert_allclose(xyz[:, 2], np.array([100.0, 130.0]) / metres_per_unit, rtol=1e-9)
+    # the horizontal positions are in the same unit: the two samples are about 137 m apart
+    assert np.linalg.norm(xyz[1, :2] - xyz[0, :2]) * metres_per_unit == pytest.approx(137, abs=2)

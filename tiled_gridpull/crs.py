@@ -82,6 +82,11 @@ def _unit_of(node: list) -> LinearUnit | None:
     return None
 
 
+def _cartesian(node: list) -> bool:
+    """Whether a WKT2 geodetic CRS node has a Cartesian coordinate system (geocentric, not latitude/longitude)."""
+    return any(len(cs) > 1 and str(cs[1]).strip().lower() == "cartesian" for cs in _children(node, ("CS",)))
+
+
 def linear_unit(wkt: str | None) -> LinearUnit | None:
     """The horizontal unit of a WKT CRS: metres per unit, or ``metres=None`` for a geographic CRS.
 
@@ -102,6 +107,8 @@ def linear_unit(wkt: str | None) -> LinearUnit | None:
             continue
         if node[0] in projected:
             return _unit_of(node)
+        if node[0] == "GEOCCS" or (node[0] in geographic and _cartesian(node)):
+            return _unit_of(node)  # geocentric (earth-centred X Y Z): a length, metres in practice
         if node[0] in geographic:
             return LinearUnit("degree", None)
         if node[0] in ("COMPD_CS", "COMPOUNDCRS", "BOUNDCRS", "SOURCECRS"):

@@ -81,6 +81,7 @@ def job_lock(root: str | Path) -> Iterator[None]:
         yield
         return
     root = Path(root)
+    created = not root.exists()
     root.mkdir(parents=True, exist_ok=True)
     fd = os.open(root / ".lock", os.O_RDWR | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0), 0o666)
     try:
@@ -95,6 +96,18 @@ def job_lock(root: str | Path) -> Iterator[None]:
         yield
     finally:
         os.close(fd)
+        if created:
+            _remove_if_only_the_lock(root)
+
+
+def _remove_if_only_the_lock(root: Path) -> None:
+    """A job that stopped before writing anything (a refused input) leaves no directory of its own behind."""
+    try:
+        if [p.name for p in root.iterdir()] == [".lock"]:
+            (root / ".lock").unlink()
+            root.rmdir()
+    except OSError:
+        pass
 
 
 def neighbors_of(spec: TileSpec, solved: dict[tuple, TileSpec]) -> list[TileSpec]:

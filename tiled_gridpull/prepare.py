@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from ._version import __version__
-from .errors import InputError
+from .errors import ConfigError, InputError
 from .cloud import PointCloud
 from .io import iter_point_chunks, read_kitti_sequence
 from .jobdir import JobPaths, write_manifest
@@ -47,6 +47,10 @@ def check_registered(inputs: list[str]) -> None:
                          f"with poses.txt) instead, or one scan alone")
 
 
+#: points ``voxel_size: auto`` reads at least from the start of each input (up to its budget over all of them)
+AUTO_MIN_PER_INPUT = 100_000
+
+
 def resolve_units(inputs: list[str], tiling: TilingConfig, frames=None,
                   chunk_size: int = 2_000_000) -> TilingConfig:
     """``tiling`` with its cell size in the inputs' units: ``auto`` measured from the points, a length with a
@@ -54,8 +58,9 @@ def resolve_units(inputs: list[str], tiling: TilingConfig, frames=None,
 
     * A unit comes from the CRS in the header of the first input declaring one (no points are read; inputs in
       different CRSs are refused later, by the scan); inputs without a CRS are taken to be in metres.
-    * ``auto`` measures the sample spacing (:mod:`tiled_gridpull.spacing`) on the first ``chunk_size`` points
-      of the inputs, one region of a large scan (a scan's density pattern repeats along it), and picks
+    * ``auto`` measures the sample spacing (:mod:`tiled_gridpull.spacing`) on about ``chunk_size`` points: the
+      first ones of each input in turn (at least ``AUTO_MIN_PER_INPUT`` of each), one region of each scan (a
+      scan's density pattern repeats along it), and picks
       :func:`tiled_gridpull.tiling.auto_cell_size`.
     """
     if tiling.resolved:
@@ -65,18 +70,42 @@ def resolve_units(inputs: list[str], tiling: TilingConfig, frames=None,
         from .io import read_crs
 
         crs = next((c for c in map(read_crs, inputs) if c), None)
-        return tiling.in_data_units(linear_unit(crs))
+        unit = linear_unit(crs)
+        if crs and unit is None and tiling.voxel_unit is not None:
+            # taking metres here would silently make a survey in feet 3.3x too fine (or coarse)
+            raise ConfigError(f"voxel_size {tiling.voxel_size:g} {tiling.voxel_unit}: the input's CRS "
+                              f"({_crs_name(crs)}) does not state its unit in a form this reader understands"
+                              f"{_pyproj_hint()}; give voxel_size as a number in the data's units")
+        return tiling.in_data_units(unit)
     from .spacing import point_spacing
 
-    first = next(_chunks(inputs, chunk_size, frames), None)
-    if first is None or len(first.xyz) < 16:
+    # the first points of each input, so a sliver of a first file neither decides the cell nor is "too few"
+    per_input = max(chunk_size // len(inputs), AUTO_MIN_PER_INPUT)
+    parts, read = [], 0
+    for path in inputs:
+        head = next(_chunks([path], per_input, frames), None)
+        if head is not None and len(head):
+            parts.append(head.xyz[:per_input])
+            read += len(parts[-1])
+        if read >= chunk_size:
+            break
+    if read < 16:
         raise InputError(f"voxel_size auto: too few points in {', '.join(map(str, inputs))} to measure their "
                          "spacing; give voxel_size")
-    sp = point_spacing(first.xyz)
+    sp = point_spacing(np.concatenate(parts))
     cell = auto_cell_size(sp)
+    where = f"of {len(parts)} inputs" if len(parts) > 1 else "points"
     note = (f"auto: sample spacing {sp.median:.3g} by point, {sp.area_median:.3g} by area, over "
-            f"{sp.measured:,} of the first {sp.points:,} points")
+            f"{sp.measured:,} of the first {sp.points:,} {where}")
     return tiling.with_cell_size(cell, note)
+
+
+def _pyproj_hint() -> str:
+    try:
+        import pyproj  # noqa: F401
+    except ImportError:
+        return " (GeoTIFF keys are read with pyproj: pip install 'tiled-gridpull[geo]')"
+    return ""
 
 
 def scan_inputs(inputs: list[str], chunk_size: int = 2_000_000, frames=None,

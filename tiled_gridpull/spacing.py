@@ -7,7 +7,10 @@ and its spacing is the square root of that area. Two medians of it describe the 
 
 * ``median``: over points, i.e. where the points are (dominated by the dense patches);
 * ``area_median``: over surface area, i.e. the spacing at which half of the scanned surface is sampled at least
-  this densely (dominated by the sparse parts).
+  this densely (dominated by the sparse parts). Areas are capped at their 99th percentile first: a handful of
+  stray points (birds, multipath, a few points of a neighbouring file) each "stand for" a huge disc and would
+  otherwise outweigh the whole survey; a sparse part of the scan holding more than 1 % of the points still
+  counts in full.
 """
 
 from __future__ import annotations
@@ -17,7 +20,11 @@ from dataclasses import dataclass
 import numpy as np
 from pykdtree.kdtree import KDTree
 
-__all__ = ["Spacing", "point_spacing"]
+__all__ = ["Spacing", "point_spacing", "STRAY_QUANTILE"]
+
+#: areas above this quantile (by point) are capped to it in the by-area median: the sparsest 1 % of points are
+#: strays, not a part of the surface
+STRAY_QUANTILE = 0.99
 
 
 @dataclass(frozen=True)
@@ -59,6 +66,7 @@ def point_spacing(points: np.ndarray, k: int = 8, sample: int = 20_000) -> Spaci
     d, _ = KDTree(xyz).query(xyz[pick], k=k + 1)  # the point itself comes first
     area = np.pi * d[:, k] ** 2 / k
     spacing = np.sqrt(area)
+    area = np.minimum(area, np.quantile(area, STRAY_QUANTILE))
     order = np.argsort(spacing, kind="stable")
     cum = np.cumsum(area[order])
     area_median = float(spacing[order][np.searchsorted(cum, 0.5 * cum[-1])])

@@ -13,8 +13,9 @@ Formats
   ``#`` starts a comment.
 * SBET (``.sbet``, ``.out``: Applanix's smoothed best estimate of trajectory): records of 17 little-endian
   float64, of which time (s), latitude and longitude (radians) and ellipsoidal height (m) are used. Positions are
-  projected into the point cloud's CRS (its WKT) with pyproj; the height is used as it is, so the CRS's vertical
-  datum should be ellipsoidal, or the offset (a geoid height, tens of metres) shifts every sensor origin up or
+  projected into the point cloud's CRS (its WKT) with pyproj; the height is converted to the CRS's vertical unit
+  (else its horizontal one: a survey in feet has heights in feet) but not to another datum, so the vertical datum
+  should be ellipsoidal, or the offset (a geoid height, tens of metres) shifts every sensor origin up or
   down by as much, which moves no normal's side for points a street's width away.
 """
 
@@ -85,10 +86,11 @@ class Trajectory:
             tr = Transformer.from_crs(CRS.from_epsg(4326), target.to_2d() if hasattr(target, "to_2d") else target,
                                       always_xy=True)
             x, y = tr.transform(np.degrees(self.xyz[:, 1]), np.degrees(self.xyz[:, 0]))
+            _height_unit(target)
         except Exception as exc:  # pyproj raises CRSError, ProjError, ...
             raise InputError(f"{self.source}: cannot project the trajectory into the points' CRS "
                              f"({type(exc).__name__}: {str(exc).splitlines()[0][:120]})") from None
-        xyz = np.column_stack([x, y, self.xyz[:, 2]])
+        xyz = np.column_stack([x, y, self.xyz[:, 2] / _height_unit(target)])
         if not np.all(np.isfinite(xyz)):
             raise InputError(f"{self.source}: the trajectory does not project into the points' CRS "
                              "(non-finite coordinates)")
@@ -115,6 +117,18 @@ class Trajectory:
                              "is it the trajectory of this scan (and the same time base: GPS week seconds or "
                              "adjusted standard GPS time)?")
         return np.column_stack([np.interp(t, self.time, self.xyz[:, k]) for k in range(3)])
+
+
+def _height_unit(crs) -> float:
+    """Metres per unit of the heights of points in ``crs`` (a pyproj CRS): its vertical axis' unit when it has
+    one (a compound CRS), else that of its horizontal axes (a projected CRS in feet keeps heights in feet, as LAS
+    surveys in feet do); 1 for a CRS whose axes are not lengths."""
+    axes = list(crs.axis_info)
+    if len(axes) >= 3 and axes[2].direction.lower() == "up":
+        return float(axes[2].unit_conversion_factor)
+    if crs.is_projected and axes:
+        return float(axes[0].unit_conversion_factor)
+    return 1.0
 
 
 def read_trajectory(path: str | Path) -> Trajectory:

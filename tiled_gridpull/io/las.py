@@ -49,6 +49,10 @@ def count(p: Path) -> int:
         return int(reader.header.point_count)
 
 
+#: what a LAS file's CRS is called when it is GeoTIFF keys that could not be read (pyproj absent)
+GEOTIFF_UNREAD = "GeoTIFF keys (not read: pyproj is not installed)"
+
+
 def crs(p: Path) -> str | None:
     """The CRS in the header (WKT), without reading points; None when it has none."""
     import laspy
@@ -87,6 +91,9 @@ def _las_crs(header) -> str | None:
                     return text
     except Exception:
         pass
+    if any(type(v).__name__ == "GeoKeyDirectoryVlr" for v in vlrs):
+        # a CRS is declared even if it could not be read: saying "none" would make it metres by default
+        return GEOTIFF_UNREAD
     return None
 
 
