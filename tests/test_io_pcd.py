@@ -65,6 +65,24 @@ def test_organised_ascii_cloud_with_normals_and_viewpoint(tmp_path):
     np.testing.assert_array_equal(c.sensor, np.tile([0.5, 0.5, -3.0], (6, 1)))
 
 
+
+@pytest.mark.parametrize("height,viewpoint,sensor", [
+    (1, "0 0 0 1 0 0 0", None),          # the writer's default on a map: the map origin is no sensor
+    (2, "0 0 0 1 0 0 0", [0, 0, 0]),     # an organised image is in its sensor's frame
+    (1, "5 6 7 1 0 0 0", [5, 6, 7]),     # a viewpoint someone set
+])
+def test_the_default_viewpoint_is_a_sensor_only_for_organised_clouds(tmp_path, height, viewpoint, sensor):
+    header = ["VERSION 0.7", "FIELDS x y z", "SIZE 4 4 4", "TYPE F F F", "COUNT 1 1 1", f"WIDTH {4 // height}",
+              f"HEIGHT {height}", f"VIEWPOINT {viewpoint}", "POINTS 4", "DATA ascii"]
+    p = tmp_path / "c.pcd"
+    p.write_text("\n".join(header + ["0 0 1", "1 0 1", "0 1 1", "1 1 1"]) + "\n")
+    c = read_points(p, clean=False)
+    if sensor is None:
+        assert c.sensor is None
+    else:
+        np.testing.assert_array_equal(c.sensor, np.tile(sensor, (4, 1)))
+
+
 @pytest.mark.parametrize("damage,needle", [
     (lambda b: b[: len(b) // 2], "truncated or corrupted PCD"),
     (lambda b: b.replace(b"FIELDS x y z", b"FIELDS a b c"), "without x y z fields"),

@@ -211,3 +211,9 @@ def test_geotiff_keys_that_cannot_be_read_still_count_as_a_crs(monkeypatch):
     assert las._las_crs(header) == las.GEOTIFF_UNREAD
     header.vlrs.remove(keys)
     assert las._las_crs(header) is None
+
+
+@pytest.mark.parametrize("voxel", [1e300, "1e12 m", 2e9])
+def test_an_absurd_cell_size_is_one_line(voxel):
+    with pytest.raises(ConfigError, match="larger than any survey needs"):
+        TilingConfig(voxel_size=voxel)

@@ -32,6 +32,17 @@ AUTO = "auto"
 DEFAULT_OVERLAP_CELLS = 32
 
 
+#: no survey needs cells larger than this (in any unit: a million kilometres); beyond it float32 fields overflow
+MAX_VOXEL = 1e9
+
+
+def _check_voxel(voxel: float) -> None:
+    if voxel <= 0:
+        raise ConfigError(f"voxel_size must be positive, got {voxel!r}")
+    if voxel > MAX_VOXEL:
+        raise ConfigError(f"voxel_size {voxel:g} is larger than any survey needs (at most {MAX_VOXEL:g})")
+
+
 @dataclass(frozen=True)
 class TilingConfig:
     """How a scene is cut into tiles and stitched.
@@ -118,8 +129,7 @@ class TilingConfig:
         object.__setattr__(self, "voxel_unit", unit or self.voxel_unit)
         if self.voxel_unit is not None:
             # sizes in the data's units and a cell in another unit meet once the data's unit is known
-            if self.voxel_size <= 0:
-                raise ConfigError(f"voxel_size must be positive, got {self.voxel_size!r}")
+            _check_voxel(self.voxel_size)
             for name in ("tile_size", "overlap"):
                 if getattr(self, name) is not None:
                     object.__setattr__(self, name, finite_number(name, getattr(self, name)))
@@ -133,8 +143,7 @@ class TilingConfig:
                 derived.append(name)
         object.__setattr__(self, "derived", tuple(n for n in ("voxel_size", "tile_size", "overlap") if n in derived))
         object.__setattr__(self, "voxel_size", finite_number("voxel_size", self.voxel_size))
-        if self.voxel_size <= 0:
-            raise ConfigError(f"voxel_size must be positive, got {self.voxel_size!r}")
+        _check_voxel(self.voxel_size)
         for name in ("tile_size", "overlap"):
             object.__setattr__(self, name, finite_number(name, getattr(self, name)))
         self._check_settings()

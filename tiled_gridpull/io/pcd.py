@@ -3,6 +3,8 @@
 Fields ``x y z`` are required; ``normal_x normal_y normal_z`` become normals and ``intensity`` an attribute. The
 header's ``VIEWPOINT`` is where the sensor stood (translation, then orientation): every point gets that position
 as its sensor origin, so tiled mode's ``orientation: auto`` faces the outside towards the sensor, as for KITTI.
+The default viewpoint (``0 0 0 1 0 0 0``, written when nobody set one) counts only for organised clouds, which are
+in their sensor's frame; an unorganised cloud with it (a registered map, its origin anywhere) gets no sensor.
 Organised clouds (``HEIGHT > 1``, e.g. a depth camera's 640 x 480 image) mark pixels without a return with NaN
 coordinates; those rows are dropped like every non-finite row (counted in the cloud's report).
 """
@@ -16,7 +18,10 @@ import numpy as np
 from ..cloud import PointCloud, unit_normals
 from ..errors import InputError
 
-__all__ = ["read", "count"]
+__all__ = ["read", "count", "DEFAULT_VIEWPOINT"]
+
+#: the VIEWPOINT every PCL writer puts in a header unless told otherwise (origin, identity quaternion)
+DEFAULT_VIEWPOINT = (0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
 
 _HEADER_KEYS = ("VERSION", "FIELDS", "SIZE", "TYPE", "COUNT", "WIDTH", "HEIGHT", "VIEWPOINT", "POINTS", "DATA")
 
@@ -89,7 +94,11 @@ def read(p: Path) -> PointCloud:
             origin = np.array([float(v) for v in view[:3]], dtype=np.float64)
         except ValueError:
             raise InputError(f"{p}: PCD header's VIEWPOINT is not 7 numbers: {' '.join(view)!r}") from None
-        if len(origin) == 3 and np.all(np.isfinite(origin)):
+        organised = int((h.get("HEIGHT") or ["1"])[0]) > 1 if (h.get("HEIGHT") or ["1"])[0].isdigit() else False
+        default = [float(v) for v in view[:7]] == list(DEFAULT_VIEWPOINT) if len(view) >= 7 else False
+        # every PCL writer puts the default there: it says where the sensor was only for an organised cloud,
+        # which is in its sensor's own frame; an unorganised one (a registered map) keeps no sensor
+        if len(origin) == 3 and np.all(np.isfinite(origin)) and (organised or not default):
             sensor = np.broadcast_to(origin, xyz.shape).copy()
     return PointCloud(xyz, normals=normals, sensor=sensor, attributes=attrs, source=str(p),
                       report={"points_read": len(xyz)})
