@@ -243,6 +243,7 @@ def holdout(workers: int, work: Path, variants: list[str], depth: int = 10, frac
 
     from tiled_gridpull.io import read_mesh, read_points
     from tiled_gridpull.metrics import point_to_mesh
+    from tiled_gridpull.nearest import distances_to_cloud
     from tiled_gridpull.synthetic.lidar_files import write_las
 
     for name, cell, src in shared_lidar_files():
@@ -254,9 +255,17 @@ def holdout(workers: int, work: Path, variants: list[str], depth: int = 10, frac
                 "workers": workers, "cell": cell}
 
         def score(mesh_path: Path) -> dict:
-            d, _ = point_to_mesh(test, read_mesh(mesh_path))
+            mesh = read_mesh(mesh_path)
+            d, _ = point_to_mesh(test, mesh)
+            topo = mesh.topology
+            # mesh area farther than 2 cells from every meshed point: surface the data does not support
+            tri = mesh.vertices[mesh.faces]
+            area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+            far = distances_to_cloud(tri.mean(axis=1), xyz[~held], 2 * cell) > 2 * cell
             return {"holdout_mean": float(d.mean()), "holdout_median": float(np.median(d)),
-                    "holdout_p90": float(np.quantile(d, 0.9)), "holdout_within_cell": float(np.mean(d <= cell))}
+                    "holdout_p90": float(np.quantile(d, 0.9)), "holdout_within_cell": float(np.mean(d <= cell)),
+                    "boundary_edges": int(topo.boundary_edges), "components": int(topo.components),
+                    "area_far_share": float(area[far].sum() / area.sum())}
 
         pout = work / f"{src.stem}_poisson.ply"
         poisson = poisson_scene(train, pout, depth)
@@ -420,7 +429,9 @@ def render_holdout(rows: list[dict]) -> str:
                                   ("x_poisson_time", "x Poisson time", ".2f"),
                                   ("holdout_mean", "held-out mean dist", ".4f"),
                                   ("holdout_median", "median", ".4f"), ("holdout_p90", "90th pct", ".4f"),
-                                  ("holdout_within_cell", "share within 1 cell", ".3f")])
+                                  ("holdout_within_cell", "share within 1 cell", ".3f"),
+                                  ("area_far_share", "area > 2 cells from points", ".3f"),
+                                  ("boundary_edges", "boundary edges", ""), ("components", "pieces", "")])
 
 
 def plot_tile_costs(rows: list[dict], path: Path) -> Path | None:
