@@ -86,7 +86,8 @@ def run_gridpull(pts: np.ndarray, cfg: dict, normals: np.ndarray | None = None):
 
     mesh = reconstruct(pts, normals=normals, **cfg)
     return mesh, {"solve_s": mesh.metadata["timings_s"]["solve"],
-                  "query_pool": mesh.metadata["config"]["sampling"]["query_pool"]}
+                  "query_pool": mesh.metadata["config"]["sampling"]["query_pool"],
+                  "noise_treatment": (mesh.metadata.get("noise_treatment") or {}).get("chosen")}
 
 
 def run_poisson(pts: np.ndarray, cfg: dict):

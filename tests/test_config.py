@@ -145,6 +145,8 @@ def test_flat_dotted_and_nested_spellings_are_one_setting(tmp_path):
         value = base.get(name)
         if isinstance(value, str):
             new = {"sqrt": "squared", "squared": "sqrt", "sdf": "udf"}[value]
+        elif isinstance(value, bool):
+            new = not value
         else:
             new = value + 1 if isinstance(value, int) else value / 2 + 0.3
         flat = base.replace(**{name: new})

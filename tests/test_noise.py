@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from tiled_gridpull import reconstruct
-from tiled_gridpull.config import SolverConfig, load_config_file
+from tiled_gridpull.config import NOISE_PRESETS, SolverConfig, load_config_file
 from tiled_gridpull.errors import ConfigError
-from tiled_gridpull.noise import estimate_noise, project_to_local_planes
+from tiled_gridpull.noise import estimate_noise, project_to_local_planes, select_treatment
 from tiled_gridpull.synthetic import sample_shape, sphere
 
 from conftest import REPO
@@ -57,20 +57,68 @@ def test_noise_cells_lowers_the_resolution_and_is_recorded():
 
 
 @pytest.mark.slow
-def test_noisy_preset_beats_the_default_on_a_noisy_sphere():
-    """1 % of the diameter of noise, twice the samples' spacing: the preset's surface lies closer to the sphere."""
+def test_noise_is_treated_by_default_and_the_treatment_beats_none():
+    """1 % of the diameter of noise, twice the samples' spacing: the defaults pick a treatment themselves and
+    their surface lies closer to the sphere than with the settings as given (noise_auto off)."""
     pts = noisy_sphere(80_000, 0.01)
-    preset = load_config_file(REPO / "configs" / "noisy.yaml")
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        default = reconstruct(pts, resolution=128)
+        untreated = reconstruct(pts, resolution=128, noise_auto=False)
     assert any("looks noisy" in str(w.message) for w in caught)
+    assert untreated.metadata["noise_treatment"] == {"auto": False, "chosen": None, "reason": "noise_auto is off"}
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        tuned = reconstruct(pts, **{"resolution": 128, **preset})  # the full schedule: 150 iterations fragment it
+        auto = reconstruct(pts, resolution=128)  # the full schedule: 150 iterations fragment it
     assert not any("looks noisy" in str(w.message) for w in caught)
-    assert tuned.topology.watertight and tuned.topology.components == 1
-    assert sphere_error(tuned) < 0.7 * sphere_error(default)
+    chosen = auto.metadata["noise_treatment"]["chosen"]
+    assert chosen in NOISE_PRESETS
+    # the sidecar's config is the one that ran: the preset's settings applied
+    ran = SolverConfig(**auto.metadata["config"])
+    assert {k: ran.get(k) for k in NOISE_PRESETS[chosen]} == NOISE_PRESETS[chosen]
+    assert auto.topology.watertight and auto.topology.components == 1
+    assert sphere_error(auto) < 0.7 * sphere_error(untreated)
+
+
+@pytest.mark.parametrize("name", sorted(NOISE_PRESETS))
+def test_the_preset_files_are_the_treatments_auto_applies(name):
+    assert SolverConfig(**load_config_file(REPO / "configs" / f"{name}.yaml")) == SolverConfig(**NOISE_PRESETS[name])
+
+
+def slab(n: int, gap: float, seed: int = 0) -> np.ndarray:
+    """Two parallel 1 x 1 sheets ``gap`` apart (a thin wall), sampled without noise."""
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(0, 1, (n, 2))
+    return np.c_[xy, np.where(np.arange(n) % 2 == 0, 0.0, gap)]
+
+
+@pytest.mark.parametrize("cloud,expected", [
+    (lambda: sample_shape(SPHERE, 50_000, seed=0)[0], None),
+    # walls 5 spacings apart: one 64-neighbour plane fit takes in both (ratio 2.4), a 16-neighbour one does not
+    (lambda: slab(50_000, 0.015), None),
+    # 0.5 % and 1 % of the bounding-box diagonal (ratio 1.33 / 1.86)
+    (lambda: noisy_sphere(100_000, 0.0087), "noisy"),
+    (lambda: noisy_sphere(100_000, 0.0173), "very_noisy"),
+])
+def test_the_treatment_follows_the_noise_and_not_thin_walls(cloud, expected):
+    pick, est, figures = select_treatment(cloud())
+    assert pick == expected, figures
+    if expected is None and est.ratio > 1.2:
+        assert figures["local_ratio"] < 0.8  # the local scale is what kept it clean
+    assert figures["ratio"] == pytest.approx(est.ratio) and "local_ratio" in figures
+
+
+def test_settings_given_by_the_user_win_over_auto():
+    """Any noise setting given (a preset file, or one setting) means the user chose: nothing is added."""
+    from tiled_gridpull.reconstruct import _noise_treatment
+
+    pts = noisy_sphere(100_000, 0.0173)
+    cfg, record, _ = _noise_treatment(SolverConfig(denoise=1), pts)
+    assert cfg == SolverConfig(denoise=1) and record["chosen"] is None and record["reason"] == "given: denoise"
+    preset = SolverConfig(**load_config_file(REPO / "configs" / "noisy.yaml"))
+    assert _noise_treatment(preset, pts)[0] == preset
+    cfg, record, _ = _noise_treatment(SolverConfig(), pts)
+    assert record["chosen"] == "very_noisy" and cfg == SolverConfig(**NOISE_PRESETS["very_noisy"])
+    assert _noise_treatment(SolverConfig(noise_auto=False), pts)[0] == SolverConfig(noise_auto=False)
 
 
 def test_noise_cells_refused_in_tiled_mode():

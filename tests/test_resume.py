@@ -45,6 +45,8 @@ def _changed(name: str, value):
     """A valid value of setting ``name`` different from ``value``."""
     if isinstance(value, str):
         return OTHER_CHOICE[name]
+    if isinstance(value, bool):
+        return not value
     if isinstance(value, int):
         return value + 1
     return value / 2 if value else 0.5
@@ -58,7 +60,8 @@ def test_solve_key_follows_exactly_the_settings_marked_solve(tmp_path, ground):
     fields = {name: {f.name: f for f in dataclasses.fields(SECTIONS[sec] if sec else SolverConfig)}[fname]
               for name, (sec, fname) in SETTINGS.items()}
     assert all(set(f.metadata) == {"solve", "sphere_only"} for f in fields.values())  # every setting classified
-    assert {n for n, f in fields.items() if not f.metadata["solve"]} == {"resolution", "margin", "normal_weight"}
+    assert {n for n, f in fields.items() if not f.metadata["solve"]} == {"resolution", "margin", "normal_weight",
+                                                                                "noise_auto"}
     assert {n for n, f in fields.items() if f.metadata["sphere_only"]} == {"init_radius"}
     for tiling in (TILING, sphere):
         base = solve_key(s, tiling, SOLVER)

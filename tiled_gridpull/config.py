@@ -33,7 +33,8 @@ from .errors import ConfigError
 
 __all__ = ["SolverConfig", "Schedule", "LevelConfig", "LossWeights", "Sampling", "NoiseHandling", "LevelSchedule",
            "SECTIONS", "SETTINGS", "REFINE_DEFAULTS", "split_settings", "recorded_settings", "NORMALS_WEIGHT",
-           "REMOVED_SETTINGS", "drop_removed_settings", "load_config_file", "parse_overrides"]
+           "REMOVED_SETTINGS", "drop_removed_settings", "load_config_file", "parse_overrides", "NOISE_PRESETS",
+           "NOISE_SETTINGS"]
 
 MIN_COARSE_CELLS = 32
 #: ``normal_weight`` that given normals switch on when no weight is set (``reconstruct(normals=...)``,
@@ -206,12 +207,18 @@ class NoiseHandling:
     denoise_bandwidth : float
         0: plain least-squares planes. > 0: robust (bilateral) planes whose range scale is this many estimated
         noise sigmas, so thin walls and sharp edges keep their sheets apart.
+    auto : bool
+        One-shape mode: when the cloud looks noisy (:attr:`tiled_gridpull.noise.NoiseEstimate.ratio`) and none
+        of the noise settings above nor ``beta`` was changed from its default, apply the treatment of
+        :data:`NOISE_PRESETS` that the estimate selects (the sidecar's ``noise_treatment`` records it).
+        Default true; false keeps the settings as given. Flat name ``noise_auto``.
     """
 
     cell_sigmas: float = setting(0.0)
     denoise_passes: int = setting(0)
     denoise_neighbors: int = setting(64)
     denoise_bandwidth: float = setting(0.0)
+    auto: bool = setting(True, solve=False)
 
 
 #: The sections of a :class:`SolverConfig`: attribute -> class.
@@ -258,7 +265,17 @@ SETTINGS: dict[str, tuple[str | None, str]] = {
     "denoise": ("noise", "denoise_passes"),
     "denoise_neighbors": ("noise", "denoise_neighbors"),
     "denoise_bandwidth": ("noise", "denoise_bandwidth"),
+    "noise_auto": ("noise", "auto"),
 }
+
+#: The noise treatments, as settings (flat names): what ``configs/noisy.yaml`` and ``configs/very_noisy.yaml``
+#: set, and what ``noise_auto`` applies when the estimate selects one (tests check the files agree).
+NOISE_PRESETS: dict[str, dict[str, Any]] = {
+    "noisy": {"beta": 0.0, "noise_cells": 0.8, "denoise": 2, "denoise_neighbors": 32, "denoise_bandwidth": 1.0},
+    "very_noisy": {"beta": 0.0, "noise_cells": 1.2, "denoise": 2, "denoise_neighbors": 64, "denoise_bandwidth": 0.0},
+}
+#: The settings a noise treatment changes: ``noise_auto`` stays away when the user changed any of them.
+NOISE_SETTINGS = ("beta", "noise_cells", "denoise", "denoise_neighbors", "denoise_bandwidth")
 _FLAT_OF = {path: name for name, path in SETTINGS.items()}
 _DOTTED = {f"{section}.{name}": (section, name) for section, name in SETTINGS.values() if section}
 
@@ -533,6 +550,10 @@ def _checked(name: str, label: str, value: Any) -> Any:
         return value
     if kind in ("float", float):
         return finite_number(label, value)
+    if kind in ("bool", bool):
+        if not isinstance(value, bool):
+            raise ConfigError(f"{label} must be true or false, got {value!r}")
+        return value
     if value not in _CHOICES[name]:
         raise ConfigError(f"{label} must be one of {', '.join(_CHOICES[name])}; got {value!r}")
     return value

@@ -14,7 +14,19 @@ from pykdtree.kdtree import KDTree
 
 from .normals import plane_fits
 
-__all__ = ["estimate_noise", "NoiseEstimate", "project_to_local_planes"]
+__all__ = ["estimate_noise", "NoiseEstimate", "project_to_local_planes", "select_treatment", "NOISY_RATIO",
+           "VERY_NOISY_RATIO", "LOCAL_NOISY_RATIO"]
+
+#: ``sigma / spacing`` (64 neighbours) above which a cloud may be noisy (0.5 % noise: 1.22-1.53)
+NOISY_RATIO = 1.2
+#: and above which it is very noisy: between 0.5 % noise (at most 1.53) and 1 % (at least 1.84)
+VERY_NOISY_RATIO = 1.7
+#: the same ratio over 16 neighbours must exceed this too: thin walls (both sheets in one neighbourhood) and
+#: sparse samples of sharp CAD edges give 1.36-2.17 over 64 neighbours on clean clouds but at most 0.77 over 16,
+#: where 0.5 % noise gives at least 0.86
+LOCAL_NOISY_RATIO = 0.8
+#: neighbours of the local estimate
+LOCAL_NEIGHBORS = 16
 
 
 @dataclass(frozen=True)
@@ -25,14 +37,39 @@ class NoiseEstimate:
     spacing: float
 
     @property
+    def ratio(self) -> float:
+        """Scatter across the surface against the spacing along it (``sigma / spacing``; 0 without spacing).
+        Measured on the shared meshes: clean clouds give 0.04-0.6 at 100k points and 0.8-1.1 at 10k
+        (curvature); Gaussian noise of 0.25 % of the bbox diagonal gives 1.0-1.1, of 0.5 % 1.35-1.5, of 1 %
+        1.9-2.4."""
+        return self.sigma / self.spacing if self.spacing > 0 else 0.0
+
+    @property
     def noisy(self) -> bool:
-        """Whether the scatter across the surface is large against the spacing along it. Measured on the shared
-        meshes: clean clouds give 0.04-0.6 at 100k points and 0.8-1.1 at 10k (curvature); Gaussian noise of
-        0.25 % of the bbox diagonal gives 1.0-1.1, of 0.5 % 1.35-1.5, of 1 % 1.9-2.4."""
-        return self.sigma > 1.2 * self.spacing
+        """Whether the scatter is large against the spacing (:attr:`ratio` above ``NOISY_RATIO``)."""
+        return self.ratio > NOISY_RATIO
 
     def to_dict(self) -> dict:
-        return {"sigma": self.sigma, "spacing": self.spacing, "noisy": self.noisy}
+        return {"sigma": self.sigma, "spacing": self.spacing, "ratio": self.ratio, "noisy": self.noisy}
+
+
+def select_treatment(points: np.ndarray) -> tuple[str | None, NoiseEstimate, dict]:
+    """The noise treatment a cloud needs (a key of :data:`tiled_gridpull.config.NOISE_PRESETS`, or None), its
+    noise estimate (64 neighbours) and the figures that decided.
+
+    Two scales must agree that the scatter across the surface is large against the spacing: over 64 neighbours
+    (:data:`NOISY_RATIO`, :data:`VERY_NOISY_RATIO`) and over 16 (:data:`LOCAL_NOISY_RATIO`). Measured on the six
+    shared meshes (100k and 10k clean samples; 100k with Gaussian noise of 0.25, 0.5 and 1 % of the bbox
+    diagonal) and the merged real bunny scans: no clean cloud is treated, every 0.5 % cloud gets ``noisy``,
+    every 1 % cloud ``very_noisy`` (which measured the better CD-L1 at 1 % on five meshes of six, ``noisy`` at
+    0.5 % on five of six: BENCHMARKS.md, noise table).
+    """
+    wide = estimate_noise(points)
+    local = estimate_noise(points, k=LOCAL_NEIGHBORS)
+    pick = None
+    if wide.ratio > NOISY_RATIO and local.ratio > LOCAL_NOISY_RATIO:
+        pick = "very_noisy" if wide.ratio > VERY_NOISY_RATIO else "noisy"
+    return pick, wide, {**wide.to_dict(), "local_ratio": local.ratio}
 
 
 def estimate_noise(points: np.ndarray, k: int = 64, sample: int = 10_000, seed: int = 0,

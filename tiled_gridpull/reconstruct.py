@@ -8,6 +8,7 @@ maps the mesh back to the input's own coordinates. The mesh carries everything n
 
 from __future__ import annotations
 
+import logging
 import time
 import warnings
 from typing import Any
@@ -16,7 +17,7 @@ import numpy as np
 
 from ._version import __version__
 from .cloud import PointCloud, as_points, clean_points
-from .config import NORMALS_WEIGHT, SolverConfig, split_settings
+from .config import NOISE_PRESETS, NOISE_SETTINGS, NORMALS_WEIGHT, SolverConfig, split_settings
 from .errors import ConfigError, InputError
 from .isosurface import extract_mesh
 from .kernels.graph import vertex_components
@@ -24,9 +25,11 @@ from .lattice import Lattice
 from .mesh import Mesh
 from .mesh_repair import boundary_loops, close_holes, remove_pinched_fans, remove_small_components
 from .nearest import distances_to_cloud, nearest_in_cloud
-from .noise import estimate_noise, project_to_local_planes
+from .noise import estimate_noise, project_to_local_planes, select_treatment
 from .solver import ProgressFn, solve
 from .stitch import trim_faces
+
+log = logging.getLogger("tiled_gridpull")
 
 __all__ = ["reconstruct", "prepare_points", "shape_lattice"]
 
@@ -116,6 +119,29 @@ def prepare_points(points: Any, normals: np.ndarray | None = None, *, what: str 
     return cloud.xyz, cloud.normals, dict(cloud.report)
 
 
+def _noise_treatment(cfg: SolverConfig, xyz: np.ndarray):
+    """``cfg`` with the noise treatment ``noise.auto`` selects for ``xyz`` applied, what was decided (for the
+    sidecar), and the estimate on the raw points (None when none was made)."""
+    if not cfg.noise.auto:
+        return cfg, {"auto": False, "chosen": None, "reason": "noise_auto is off"}, None
+    default = SolverConfig()
+    given = [name for name in NOISE_SETTINGS if cfg.get(name) != default.get(name)]
+    if given:
+        # the user chose a treatment (a preset file or single settings): theirs wins
+        return cfg, {"auto": True, "chosen": None, "reason": f"given: {', '.join(given)}"}, None
+    pick, raw, figures = select_treatment(xyz)
+    record = {"auto": True, "chosen": pick, "estimate": figures,
+              "settings": dict(NOISE_PRESETS[pick]) if pick else {},
+              "reason": (f"sigma / spacing {raw.ratio:.2f} over 64 neighbours, {figures['local_ratio']:.2f} over "
+                         f"16, of the raw points" + ("" if pick else ": not noisy"))}
+    if pick is None:
+        return cfg, record, raw
+    log.info("the cloud looks %s (noise sigma %.3g, %.2f x the sample spacing): applying the %s treatment "
+             "(noise_auto; set noise_auto: false to keep the settings as given)", pick.replace("_", " "),
+             raw.sigma, raw.ratio, pick)
+    return cfg.replace(**NOISE_PRESETS[pick]), record, None
+
+
 def reconstruct(points: Any, *, config: SolverConfig | None = None, normals: np.ndarray | None = None,
                 lattice: Lattice | None = None, progress: ProgressFn | None = None,
                 min_component_cells: float = 2.0, close_band_holes: bool = True, **options: Any) -> Mesh:
@@ -170,10 +196,11 @@ def reconstruct(points: Any, *, config: SolverConfig | None = None, normals: np.
     xyz, nrm, report = prepare_points(points, own_normals if normals is None else normals)
     if cfg.losses.normal_weight > 0 and nrm is None:
         raise InputError("normal_weight > 0 needs input normals, but the cloud has none")
+    cfg, treatment, raw_noise = _noise_treatment(cfg, xyz)
     if cfg.noise.denoise_passes > 0:
         xyz = project_to_local_planes(xyz, cfg.noise.denoise_neighbors, cfg.noise.denoise_passes,
                                       cfg.noise.denoise_bandwidth)
-    noise = estimate_noise(xyz)
+    noise = raw_noise if raw_noise is not None and cfg.noise.denoise_passes == 0 else estimate_noise(xyz)
     if lattice is None:
         if cfg.noise.cell_sigmas > 0 and noise.sigma > 0:
             extent = float((xyz.max(axis=0) - xyz.min(axis=0)).max())
@@ -219,6 +246,7 @@ def reconstruct(points: Any, *, config: SolverConfig | None = None, normals: np.
         "solve": info,
         "loss_history": fld.info.get("history", []),
         "noise_estimate": {**noise.to_dict(), "cells": noise.sigma / lattice.cell_size},
+        "noise_treatment": treatment,
         "small_components_removed": int(removed),
         **({"udf_trim": sheet} if sheet else {}),
         "orientation_flipped": flipped,
