@@ -63,7 +63,8 @@ def build_parser() -> argparse.ArgumentParser:
                                    "a lattice of --resolution cells; with it, the cloud is cut into tiles of a "
                                    "global lattice and solved on Dask.")
     r.add_argument("inputs", nargs="+", metavar="INPUT",
-                   help="PLY, XYZ/TXT/PTS/CSV, NPY, LAS/LAZ, KITTI .bin or a KITTI sequence directory")
+                   help="PLY, XYZ/TXT/PTS/CSV, NPY, LAS/LAZ, PCD, E57 (e57 extra), KITTI .bin or a KITTI sequence "
+                        "directory")
     r.add_argument("-o", "--output", required=True,
                    help="output mesh (.ply or .obj); a .json sidecar is written beside it")
     r.add_argument("--overwrite", action="store_true",

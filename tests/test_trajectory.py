@@ -64,6 +64,15 @@ def test_interpolation_between_samples_and_the_slack_at_the_ends(tmp_path):
         tr.sensor_at(np.array([np.nan]))
 
 
+def test_a_header_after_comments_a_byte_order_mark_and_trailing_commas_are_read(tmp_path):
+    p = tmp_path / "t.csv"
+    p.write_text("\ufeff# exported by the INS software\n# GPS seconds of week\ntime,x,y,z,\n1,0,0,0,\n2,1,1,1,\n",
+                 encoding="utf-8")
+    tr = read_trajectory(p)
+    np.testing.assert_array_equal(tr.time, [1.0, 2.0])
+    np.testing.assert_array_equal(tr.xyz, [[0, 0, 0], [1, 1, 1]])
+
+
 @pytest.mark.parametrize("text,needle", [
     ("", "has no samples"),
     ("time,x,y,z\n1,0,0,0\n", "at least 2 samples"),
@@ -71,6 +80,8 @@ def test_interpolation_between_samples_and_the_slack_at_the_ends(tmp_path):
     ("1,0,0\n2,0,0\n", "has 3 columns"),
     ("1 0 0 0\nabc def\n", "line 2 of the trajectory is not numbers"),
     ("1 0 0 0\n2 0 0 nan\n", "line 2 of the trajectory is not numbers"),
+    ("1,0,0,0 m\n2,0,0,0\n3,1,1,1\n", "line 1 of the trajectory is not numbers"),  # not a header: no words
+    ("time x y z\nt x y z\n1 0 0 0\n2 1 1 1\n", "line 2 of the trajectory is not numbers"),
 ])
 def test_bad_text_trajectories_are_one_line(tmp_path, text, needle):
     p = tmp_path / "t.csv"
@@ -158,6 +169,8 @@ def test_sensor_origins_from_the_trajectory_orient_every_tile(street):
         mesh = reconstruct_scene([str(laz)], d / f"{name}.ply", tiling, solver, d / f"job_{name}",
                                  trajectory=trajectory)
         side = json.loads((d / f"{name}.json").read_text())
+        # the sidecar says which trajectory oriented the tiles
+        assert side["input"].get("trajectory") == (str(csv.resolve()) if trajectory else None)
         runs[name] = (evaluate(mesh, build_street(StreetScene(seed=2, length_m=40.0, width_m=30.0, origin=ORIGIN)),
                                observed=scan.xyz, observed_radius=0.4, thresholds=(0.1,)),
                       side["tile_summaries"])

@@ -9,8 +9,8 @@ it was scanned from instead of "up".
 Formats
 -------
 * Text or CSV (any suffix but ``.sbet``/``.out``): columns ``time x y z`` (extra columns ignored), in the point
-  cloud's own coordinates, separated by commas or white space; a first line that is not numbers is a header,
-  ``#`` starts a comment.
+  cloud's own coordinates, separated by commas or white space; one line of words before the first sample is a
+  header, ``#`` starts a comment.
 * SBET (``.sbet``, ``.out``: Applanix's smoothed best estimate of trajectory): records of 17 little-endian
   float64, of which time (s), latitude and longitude (radians) and ellipsoidal height (m) are used. Positions are
   projected into the point cloud's CRS (its WKT) with pyproj; the height is converted to the CRS's vertical unit
@@ -177,14 +177,18 @@ def _read_text(p: Path) -> tuple[np.ndarray, np.ndarray]:
     rows = []
     try:
         with open(p, encoding="utf-8", errors="replace") as fh:
+            header_seen = False
             for number, line in enumerate(fh, 1):
-                text = line.split("#", 1)[0].strip()
+                # a byte-order mark and trailing separators (spreadsheet exports) are not part of the data
+                text = line.split("#", 1)[0].lstrip("\ufeff").strip().rstrip(",;").strip()
                 if not text:
                     continue
                 if not _NUMBER_ROW.match(text):
-                    if rows or number > 1:
+                    # a header is words, before the first sample; a row of numbers that does not parse is an error
+                    if rows or header_seen or not re.search(r"[A-Za-z_]{2,}", text):
                         raise InputError(f"{p}: line {number} of the trajectory is not numbers: {text[:60]!r}")
-                    continue  # a header
+                    header_seen = True
+                    continue
                 values = [float(v) for v in re.split(r"[\s,;]+", text)]
                 if len(values) < 4:
                     raise InputError(f"{p}: line {number} has {len(values)} columns; a trajectory needs "
