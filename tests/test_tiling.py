@@ -217,3 +217,14 @@ def test_geotiff_keys_that_cannot_be_read_still_count_as_a_crs(monkeypatch):
 def test_an_absurd_cell_size_is_one_line(voxel):
     with pytest.raises(ConfigError, match="larger than any survey needs"):
         TilingConfig(voxel_size=voxel)
+
+
+@pytest.mark.parametrize("kw,needle", [
+    ({"voxel_size": "auto", "derived": 5}, "derived must be a list of"),
+    ({"voxel_size": 0.1, "derived": ["trim_distance"]}, "derived must be a list of"),
+    ({"voxel_size": "auto", "voxel_unit": "m"}, "give the cell size as voxel_size alone"),
+    ({"voxel_size": 0.1, "voxel_unit": "auto"}, "give the cell size as voxel_size alone"),
+])
+def test_record_fields_are_not_settings_of_their_own(kw, needle):
+    with pytest.raises(ConfigError, match=needle):
+        TilingConfig(**kw)

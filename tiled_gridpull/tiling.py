@@ -32,6 +32,9 @@ AUTO = "auto"
 DEFAULT_OVERLAP_CELLS = 32
 
 
+#: the settings a config can record as derived (not given, following the cell size or converted)
+DERIVABLE = ("voxel_size", "tile_size", "overlap")
+
 #: no survey needs cells larger than this (in any unit: a million kilometres); beyond it float32 fields overflow
 MAX_VOXEL = 1e9
 
@@ -100,7 +103,12 @@ class TilingConfig:
     def __post_init__(self) -> None:
         if isinstance(self.voxel_size, str) and self.voxel_size.strip().lower() == AUTO:
             object.__setattr__(self, "voxel_size", AUTO)
+        self._check_record_fields()
         if self.voxel_size == AUTO or self.voxel_unit == AUTO:
+            if self.voxel_size != AUTO or self.voxel_unit not in (None, AUTO):
+                # voxel_unit is set by voxel_size ("0.1 m", auto), not a choice of its own
+                raise ConfigError(f"voxel_size {self.voxel_size!r} with voxel_unit {self.voxel_unit!r}: give the "
+                                  "cell size as voxel_size alone (a number, a length such as '0.1 m', or auto)")
             # resolved from the data (:meth:`with_cell_size`); until then only the settings that need no cell
             # size can be checked
             object.__setattr__(self, "voxel_size", AUTO)
@@ -118,10 +126,6 @@ class TilingConfig:
                               ) from None
         if unit is not None and self.voxel_unit is not None and unit != self.voxel_unit:
             raise ConfigError(f"voxel_size {self.voxel_size!r} and voxel_unit {self.voxel_unit!r} disagree")
-        if not isinstance(self.derived, (tuple, list)) or not all(isinstance(n, str) for n in self.derived):
-            raise ConfigError(f"derived must be a list of setting names, got {self.derived!r}")
-        if self.units is not None and not isinstance(self.units, str):
-            raise ConfigError(f"units must be text, got {self.units!r}")
         if self.voxel_unit is not None and (not isinstance(self.voxel_unit, str)
                                             or self.voxel_unit not in LENGTH_UNITS):
             raise ConfigError(f"voxel_unit must be one of {', '.join(LENGTH_UNITS)}; got {self.voxel_unit!r}")
@@ -160,6 +164,14 @@ class TilingConfig:
         if self.trim_distance > self.overlap_cells and self.trim_distance > 0:
             raise ConfigError(f"trim_distance ({self.trim_distance} cells) must not exceed the overlap "
                               f"({self.overlap_cells} cells): a tile must see every point that can keep a face")
+
+    def _check_record_fields(self) -> None:
+        """``derived`` and ``units`` are records of how sizes were found (set here, read back from sidecars)."""
+        if not isinstance(self.derived, (tuple, list)) or not all(n in DERIVABLE for n in self.derived):
+            raise ConfigError(f"derived must be a list of {', '.join(DERIVABLE)}, got {self.derived!r}")
+        object.__setattr__(self, "derived", tuple(self.derived))
+        if self.units is not None and not isinstance(self.units, str):
+            raise ConfigError(f"units must be text, got {self.units!r}")
 
     def _check_settings(self) -> None:
         """The checks that need no cell size."""
