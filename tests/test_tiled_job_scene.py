@@ -177,6 +177,35 @@ def test_trimming_is_the_same_in_every_tile(street, up_run, tmp_path):
         cen = mesh.vertices[mesh.faces[shared]].mean(axis=1)
         dd, _ = KDTree(scan.xyz - c).query(cen - c, k=1)
         assert len(shared) == 2 and dd.max() > 3.0 * VOXEL
+    # and the tile borders are not where the surface stops (issue 19: on a wide scan one border plane held 397
+    # boundary edges, its faces on one side): per lattice plane across x and y, a border plane holds no more
+    # boundary edges than the other planes do
+    per_plane = _boundary_edges_per_plane(cut, lattice)
+    T = trimmed.tile_cells
+    for axis in (0, 1):
+        counts = per_plane[axis]
+        # shared by two tiles: not the lattice's own ends
+        border = {p: n for p, n in counts.items() if p % T == 0 and 0 < p < lattice.n_cells[axis]}
+        others = sorted(n for p, n in counts.items() if p % T != 0)
+        assert border and len(others) > 50
+        limit = max(others[int(0.99 * (len(others) - 1))], 3 * int(np.median(others)) + 5)
+        assert max(border.values()) <= limit, (axis, border, limit)
+
+
+def _boundary_edges_per_plane(mesh: Mesh, lattice: Lattice) -> list[dict]:
+    """For x and y (and z): how many boundary edges lie in each lattice plane (both ends on it), by plane index."""
+    F = mesh.faces
+    key = np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1)
+    uniq, counts = np.unique(key, axis=0, return_counts=True)
+    idx = lattice.to_index(mesh.vertices[uniq[counts == 1].ravel()]).reshape(-1, 2, 3)
+    out = []
+    for axis in range(3):
+        a = idx[:, :, axis]
+        r = np.round(a)
+        on = np.all(np.abs(a - r) < 1e-6, axis=1) & (r[:, 0] == r[:, 1])
+        planes, n = np.unique(r[on, 0].astype(np.int64), return_counts=True)
+        out.append(dict(zip(planes.tolist(), n.tolist())))
+    return out
 
 
 @pytest.mark.slow
