@@ -1,4 +1,4 @@
-"""Soft imports for heavy optional dependencies (pyvista, manifold3d, open3d, pye57, pyproj).
+"""Soft imports for heavy optional dependencies (pyvista, manifold3d, open3d, pye57, pyproj, copclib).
 
 ``import tiled_gridpull`` never imports them; the first use raises a one-line
 :class:`~tiled_gridpull.errors.MissingDependencyError` telling the user what to install.
@@ -19,6 +19,7 @@ _HINTS = {
     "PIL.Image": "pip install pillow",
     "pye57": "pip install 'tiled-gridpull[e57]'",
     "pyproj": "pip install 'tiled-gridpull[geo]'",
+    "copclib": "pip install 'tiled-gridpull[copc]'",
 }
 
 

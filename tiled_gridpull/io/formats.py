@@ -13,7 +13,7 @@ from pathlib import Path
 
 from ..cloud import PointCloud
 from ..errors import InputError
-from . import e57, kitti, las, npy, pcd, ply, text
+from . import e57, indexed, kitti, las, npy, pcd, ply, text
 
 __all__ = ["PointFormat", "POINT_FORMATS", "SUPPORTED_POINT_FORMATS", "register", "point_format"]
 
@@ -66,6 +66,8 @@ register(".laz", PointFormat("LAZ", las.read, las.count, las.chunks, las.crs, la
 register(".bin", PointFormat("KITTI scan", kitti.read, kitti.count))
 register(".pcd", PointFormat("PCD", pcd.read, pcd.count))
 register(".e57", PointFormat("E57", e57.read, e57.count, e57.chunks))
+# Entwine Point Tiles: the ept.json beside its ept-hierarchy/ and ept-data/ (COPC files are LAZ files)
+register(".json", PointFormat("EPT", indexed.read, indexed.count, indexed.chunks, indexed.crs))
 
 SUPPORTED_POINT_FORMATS: tuple[str, ...] = tuple(POINT_FORMATS)
 """The built-in file suffixes (case-insensitive); a directory is a KITTI sequence. Formats registered later are

@@ -1,0 +1,142 @@
+"""COPC and EPT inputs read by region (tiled_gridpull.io.indexed) and written for tests (io.indexed_write)."""
+
+import json
+
+import numpy as np
+import pytest
+
+from tiled_gridpull.errors import InputError
+from tiled_gridpull.io import iter_point_chunks, point_count, read_crs, read_points
+from tiled_gridpull.io.indexed import indexed_kind, read_box, read_index, read_levels
+from tiled_gridpull.io.indexed_write import octree_layout, write_copc, write_ept
+
+pytest.importorskip("copclib", reason="writing COPC test files needs copclib (pip install 'tiled-gridpull[copc]')")
+
+WKT = ('PROJCS["WGS 84 / UTM zone 31N",GEOGCS["WGS 84",DATUM["WGS_1984",SPHEROID["WGS 84",6378137,298.257223563]],'
+       'PRIMEM["Greenwich",0],UNIT["degree",0.0174532925199433]],PROJECTION["Transverse_Mercator"],'
+       'UNIT["metre",1],AUTHORITY["EPSG","32631"]]')
+
+
+@pytest.fixture(scope="module")
+def cloud():
+    """A ground with walls and a tree-like clump, in UTM-sized coordinates (60,000 points)."""
+    rng = np.random.default_rng(7)
+    ground = np.column_stack([rng.uniform(0, 60, 40000), rng.uniform(0, 30, 40000), rng.normal(0, 0.02, 40000)])
+    wall = np.column_stack([rng.uniform(0, 60, 15000), np.full(15000, 29.0), rng.uniform(0, 8, 15000)])
+    clump = rng.normal([20, 10, 4], 1.0, (5000, 3))
+    return np.concatenate([ground, wall, clump]) + [500000.0, 4000000.0, 12.0]
+
+
+@pytest.fixture(scope="module")
+def files(cloud, tmp_path_factory):
+    d = tmp_path_factory.mktemp("indexed")
+    return {"COPC": write_copc(d / "c.copc.laz", cloud, wkt=WKT, max_node_points=4000),
+            "EPT": write_ept(d / "e", cloud, wkt=WKT, max_node_points=4000),
+            "EPT binary": write_ept(d / "b", cloud, wkt=WKT, max_node_points=4000, data_type="binary")}
+
+
+def _sorted_rows(xyz):
+    return xyz[np.lexsort(xyz.T[::-1])]
+
+
+def test_octree_layout_keeps_every_point_once_and_nodes_small(cloud):
+    keys, node_of, half, center = octree_layout(cloud, max_node_points=4000)
+    counts = np.bincount(node_of, minlength=len(keys))
+    assert counts.sum() == len(cloud) and counts.min() > 0
+    # every point lies in its node's cube
+    edge = 2 * half / 2.0 ** keys[node_of, 0]
+    lo = center - half + keys[node_of, 1:] * edge[:, None]
+    assert np.all(cloud >= lo - 1e-6) and np.all(cloud <= lo + edge[:, None] + 1e-6)
+    assert keys[:, 0].max() >= 2  # 60,000 points in nodes of 4,000 at most need depth
+
+
+@pytest.mark.parametrize("kind", ["COPC", "EPT", "EPT binary"])
+def test_index_is_read_from_the_header_and_hierarchy(files, cloud, kind):
+    ix = read_index(files[kind])
+    assert ix.kind == kind.split()[0] and ix.points == len(cloud) == ix.counts.sum()
+    np.testing.assert_allclose(ix.bounds, [cloud.min(axis=0), cloud.max(axis=0)], atol=1e-3)
+    assert "UTM zone 31N" in ix.crs
+    assert np.all(ix.lo <= ix.hi) and len(ix.keys) > 8
+
+
+@pytest.mark.parametrize("kind", ["COPC", "EPT", "EPT binary"])
+def test_read_box_gives_exactly_the_points_inside(files, cloud, kind):
+    ix = read_index(files[kind])
+    stored = read_points(files[kind], clean=False).xyz  # whole input (COPC as the LAZ file it is)
+    from pykdtree.kdtree import KDTree
+
+    assert len(stored) == len(cloud)
+    assert KDTree(cloud).query(stored, k=1)[0].max() < 1e-3  # every point, stored to 1 mm
+    lo, hi = np.array([500010.0, 4000005.0, 10.0]), np.array([500031.5, 4000029.5, 16.0])
+    got = np.concatenate([c.xyz for c in read_box(ix, lo, hi)])
+    inside = stored[np.all((stored >= lo) & (stored <= hi), axis=1)]
+    assert len(got) == len(inside) > 1000
+    np.testing.assert_array_equal(_sorted_rows(got), _sorted_rows(inside))
+    # in the stream's order: the whole stream filtered to the box
+    stream = np.concatenate([c.xyz for c in iter_point_chunks(files[kind], 7000)])
+    np.testing.assert_array_equal(got, stream[np.all((stream >= lo) & (stream <= hi), axis=1)])
+
+
+@pytest.mark.parametrize("kind", ["COPC", "EPT"])
+def test_shallow_levels_are_an_even_subsample(files, cloud, kind):
+    ix = read_index(files[kind])
+    sample = np.concatenate([c.xyz for c in read_levels(ix, 1)])
+    assert 0 < len(sample) < len(cloud) // 4
+    # spread over the whole extent, not the first rows of the input
+    assert np.all(sample.max(axis=0)[:2] - sample.min(axis=0)[:2] > [50, 25])
+
+
+def test_ept_is_a_format_like_the_others(files, cloud):
+    p = files["EPT"]
+    assert indexed_kind(p) == "EPT" and indexed_kind(files["COPC"]) == "COPC" and indexed_kind("a.laz") is None
+    assert point_count(p) == len(cloud) and "UTM" in read_crs(p)
+    whole = read_points(p, clean=False)
+    assert len(whole) == len(cloud)
+
+
+def test_damaged_indexed_inputs_are_one_line(files, tmp_path):
+    for text in ("", "{not json", "[1, 2]"):
+        bad = tmp_path / "ept.json"
+        bad.write_text(text)
+        for call in (read_points, point_count, read_index):
+            with pytest.raises(InputError, match=r"ept.json: ") as exc:
+                call(bad)
+            assert "\n" not in str(exc.value)
+    # not an EPT
+    bad = tmp_path / "ept.json"
+    bad.write_text(json.dumps({"hello": 1}))
+    with pytest.raises(InputError, match=r"not an EPT ept.json \(no 'bounds'\)"):
+        read_index(bad)
+    with pytest.raises(InputError, match="not an EPT"):
+        read_points(bad)
+    # a node file missing
+    import shutil
+
+    e = tmp_path / "e"
+    shutil.copytree(files["EPT"].parent, e)
+    victim = sorted((e / "ept-data").iterdir())[-1]
+    victim.unlink()
+    ix = read_index(e / "ept.json")
+    with pytest.raises(InputError) as exc:
+        list(read_box(ix, ix.bounds[0], ix.bounds[1]))
+    assert victim.name in str(exc.value) and "\n" not in str(exc.value)
+    # hierarchy counts that disagree with the header
+    meta = json.loads((e / "ept.json").read_text())
+    meta["points"] += 5
+    (e / "ept.json").write_text(json.dumps(meta))
+    with pytest.raises(InputError, match="corrupted EPT"):
+        read_index(e / "ept.json")
+    # a plain LAZ named like a COPC file; a truncated COPC file
+    import laspy
+
+    plain = tmp_path / "plain.copc.laz"
+    header = laspy.LasHeader(point_format=6, version="1.4")
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = np.arange(10.0), np.arange(10.0), np.arange(10.0)
+    las.write(str(plain))
+    with pytest.raises(InputError, match="plain.copc.laz: not a readable COPC"):
+        read_index(plain)
+    cut = tmp_path / "cut.copc.laz"
+    cut.write_bytes(files["COPC"].read_bytes()[:2000])
+    with pytest.raises(InputError, match="cut.copc.laz"):
+        read_index(cut)
