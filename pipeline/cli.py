@@ -63,7 +63,8 @@ def build_parser() -> argparse.ArgumentParser:
                                    "a lattice of --resolution cells; with it, the cloud is cut into tiles of a "
                                    "global lattice and solved on Dask.")
     r.add_argument("inputs", nargs="+", metavar="INPUT",
-                   help="PLY, XYZ/TXT/PTS/CSV, NPY, LAS/LAZ, PCD, E57 (e57 extra), KITTI .bin or a KITTI sequence "
+                   help="PLY, XYZ/TXT/PTS/CSV, NPY, LAS/LAZ, COPC (.copc.laz) or EPT (ept.json; each tile read "
+                        "from their index on a worker), PCD, E57 (e57 extra), KITTI .bin or a KITTI sequence "
                         "directory")
     r.add_argument("-o", "--output", required=True,
                    help="output mesh (.ply or .obj); a .json sidecar is written beside it")
@@ -118,6 +119,9 @@ def build_parser() -> argparse.ArgumentParser:
     sm.add_argument("out_dir")
     sm.add_argument("--points", type=int, default=300_000, help="approximate number of points")
     sm.add_argument("--kitti", action="store_true", help="street: also write a KITTI-format sequence")
+    sm.add_argument("--copc", action="store_true",
+                    help="street: also write street.copc.laz (COPC; needs the copc extra)")
+    sm.add_argument("--ept", action="store_true", help="street: also write Entwine Point Tiles (street_ept/ept.json)")
     sm.add_argument("--layout", choices=("street", "grid"), default="street",
                     help="street: one straight street ('street'), or a ~200 m x 200 m grid of 3 x 3 streets "
                          "scanned by one pass per street ('grid')")
@@ -374,7 +378,7 @@ def cmd_sample(args) -> int:
     if args.kind == "street":
         from tiled_gridpull.synthetic.street_sample import make_street_sample
 
-        formats = ("laz", "kitti") if args.kitti else ("laz",)
+        formats = ("laz",) + tuple(f for f in ("kitti", "copc", "ept") if getattr(args, f))
         info = make_street_sample(out, n_points=args.points, seed=args.seed, origin=tuple(args.origin),
                                   formats=formats, layout=args.layout)
         log.info("wrote %s (%s layout, %d points, %d frames in %d passes) and ground truth %s", info["points"],

@@ -21,6 +21,7 @@ def plan_job(inputs: list[str], tiling: TilingConfig, solver: SolverConfig, work
              trajectory: str | Path | None = None, workers: int | None = None,
              chunk_size: int = 2_000_000) -> dict:
     """Everything the dry run reports (see :func:`format_plan`)."""
+    from tiled_gridpull.indexed_inputs import all_indexed, estimate_specs, plan_indexed
     from tiled_gridpull.jobdir import JobPaths
     from tiled_gridpull.memory import estimate_tiles
     from tiled_gridpull.partition import partition
@@ -34,8 +35,13 @@ def plan_job(inputs: list[str], tiling: TilingConfig, solver: SolverConfig, work
     paths = JobPaths(work_dir)
     reused = load_partition(paths, partition_key(inputs, tiling, frames, trajectory), tiling)
     occupancy = None
+    sampled = None
     if reused is not None:
         plan, specs, scan = reused
+    elif all_indexed(inputs) and trajectory is None and not tiling.drop_outliers:
+        # headers, hierarchies and the octree's shallow levels only: seconds, whatever the input's size
+        plan, scan, indexes = plan_indexed(inputs, tiling)
+        specs, occupancy, sampled = estimate_specs(indexes, plan)
     else:
         plan, scan, chunks = plan_inputs(inputs, tiling, chunk_size=chunk_size, frames=frames,
                                          trajectory=trajectory)
@@ -50,7 +56,7 @@ def plan_job(inputs: list[str], tiling: TilingConfig, solver: SolverConfig, work
     peak = max(est, key=lambda e: e["peak"]) if est else None
     return {
         "inputs": [str(p) for p in inputs], "points": int(scan["points"]), "has_sensor": bool(scan["has_sensor"]),
-        "partition_reused": reused is not None,
+        "partition_reused": reused is not None, "index_sample": sampled,
         "lattice": {"origin": list(plan.lattice.origin), "cell_size": plan.lattice.cell_size,
                     "shape": list(plan.lattice.shape), "tile_cells": tiling.tile_cells,
                     "overlap_cells": tiling.overlap_cells, "tile_range": list(plan.tile_range),
@@ -95,8 +101,12 @@ def format_plan(info: dict, max_memory: int | None = None) -> str:
     lat, t, m, tm = info["lattice"], info["tiles"], info["memory"], info["time"]
     cell = lat["cell_size"]
     units = f" ({lat['units']})" if lat.get("units") else ""
+    sampled = info.get("index_sample")
+    source = (" (partition of the job directory reused)" if info["partition_reused"] else
+              f" (tiles estimated from the inputs' index: {sampled:.1%} of the points read)" if sampled is not None
+              else "")
     lines = [
-        f"dry run: nothing is solved{' (partition of the job directory reused)' if info['partition_reused'] else ''}",
+        f"dry run: nothing is solved{source}",
         f"input:    {info['points']:,} points{' with sensor origins' if info['has_sensor'] else ''} "
         f"in {len(info['inputs'])} file(s)",
         f"lattice:  cell {cell:g}{units}, origin ({', '.join(f'{v:.10g}' for v in lat['origin'])}), "

@@ -23,9 +23,10 @@ import os
 import signal
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from tiled_gridpull.config import SolverConfig
 from tiled_gridpull.errors import ClusterError, ConfigError
@@ -262,30 +263,58 @@ class DaskExecutor:
     def __init__(self, options: JobOptions = JobOptions()):
         self.options = options
         self.engine = {"scheduler": options.scheduler or "LocalCluster", "workers": options.workers}
+        self._client = self._cluster = None
 
     def check(self) -> None:
         if self.options.scheduler:
             check_scheduler_address(self.options.scheduler)
 
+    def _connect(self, n_tasks: int, root) -> Any:
+        """The job's client, started on first use (the indexed inputs' reads or the tiles) and kept until
+        :meth:`close`."""
+        if self._client is None:
+            self._client, self._cluster = make_client(self.options, n_tasks)
+            if self._client.dashboard_link:
+                log.info("Dask dashboard: %s", self._client.dashboard_link)
+            if self.options.scheduler:
+                check_workers_see(self._client, root, self.options.no_worker_timeout)
+        return self._client
+
+    def map(self, fn: Callable, args: list[tuple], root) -> list:
+        """``fn(*a)`` for every ``a`` in ``args`` as tasks on the cluster (the reads of indexed inputs' tiles);
+        their results in order. A task's error is raised here, as raised in the task."""
+        if not args:
+            return []
+        client = self._connect(len(args), root)
+        futures = [client.submit(fn, *a, pure=False, retries=self.options.retries) for a in args]
+        try:
+            return client.gather(futures)
+        finally:
+            for f in futures:
+                f.release()
+
     def run(self, specs: list[TileSpec], tiling: TilingConfig, solver: SolverConfig, paths: JobPaths, centre,
             key_ref) -> Iterator[TileEvent]:
-        """Start the cluster, submit every tile's solve and mesh task, yield their summaries, close the cluster."""
+        """Start the cluster (unless :meth:`map` did), submit every tile's solve and mesh task, yield their
+        summaries, close the cluster."""
         options = self.options
         with _deferred_interrupt() as interrupted:
-            client, cluster = make_client(options, len(specs))
-            if client.dashboard_link:
-                log.info("Dask dashboard: %s", client.dashboard_link)
+            client = self._connect(len(specs), paths.root)
             try:
-                if options.scheduler:
-                    check_workers_see(client, paths.root, options.no_worker_timeout)
                 solve_args, mesh_args = task_arguments(specs, tiling, solver, paths, centre, key_ref)
                 yield from run_tiles(client, specs, solve_task, solve_args, mesh_task, mesh_args, options.retries,
                                      window=options.window, stop=interrupted,
                                      no_worker_timeout=options.no_worker_timeout)
             finally:
-                client.close()
-                if cluster is not None:
-                    cluster.close()
+                self.close()
+
+    def close(self) -> None:
+        """Close the client and the LocalCluster this executor started (if any)."""
+        client, cluster, self._client, self._cluster = self._client, self._cluster, None, None
+        if client is not None:
+            client.close()
+        if cluster is not None:
+            cluster.close()
 
 
 @contextlib.contextmanager

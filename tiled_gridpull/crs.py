@@ -11,7 +11,9 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass
 
-__all__ = ["LinearUnit", "linear_unit", "METRE", "parse_length", "LENGTH_UNITS"]
+from .errors import InputError
+
+__all__ = ["LinearUnit", "linear_unit", "METRE", "parse_length", "LENGTH_UNITS", "check_same_crs", "crs_name"]
 
 
 @dataclass(frozen=True)
@@ -134,3 +136,30 @@ def parse_length(value) -> tuple[float, str | None]:
             raise ValueError(value)
         return number, unit
     return value, None
+
+
+def check_same_crs(declared: list[tuple[str | None, str]]) -> None:
+    """Refuse inputs in different CRSs (merging would place one survey's points in another's frame without a
+    word). ``declared``: (CRS or None, source) pairs; inputs without a CRS are not compared."""
+    named = [(c, s) for c, s in declared if c]
+    for crs, source in named[1:]:
+        if _crs_text(crs) != _crs_text(named[0][0]):
+            raise InputError(f"inputs in different coordinate reference systems: {_file_of(named[0][1])} "
+                             f"({crs_name(named[0][0])}) and {_file_of(source)} ({crs_name(crs)}); "
+                             "reproject them to one first")
+
+
+def _crs_text(crs: str) -> str:
+    """A CRS's text without the layout whitespace outside quoted names (WKT pretty-printed or not)."""
+    return re.sub(r'\s+(?=(?:[^"]*"[^"]*")*[^"]*$)', "", crs)
+
+
+def _file_of(source) -> str:
+    """The file of a chunk's ``source`` (``path[start:stop]``)."""
+    return re.sub(r"\[\d+:\d+\]$", "", str(source))
+
+
+def crs_name(crs: str) -> str:
+    """A short name for a CRS in a message: the WKT's first quoted name, else its start."""
+    m = re.search(r'"([^"]+)"', crs)
+    return m.group(1) if m else crs.split("\n")[0][:60]

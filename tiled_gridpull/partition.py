@@ -18,12 +18,13 @@ from .jobdir import spill_record
 from .kernels import BRICK
 from .tile_plan import TilePlan, TileSpec
 
-__all__ = ["partition", "read_occupancy", "read_tile_points"]
+__all__ = ["partition", "merge_segments", "read_occupancy", "read_tile_points"]
 
 
 
 def partition(chunks: Iterable, plan: TilePlan, out_dir: str | Path | None, has_sensor: bool,
-              flush_points: int = 2_000_000, occupancy: dict | None = None) -> list[TileSpec]:
+              flush_points: int = 2_000_000, occupancy: dict | None = None,
+              only: tuple[int, int, int] | None = None) -> list[TileSpec]:
     """Stream point chunks into per-tile spill files (the partition pass).
 
     Parameters
@@ -40,6 +41,10 @@ def partition(chunks: Iterable, plan: TilePlan, out_dir: str | Path | None, has_
     occupancy : dict, optional
         Filled with ``{tile index: (BX, BY, BZ) bool}``, the bricks of each block that hold a point (what the
         memory estimate reads; also saved beside the spill files).
+    only : (i, j, k), optional
+        Write this tile alone and ignore the chunks' points in other tiles: one tile's task reading its region
+        of an indexed input (:mod:`tiled_gridpull.indexed_inputs`). Its spill file is the one a whole partition
+        of the same stream writes for it, byte for byte.
 
     Returns
     -------
@@ -79,7 +84,9 @@ def partition(chunks: Iterable, plan: TilePlan, out_dir: str | Path | None, has_
     started = False
     for chunk in chunks:
         if not started and write:
-            for stale in out.glob(".*.points.partial"):
+            # other tiles' tasks may be writing beside a one-tile partition: remove only its own leftovers
+            pattern = f".{plan.spec(only).name}.points.partial" if only is not None else ".*.points.partial"
+            for stale in out.glob(pattern):
                 stale.unlink()
         started = True
         xyz = np.asarray(chunk.xyz, dtype=np.float64)
@@ -90,12 +97,17 @@ def partition(chunks: Iterable, plan: TilePlan, out_dir: str | Path | None, has_
         if len(pidx) == 0:
             continue
         key_arr = (tiles[:, 0] * plan.tile_range[1] + tiles[:, 1]) * plan.tile_range[2] + tiles[:, 2]
-        order = np.argsort(key_arr, kind="stable")
+        # by tile, then by row: a tile's points keep the stream's order whatever the chunks (tiles_of lists the
+        # pairs by block corner, not by row), so a stream cut anywhere -- in chunks, in segments partitioned
+        # apart, or read back by region from an index -- gives the same spill files
+        order = np.argsort(key_arr * len(xyz) + pidx)
         key_sorted = key_arr[order]
         starts = np.flatnonzero(np.r_[True, key_sorted[1:] != key_sorted[:-1]])
         ends = np.r_[starts[1:], len(order)]
         for s, e in zip(starts, ends):
             t = tuple(int(v) for v in tiles[order[s]])
+            if only is not None and t != only:
+                continue
             sel = pidx[order[s:e]]
             spec = plan.spec(t)
             corner = spec.block.low_corner
@@ -132,6 +144,64 @@ def partition(chunks: Iterable, plan: TilePlan, out_dir: str | Path | None, has_
         specs.append(plan.spec(t, n_points=counts[t], points_path=path, has_sensor=has_sensor,
                                points_sha256=hashes[t].hexdigest(), occupied_bricks=int(grid.sum())))
     return specs
+
+
+def merge_segments(parts: list[list[TileSpec]], plan: TilePlan, out_dir: str | Path | None, has_sensor: bool,
+                   occupancy: dict | None = None, part_occupancy: list[dict] | None = None) -> list[TileSpec]:
+    """Join the partitions of consecutive segments of the input stream (each written by :func:`partition` into
+    a directory of its own, in stream order) into the partition of the whole stream.
+
+    A tile's spill file is its segments' files concatenated in order: :func:`partition` keeps every tile's
+    points in stream order whatever the chunks, so the result is byte for byte the one pass's. The segments'
+    files are removed.
+
+    Parameters
+    ----------
+    parts : list of list of TileSpec
+        What :func:`partition` returned for each segment, in stream order.
+    out_dir : path or None
+        The job's points directory; None joins counts only (``part_occupancy`` then gives the masks).
+    occupancy : dict, optional
+        Filled with the joined masks, as :func:`partition` fills it.
+    part_occupancy : list of dict, optional
+        Each segment's masks (a counting pass, nothing on disk); by default read beside the segments' files.
+    """
+    by_tile: dict[tuple, list[tuple[int, TileSpec]]] = {}
+    for k, specs in enumerate(parts):
+        for spec in specs:
+            by_tile.setdefault(spec.index, []).append((k, spec))
+    out = Path(out_dir) if out_dir is not None else None
+    merged = []
+    for t in sorted(by_tile):
+        pieces = by_tile[t]
+        grid = None
+        for k, piece in pieces:
+            g = part_occupancy[k][t] if part_occupancy is not None else read_occupancy(piece)
+            grid = g.copy() if grid is None else grid | g
+        n = sum(piece.n_points for _, piece in pieces)
+        spec = plan.spec(t)
+        # a counting pass hashed each segment's records apart: the hash of their join is not known there
+        path, digest = "", pieces[0][1].points_sha256 if len(pieces) == 1 else ""
+        if out is not None:
+            final = out / f"{spec.name}.points"
+            h = hashlib.sha256()
+            with atomic_open(final) as fh:
+                for _, piece in pieces:
+                    with open(piece.points_path, "rb") as src:
+                        for block in iter(lambda: src.read(1 << 22), b""):
+                            h.update(block)
+                            fh.write(block)
+            with atomic_open(final.with_suffix(".occ.npy")) as fh:
+                np.save(fh, np.packbits(grid.ravel()))
+            path, digest = str(final), h.hexdigest()
+            for _, piece in pieces:
+                Path(piece.points_path).unlink(missing_ok=True)
+                Path(piece.occupancy_path).unlink(missing_ok=True)
+        if occupancy is not None:
+            occupancy[t] = grid
+        merged.append(plan.spec(t, n_points=n, points_path=path, has_sensor=has_sensor, points_sha256=digest,
+                                occupied_bricks=int(grid.sum())))
+    return merged
 
 
 def read_occupancy(spec: TileSpec) -> np.ndarray:

@@ -7,26 +7,30 @@ are described in :mod:`tiled_gridpull.jobdir`.
 
 from __future__ import annotations
 
-import re
+import contextlib
 import warnings
 from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from ._version import __version__
+from .crs import check_same_crs, crs_name
 from .errors import ConfigError, InputError
 from .cloud import PointCloud
-from .io import iter_point_chunks, read_kitti_sequence
+from .io import iter_point_chunks, iter_row_chunks, read_kitti_sequence
 from .jobdir import JobPaths, write_manifest
 from .outliers import SAMPLE_STRIDE, body_box, describe, far_mask
-from .partition import partition
+from .indexed_inputs import all_indexed, candidate_tiles, plan_indexed, read_tile
+from .partition import merge_segments, partition
 from .resume import load_partition, partition_key, scan_record
 from .tile_plan import LatticeSpanError, TilePlan, TileSpec, plan_tiles
 from .tiling import AUTO, TilingConfig, auto_cell_size
 from .trajectory import Trajectory, read_trajectory
 
-__all__ = ["check_registered", "resolve_units", "scan_inputs", "plan_inputs", "prepare_job"]
+__all__ = ["check_registered", "resolve_units", "scan_inputs", "plan_inputs", "prepare_job", "Segment",
+           "plan_segments", "scan_segment", "partition_segment", "SEGMENT_POINTS"]
 
 
 def check_registered(inputs: list[str]) -> None:
@@ -74,7 +78,7 @@ def resolve_units(inputs: list[str], tiling: TilingConfig, frames=None,
         if crs and unit is None and tiling.voxel_unit is not None:
             # taking metres here would silently make a survey in feet 3.3x too fine (or coarse)
             raise ConfigError(f"voxel_size {tiling.voxel_size:g} {tiling.voxel_unit}: the input's CRS "
-                              f"({_crs_name(crs)}) does not state its unit in a form this reader understands"
+                              f"({crs_name(crs)}) does not state its unit in a form this reader understands"
                               f"{_pyproj_hint()}; give voxel_size as a number in the data's units")
         return tiling.in_data_units(unit)
     from .spacing import point_spacing
@@ -83,7 +87,14 @@ def resolve_units(inputs: list[str], tiling: TilingConfig, frames=None,
     per_input = max(chunk_size // len(inputs), AUTO_MIN_PER_INPUT)
     parts, read = [], 0
     for path in inputs:
-        head = next(_chunks([path], per_input, frames), None)
+        if all_indexed([path]):
+            # an indexed input's first points are its coarsest level of detail (spread thin over the whole
+            # survey): measure a region at full density instead
+            from .indexed_inputs import dense_region
+
+            head = dense_region(path, per_input)
+        else:
+            head = next(_chunks([path], per_input, frames), None)
         if head is not None and len(head):
             parts.append(head.xyz[:per_input])
             read += len(parts[-1])
@@ -111,21 +122,22 @@ def _pyproj_hint() -> str:
 def scan_inputs(inputs: list[str], chunk_size: int = 2_000_000, frames=None,
                 trajectory: Trajectory | None = None) -> dict:
     """One streaming pass: bounds, point count and whether sensor origins are known."""
+    return _joined_scan([_scan(_chunks(inputs, chunk_size, frames, trajectory))], inputs)
+
+
+def _scan(chunks) -> dict:
     lo = np.full(3, np.inf)
     hi = np.full(3, -np.inf)
     n = 0
     sample = []
     has_sensor = True
     crs = crs_source = None
-    for chunk in _chunks(inputs, chunk_size, frames, trajectory):
+    for chunk in chunks:
         if chunk.crs:
             if crs is None:
                 crs, crs_source = chunk.crs, chunk.source
-            elif _crs_text(chunk.crs) != _crs_text(crs):
-                # merging would place one survey's points in another's frame without a word
-                raise InputError(f"inputs in different coordinate reference systems: {_file_of(crs_source)} "
-                                 f"({_crs_name(crs)}) and {_file_of(chunk.source)} ({_crs_name(chunk.crs)}); "
-                                 "reproject them to one first")
+            else:
+                check_same_crs([(crs, crs_source), (chunk.crs, chunk.source)])
         if len(chunk) == 0:
             continue
         lo = np.minimum(lo, chunk.xyz.min(axis=0))
@@ -134,10 +146,23 @@ def scan_inputs(inputs: list[str], chunk_size: int = 2_000_000, frames=None,
         has_sensor &= chunk.sensor is not None
         # a copy: a strided view would keep every whole chunk alive, i.e. the whole input in memory
         sample.append(chunk.xyz[::SAMPLE_STRIDE].copy())
+    return {"lo": lo, "hi": hi, "points": n, "has_sensor": bool(has_sensor), "crs": crs, "crs_source": crs_source,
+            "sample": sample}
+
+
+def _joined_scan(parts: list[dict], inputs) -> dict:
+    """The scan of the whole stream from its segments' scans, in stream order (the same facts, the same refusal
+    of a second CRS, as one pass)."""
+    check_same_crs([(p["crs"], p["crs_source"]) for p in parts])
+    n = sum(p["points"] for p in parts)
     if n == 0:
         raise InputError(f"{', '.join(map(str, inputs))}: no points")
-    return {"bounds": np.stack([lo, hi]), "points": n, "has_sensor": bool(has_sensor), "crs": crs,
-            "sample": np.concatenate(sample)}
+    lo = np.min([p["lo"] for p in parts], axis=0)
+    hi = np.max([p["hi"] for p in parts], axis=0)
+    return {"bounds": np.stack([lo, hi]), "points": n,
+            "has_sensor": all(p["has_sensor"] for p in parts if p["points"]),
+            "crs": next((p["crs"] for p in parts if p["crs"]), None),
+            "sample": np.concatenate([x for p in parts for x in p["sample"]])}
 
 
 def _far_points(inputs, chunk_size, frames, box, trajectory=None) -> tuple[np.ndarray | None, np.ndarray | None,
@@ -167,32 +192,11 @@ def _without_far(chunks, box):
         yield chunk.take(np.flatnonzero(~far)) if far.any() else chunk
 
 
-def _crs_text(crs: str) -> str:
-    """A CRS's text without the layout whitespace outside quoted names (WKT pretty-printed or not)."""
-    return re.sub(r'\s+(?=(?:[^"]*"[^"]*")*[^"]*$)', "", crs)
-
-
-def _file_of(source) -> str:
-    """The file of a chunk's ``source`` (``path[start:stop]``)."""
-    return re.sub(r"\[\d+:\d+\]$", "", str(source))
-
-
-def _crs_name(crs: str) -> str:
-    """A short name for a CRS in a message: the WKT's first quoted name, else its start."""
-    m = re.search(r'"([^"]+)"', crs)
-    return m.group(1) if m else crs.split("\n")[0][:60]
-
-
 def _chunks(inputs, chunk_size, frames, trajectory: Trajectory | None = None):
     """The inputs' points chunk by chunk; with a trajectory, every point gets its sensor origin by GPS time."""
     if trajectory is not None:
         for path in inputs:
-            projected = None
-            for chunk in iter_point_chunks([path], chunk_size, gps_time=True):
-                if projected is None:  # an SBET's latitudes and longitudes, into this file's CRS
-                    projected = trajectory.projected(chunk.crs)
-                chunk.sensor = projected.sensor_at(chunk.attributes.pop("gps_time"), what=str(path))
-                yield chunk
+            yield from _with_sensor(iter_point_chunks([path], chunk_size, gps_time=True), trajectory, path)
         return
     for path in inputs:
         p = Path(path)
@@ -205,8 +209,81 @@ def _chunks(inputs, chunk_size, frames, trajectory: Trajectory | None = None):
             yield from iter_point_chunks([p], chunk_size)
 
 
+def _with_sensor(chunks, trajectory: Trajectory, path):
+    """``chunks`` (with their GPS times) with each point's sensor origin from the trajectory."""
+    projected = None
+    for chunk in chunks:
+        if projected is None:  # an SBET's latitudes and longitudes, into this file's CRS
+            projected = trajectory.projected(chunk.crs)
+        chunk.sensor = projected.sensor_at(chunk.attributes.pop("gps_time"), what=str(path))
+        yield chunk
+
+
+# ------------------------------------------------------------------------------ the partition run in segments
+
+#: points of a LAS/LAZ file one partition task reads at most (a multiple of the chunk size is used)
+SEGMENT_POINTS = 4_000_000
+
+
+@dataclass(frozen=True)
+class Segment:
+    """Rows ``[start, stop)`` of one input, in file order; ``start`` None: the whole input, as it streams."""
+
+    path: str
+    start: int | None = None
+    stop: int | None = None
+
+
+def plan_segments(inputs: list[str], chunk_size: int = 2_000_000,
+                  segment_points: int = SEGMENT_POINTS) -> list[Segment]:
+    """The input stream cut into consecutive segments, one task each: a LAS/LAZ file of more than
+    ``segment_points`` points is cut at multiples of ``chunk_size`` rows (its header's count; LAZ seeks through
+    its chunk table); any other input (and a COPC file, whose chunks vary) is one segment."""
+    from .io import point_count
+
+    step = max(chunk_size, segment_points // chunk_size * chunk_size)
+    out = []
+    for path in inputs:
+        p = Path(path)
+        if p.is_dir() or p.suffix.lower() not in (".las", ".laz") or all_indexed([path]):
+            out.append(Segment(str(path)))
+            continue
+        n = point_count(p)
+        if n <= step:
+            out.append(Segment(str(path)))
+        else:
+            out += [Segment(str(path), s, min(s + step, n)) for s in range(0, n, step)]
+    return out
+
+
+def _segment_chunks(seg: Segment, chunk_size: int, frames, trajectory: Trajectory | None):
+    if seg.start is None:
+        yield from _chunks([seg.path], chunk_size, frames, trajectory)
+        return
+    chunks = iter_row_chunks(seg.path, seg.start, seg.stop, chunk_size, gps_time=trajectory is not None)
+    yield from (_with_sensor(chunks, trajectory, seg.path) if trajectory is not None else chunks)
+
+
+def scan_segment(seg: Segment, chunk_size: int, frames=None, trajectory: Trajectory | None = None) -> dict:
+    """One task of the scan run in segments: :func:`scan_inputs`'s facts of one segment (not yet checked for
+    emptiness; the CRS of its first chunk declaring one)."""
+    return _scan(_segment_chunks(seg, chunk_size, frames, trajectory))
+
+
+def partition_segment(seg: Segment, plan: TilePlan, out_dir: str | None, has_sensor: bool, chunk_size: int,
+                      frames=None, trajectory: Trajectory | None = None) -> tuple[list[TileSpec], dict | None]:
+    """One task of the partition run in segments: :func:`~tiled_gridpull.partition.partition` of the segment's
+    points into ``out_dir`` (its own directory), or counted only (``out_dir`` None; its masks returned)."""
+    occupancy: dict | None = {} if out_dir is None else None
+    specs = partition(_segment_chunks(seg, chunk_size, frames, trajectory), plan, out_dir, has_sensor,
+                      occupancy=occupancy)
+    return specs, occupancy
+
+
 def plan_inputs(inputs: list[str], tiling: TilingConfig, *, chunk_size: int = 2_000_000,
-                frames=None, trajectory: str | Path | None = None) -> tuple[TilePlan, dict, Callable[[], Iterator]]:
+                frames=None, trajectory: str | Path | None = None,
+                segments: list[Segment] | None = None,
+                run_tasks: Callable | None = None) -> tuple[TilePlan, dict, Callable[[], Iterator]]:
     """Scan the inputs and lay the tile plan over them (the job's and ``--dry-run``'s first step).
 
     Points far from the rest (:mod:`tiled_gridpull.outliers`) are dropped when ``tiling.drop_outliers`` is set
@@ -220,10 +297,16 @@ def plan_inputs(inputs: list[str], tiling: TilingConfig, *, chunk_size: int = 2_
         Bounds, point count (both without the dropped points), sensor and CRS facts, ``far_points_dropped``.
     chunks : callable
         ``chunks()`` streams the input's points again (without the dropped ones), for the partition.
+
+    With ``segments`` (:func:`plan_segments`) and ``run_tasks`` (as :func:`prepare_job`'s), the scan runs as
+    one task per segment; the facts are the same as one pass's.
     """
     check_registered(inputs)
     traj = read_trajectory(trajectory) if trajectory is not None else None
-    scan = scan_inputs(inputs, chunk_size, frames, traj)
+    if segments is not None and run_tasks is not None:
+        scan = _joined_scan(run_tasks(scan_segment, [(seg, chunk_size, frames, traj) for seg in segments]), inputs)
+    else:
+        scan = scan_inputs(inputs, chunk_size, frames, traj)
     if traj is not None:
         scan["trajectory"] = str(Path(trajectory).resolve())
     sample = scan.pop("sample")
@@ -258,7 +341,9 @@ def plan_inputs(inputs: list[str], tiling: TilingConfig, *, chunk_size: int = 2_
 
 def prepare_job(inputs: list[str], tiling: TilingConfig, paths: JobPaths, *, frames=None,
                 trajectory: str | Path | None = None, chunk_size: int = 2_000_000,
-                check: Callable[[list[TileSpec], dict], None] | None = None) -> tuple[TilePlan, list[TileSpec], dict]:
+                check: Callable[[list[TileSpec], dict], None] | None = None,
+                run_tasks: Callable[[Callable, list[tuple]], list] | None = None,
+                segment_points: int | None = None) -> tuple[TilePlan, list[TileSpec], dict]:
     """Scan and partition the inputs into tiles; writes the manifest. Returns the plan, tiles and scan facts.
 
     A finished partition of the same inputs (path, size, mtime) and tile grid in ``paths`` is reused without
@@ -267,19 +352,94 @@ def prepare_job(inputs: list[str], tiling: TilingConfig, paths: JobPaths, *, fra
     ``check(specs, occupancy)``, when given, runs on a counting pass (tiles and their occupied bricks, nothing
     written) before the partition writes its spill files: it refuses a job (e.g. ``--max-memory``) by raising,
     so a refused job leaves no partition behind. It costs one more read of the inputs.
+
+    Indexed inputs (COPC, EPT; :mod:`tiled_gridpull.indexed_inputs`) are planned from their headers, and each
+    tile's points are read by a task of its own: ``run_tasks(fn, argument_tuples)`` runs them (on the
+    executor's workers; in this process by default) and returns their results in order. There ``check`` runs
+    after the reads (with ``occupancy`` None: the masks are on disk), and a refusal removes the spill files.
+
+    Other inputs stream, and with ``run_tasks`` the stream is cut into segments (:func:`plan_segments`: LAS/LAZ
+    files by ``segment_points`` rows, :data:`SEGMENT_POINTS` by default) whose scan and partition run as tasks,
+    each segment into a directory of its own; the driver joins them
+    (:func:`~tiled_gridpull.partition.merge_segments`) into the very files one pass writes. ``drop_outliers``
+    keeps the one pass.
     """
     key = partition_key(inputs, tiling, frames, trajectory)
     reused = load_partition(paths, key, tiling)
     if reused is not None:
         return reused
     paths.manifest.unlink(missing_ok=True)  # the manifest commits a partition: none while one is under way
-    plan, scan, chunks = plan_inputs(inputs, tiling, chunk_size=chunk_size, frames=frames, trajectory=trajectory)
-    if check is not None:
-        occupancy: dict = {}
-        check(partition(chunks(), plan, None, scan["has_sensor"], occupancy=occupancy), occupancy)
-    specs = partition(chunks(), plan, paths.points(), scan["has_sensor"])
+    segments = (plan_segments(inputs, chunk_size, segment_points or SEGMENT_POINTS) if run_tasks is not None
+                else [])
+    if all_indexed(inputs) and trajectory is None and not tiling.drop_outliers:
+        plan, scan, specs = _read_indexed(inputs, tiling, paths, check, run_tasks)
+    elif len(segments) > 1 and not tiling.drop_outliers:
+        plan, scan, specs = _partition_in_segments(inputs, tiling, paths, segments, chunk_size, frames, trajectory,
+                                                   check, run_tasks)
+    else:
+        plan, scan, chunks = plan_inputs(inputs, tiling, chunk_size=chunk_size, frames=frames,
+                                         trajectory=trajectory)
+        if check is not None:
+            occupancy: dict = {}
+            check(partition(chunks(), plan, None, scan["has_sensor"], occupancy=occupancy), occupancy)
+        specs = partition(chunks(), plan, paths.points(), scan["has_sensor"])
     write_manifest(paths.manifest, plan, specs, {"inputs": [str(Path(p).resolve()) for p in inputs],
                                                  "crs": scan["crs"], "version": __version__,
                                                  "partition_key": key, "scan": scan_record(scan)})
     scan["partition_reused"] = False
     return plan, specs, scan
+
+
+def _partition_in_segments(inputs, tiling, paths: JobPaths, segments, chunk_size, frames, trajectory, check,
+                           run_tasks):
+    """The scan and the partition as one task per segment of the stream, joined in stream order."""
+    import shutil
+
+    plan, scan, _ = plan_inputs(inputs, tiling, chunk_size=chunk_size, frames=frames, trajectory=trajectory,
+                                segments=segments, run_tasks=run_tasks)
+    traj = read_trajectory(trajectory) if trajectory is not None else None
+    has_sensor = scan["has_sensor"]
+    if check is not None:
+        counted = run_tasks(partition_segment, [(seg, plan, None, has_sensor, chunk_size, frames, traj)
+                                                for seg in segments])
+        occupancy: dict = {}
+        check(merge_segments([c[0] for c in counted], plan, None, has_sensor, occupancy=occupancy,
+                             part_occupancy=[c[1] for c in counted]), occupancy)
+    out = paths.points()
+    parts = out / ".segments"  # one directory per segment; removed once joined
+    shutil.rmtree(parts, ignore_errors=True)
+    written = run_tasks(partition_segment, [(seg, plan, str(parts / str(k)), has_sensor, chunk_size, frames, traj)
+                                            for k, seg in enumerate(segments)])
+    out.mkdir(parents=True, exist_ok=True)
+    specs = merge_segments([w[0] for w in written], plan, out, has_sensor)
+    shutil.rmtree(parts, ignore_errors=True)
+    scan["segments"] = len(segments)
+    return plan, scan, specs
+
+
+def _read_indexed(inputs, tiling, paths: JobPaths, check, run_tasks):
+    """Plan indexed inputs from their headers and read every candidate tile in a task of its own."""
+    plan, scan, indexes = plan_indexed(inputs, tiling)
+    tiles = candidate_tiles(indexes, plan)
+    out = paths.points()
+    out.mkdir(parents=True, exist_ok=True)
+    resolved = [str(Path(p).resolve()) for p in inputs]
+    args = [(resolved, plan, t, str(out)) for t in tiles]
+    results = run_tasks(read_tile, args) if run_tasks is not None else [read_tile(*a) for a in args]
+    specs = [s for s in results if s is not None]
+    scan["candidate_tiles"] = len(tiles)
+    if sum(s.n_points for s in specs) < scan["points"]:
+        # the overlaps copy points into several tiles, so the tiles can only hold more than the input
+        raise InputError(f"{', '.join(map(str, inputs))}: the tiles read {sum(s.n_points for s in specs):,} "
+                         f"points, fewer than the headers declare ({scan['points']:,}): a damaged index")
+    if check is not None:
+        try:
+            check(specs, None)
+        except BaseException:
+            for s in specs:  # a refused job leaves no partition behind
+                Path(s.points_path).unlink(missing_ok=True)
+                Path(s.occupancy_path).unlink(missing_ok=True)
+            with contextlib.suppress(OSError):
+                out.rmdir()
+            raise
+    return plan, scan, specs

@@ -3,11 +3,12 @@
 A job directory (see :mod:`tiled_gridpull.jobdir`) keeps three kinds of results, each written
 atomically (a killed run leaves at most a hidden temporary file, never a result that looks complete):
 
-* the **partition** (``points/*.points`` spill files, ``points/*.occ.npy`` occupancy masks and
-  ``manifest.json``). Its key hashes each input's resolved path, size and modification time (every file of a
-  KITTI sequence directory), the frame range, the settings that decide the tile grid (``voxel_size`` and the
-  tile and overlap cell counts) and the package version. The manifest, written last, is the commit record:
-  it is removed before a new partition starts, so an interrupted partition is never mistaken for a finished one.
+* the **partition** (``points/*.points`` spill files, ``points/*.occ.npy`` occupancy masks and ``manifest.json``).
+  Its key hashes each input's resolved path, size and modification time (every file of a KITTI sequence directory;
+  an EPT's header, hierarchy pages and node files), the frame range, the settings that decide the tile grid
+  (``voxel_size`` and the tile and overlap cell counts) and the package version. The manifest, written last, is the
+  commit record: it is removed before a new partition starts, so an interrupted partition is never mistaken for a
+  finished one.
 * each tile's **field** (``fields/<tile>.npz``), recorded in ``summaries/solve_<tile>.json`` with its key: the
   SHA-256 of the tile's spill file content, its block, the tiling settings a solve reads (``min_points``,
   the resolved orientation rule, ``normal_neighbors``), every solver setting a tile solve reads (not
@@ -49,7 +50,7 @@ from .tiling import TilingConfig
 __all__ = ["partition_key", "load_partition", "solve_key", "mesh_key", "solve_tile_resumable",
            "mesh_tile_resumable", "input_fingerprint"]
 
-SPILL_FORMAT = 2  # bump when the spill/occupancy layout changes
+SPILL_FORMAT = 3  # bump when the spill/occupancy layout or the order of a tile's points changes
 
 
 def digest(obj) -> str:
@@ -86,6 +87,12 @@ def input_fingerprint(inputs: list) -> list[dict]:
                 files = kitti_sequence_files(p)
                 out.append({"path": str(p),
                             "files": [[str(f.relative_to(p)), *_stat(f).values()] for f in files]})
+            elif p.name.lower() == "ept.json":
+                from .io.indexed import ept_files
+
+                # an EPT is its header, hierarchy pages and node files
+                out.append({"path": str(p), "files": [[str(f.relative_to(p.parent)), *_stat(f).values()]
+                                                      for f in ept_files(p)]})
             else:
                 out.append({"path": str(p), **_stat(p)})
         except (OSError, InputError):  # missing, unreadable or not a sequence: the scan reports it; never reused

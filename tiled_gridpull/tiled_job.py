@@ -63,6 +63,13 @@ class TileExecutor(Protocol):
     def check(self) -> None:
         """Refuse, before the partition, a job this executor cannot run (e.g. an unreachable scheduler)."""
 
+    def map(self, fn: Callable, args: list[tuple], root: Path) -> list:
+        """``fn(*a)`` for every ``a`` in ``args`` (the tile reads of indexed inputs, which write into the job
+        directory ``root``), results in order; a task's error is raised as it was raised."""
+
+    def close(self) -> None:
+        """Release what the executor holds (a cluster); called when the job ends, however it ends."""
+
     def run(self, specs: list[TileSpec], tiling: TilingConfig, solver: SolverConfig, paths: JobPaths,
             centre: tuple[float, float, float], key_ref: np.ndarray) -> Iterator[TileEvent]:
         """Run every tile's :func:`solve_step` and then, once it and its neighbours are solved, its
@@ -133,6 +140,12 @@ class SerialExecutor:
         self.log = log
 
     def check(self) -> None:
+        return None
+
+    def map(self, fn: Callable, args: list[tuple], root: Path) -> list:
+        return [fn(*a) for a in args]
+
+    def close(self) -> None:
         return None
 
     def run(self, specs: list[TileSpec], tiling: TilingConfig, solver: SolverConfig, paths: JobPaths,
@@ -241,9 +254,14 @@ def run_tiled_job(inputs: list[str], output: str | Path | None, tiling: TilingCo
     executor.check()  # before the partition, not after it
     work_dir = Path(work_dir).resolve()  # workers of an external cluster do not share this process's cwd
     with job_lock(work_dir):
-        return _run(inputs, output, tiling, solver, JobPaths(work_dir), executor, frames=frames,
-                    trajectory=trajectory, float32=float32,
-                    tile_meshes=tile_meshes, fail_fast=fail_fast, max_memory=max_memory, progress=progress)
+        try:
+            return _run(inputs, output, tiling, solver, JobPaths(work_dir), executor, frames=frames,
+                        trajectory=trajectory, float32=float32,
+                        tile_meshes=tile_meshes, fail_fast=fail_fast, max_memory=max_memory, progress=progress)
+        finally:
+            close = getattr(executor, "close", None)  # executors written before close() existed have none
+            if close is not None:
+                close()
 
 
 def _run(inputs, output, tiling: TilingConfig, solver: SolverConfig, paths: JobPaths, executor: TileExecutor, *,
@@ -255,7 +273,12 @@ def _run(inputs, output, tiling: TilingConfig, solver: SolverConfig, paths: JobP
         def check(planned, occupancy):
             check_some_tile_solvable(planned, tiling)
             check_memory(planned, tiling, solver, max_memory, occupancy=occupancy)
-    plan, specs, scan = prepare_job(inputs, tiling, paths, frames=frames, trajectory=trajectory, check=check)
+    # tasks for the tile reads of indexed inputs and the partition's segments; in this process one after the
+    # other (the serial executor) the one pass is the same and cheaper
+    mapper = None if isinstance(executor, SerialExecutor) else getattr(executor, "map", None)
+    run_tasks = (lambda fn, args: mapper(fn, args, paths.root)) if mapper is not None else None
+    plan, specs, scan = prepare_job(inputs, tiling, paths, frames=frames, trajectory=trajectory, check=check,
+                                    run_tasks=run_tasks)
     t_part = time.perf_counter()
     log.info("%s %d points into %d tiles (%d planned) in %.1f s",
              "reused the partition of" if scan.get("partition_reused") else "partitioned", scan["points"],

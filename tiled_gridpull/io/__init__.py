@@ -9,7 +9,7 @@ __all__ = ["atomic_open", "atomic_path", "write_json", "read_mesh", "write_mesh"
 
 from .formats import SUPPORTED_POINT_FORMATS
 from .kitti import read_kitti_sequence
-from .points import iter_point_chunks, point_count, read_crs, read_points
+from .points import iter_point_chunks, iter_row_chunks, point_count, read_crs, read_points
 
-__all__ += ["read_points", "read_crs", "iter_point_chunks", "read_kitti_sequence", "point_count",
+__all__ += ["read_points", "read_crs", "iter_point_chunks", "iter_row_chunks", "read_kitti_sequence", "point_count",
             "SUPPORTED_POINT_FORMATS"]

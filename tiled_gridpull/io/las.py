@@ -40,12 +40,18 @@ def timed_chunks(p: Path, chunk_size: int) -> Iterator[PointCloud]:
     yield from _las_chunks(p, chunk_size, gps_time=True)
 
 
+def row_chunks(p: Path, chunk_size: int, start: int, stop: int, gps_time: bool = False) -> Iterator[PointCloud]:
+    """Points ``start`` to ``stop`` of the file (in file order), in chunks of ``chunk_size``: one segment of a
+    partition run in parallel. LAZ seeks through its chunk table."""
+    yield from _las_chunks(p, chunk_size, gps_time=gps_time, rows=(int(start), int(stop)))
+
+
 def count(p: Path) -> int:
     """The header's point count (after the header checks)."""
     import laspy
 
     _las_precheck(p)
-    with laspy.open(str(p), laz_backend=_laz_backend()) as reader:
+    with laspy.open(str(p), laz_backend=laz_backend()) as reader:
         return int(reader.header.point_count)
 
 
@@ -58,7 +64,7 @@ def crs(p: Path) -> str | None:
     import laspy
 
     _las_precheck(p)
-    with laspy.open(str(p), laz_backend=_laz_backend()) as reader:
+    with laspy.open(str(p), laz_backend=laz_backend()) as reader:
         return _las_crs(reader.header)
 
 
@@ -105,7 +111,7 @@ def _las_normal_dims(point_format) -> tuple[str, str, str] | None:
     return None
 
 
-def _laz_backend():
+def laz_backend():
     """The single-threaded lazrs decoder.
 
     The parallel one sizes its buffers from the LAZ chunk table, and a corrupted table makes it request tens
@@ -233,7 +239,8 @@ def _warn_undeclared_points(p: Path, header, n_chunks: int | None, size: int) ->
                       f"they are not read", stacklevel=2)
 
 
-def _las_chunks(p: Path, chunk_size: int, gps_time: bool = False) -> Iterator[PointCloud]:
+def _las_chunks(p: Path, chunk_size: int, gps_time: bool = False,
+                rows: tuple[int, int] | None = None) -> Iterator[PointCloud]:
     import laspy
 
     n_chunks = _las_precheck(p)
@@ -243,7 +250,7 @@ def _las_chunks(p: Path, chunk_size: int, gps_time: bool = False) -> Iterator[Po
     wanted = sel.XY_RETURNS_CHANNEL | sel.Z | sel.INTENSITY | sel.ALL_EXTRA_BYTES
     if gps_time:
         wanted = wanted | sel.GPS_TIME
-    with laspy.open(str(p), laz_backend=_laz_backend(), decompression_selection=wanted) as reader:
+    with laspy.open(str(p), laz_backend=laz_backend(), decompression_selection=wanted) as reader:
         header = reader.header
         if gps_time and "gps_time" not in header.point_format.dimension_names:
             raise InputError(f"{p}: its points have no GPS time (LAS point format {header.point_format.id}), "
@@ -262,11 +269,18 @@ def _las_chunks(p: Path, chunk_size: int, gps_time: bool = False) -> Iterator[Po
         crs = _las_crs(header)
         normal_dims = _las_normal_dims(header.point_format)
         has_intensity = "intensity" in header.point_format.dimension_names
-        done = 0
+        first, last = rows if rows is not None else (0, total)
+        if not 0 <= first <= last <= total:
+            raise InputError(f"{p}: rows {first}:{last} are outside its {total} points")
+        if first:
+            reader.seek(first)
+        done = first
         for chunk in reader.chunk_iterator(chunk_size):
             n = len(chunk)
             if n == 0:
                 break
+            if done + n > last:
+                chunk, n = chunk[:last - done], last - done
             xyz = np.empty((n, 3), dtype=np.float64)
             xyz[:, 0] = chunk.x
             xyz[:, 1] = chunk.y
@@ -281,7 +295,9 @@ def _las_chunks(p: Path, chunk_size: int, gps_time: bool = False) -> Iterator[Po
             yield PointCloud(xyz, normals=normals, attributes=attrs, crs=crs,
                              source=f"{p}[{done}:{done + n}]", report={"points_read": n})
             done += n
-        if done != total:
+            if done >= last:
+                break
+        if done != last:
             kind = "LAZ" if header.are_points_compressed else "LAS"
             raise InputError(f"{p}: truncated or corrupted {kind} file (read {done} of {total} points)")
 

@@ -26,7 +26,7 @@ from .formats import PointFormat, point_format
 from .input_errors import check_path, input_errors
 from .kitti import kitti_chunks, kitti_sequence_count, read_kitti_sequence
 
-__all__ = ["read_points", "iter_point_chunks", "point_count"]
+__all__ = ["read_points", "iter_point_chunks", "iter_row_chunks", "point_count"]
 
 
 def read_points(path: str | os.PathLike, *, clean: bool = True,
@@ -133,6 +133,30 @@ def iter_point_chunks(paths: str | os.PathLike | Iterable[str | os.PathLike],
             raise InputError(f"{p}: contains no points")
         if yielded == 0:
             raise InputError(f"{p}: no finite points (all {rows} have NaN or infinite coordinates)")
+
+
+def iter_row_chunks(path: str | os.PathLike, start: int, stop: int, chunk_size: int = 1_000_000, *,
+                    gps_time: bool = False) -> Iterator[PointCloud]:
+    """Points ``start`` to ``stop`` of a LAS/LAZ file (file order) in chunks, as :func:`iter_point_chunks`
+    gives them (non-finite rows dropped): one segment of a partition run in parallel. Together, the segments of
+    a file in order give exactly the chunks' points of the whole file, in order.
+
+    Raises
+    ------
+    InputError
+        As :func:`iter_point_chunks`; also for a format other than LAS/LAZ.
+    """
+    p = check_path(path)
+    fmt = point_format(p)
+    if fmt.name not in ("LAS", "LAZ"):
+        raise InputError(f"{p}: only LAS/LAZ files are read by row ranges, not {fmt.name}")
+    from .las import row_chunks
+
+    with input_errors(p, fmt.name):
+        for chunk in row_chunks(p, int(chunk_size), start, stop, gps_time=gps_time):
+            chunk = drop_nonfinite_rows(chunk)
+            if len(chunk):
+                yield chunk
 
 
 def point_count(path: str | os.PathLike) -> int:

@@ -15,7 +15,7 @@ from .street import GRID_STREETS, LAYOUTS, StreetScene, build_street
 
 __all__ = ["make_street_sample", "grid_frames_for_points"]
 
-_FORMATS = ("laz", "las", "kitti")
+_FORMATS = ("laz", "las", "kitti", "copc", "ept")
 
 
 #: GPS time of the first frame (s; GPS week seconds, a Tuesday morning) and between frames (a 10 Hz sensor)
@@ -62,7 +62,7 @@ def make_street_sample(out_dir: str | Path, n_points: int = 100_000, seed: int =
         Scene seed (also seeds the range noise).
     origin : (3,) float
         Scene origin added to every output coordinate.
-    formats : sequence of {"laz", "las", "kitti"}
+    formats : sequence of {"laz", "las", "kitti", "copc", "ept"}
         ``street.laz`` / ``street.las`` (intensity = reflectance x 65535, GPS time of the point's frame) with
         ``street_trajectory.csv`` (time, x, y, z of the sensor at every frame), and/or a ``kitti/`` sequence.
     range_noise : float
@@ -77,7 +77,8 @@ def make_street_sample(out_dir: str | Path, n_points: int = 100_000, seed: int =
     Returns
     -------
     dict
-        ``points`` (the first LAS/LAZ written, else None), ``laz`` / ``las`` / ``kitti`` / ``trajectory`` paths
+        ``points`` (the first LAS/LAZ written, else None), ``laz`` / ``las`` / ``kitti`` / ``copc`` / ``ept``
+        (its ``ept.json``) / ``trajectory`` paths
         when written,
         ``gt_mesh`` (``street_gt.ply``, float64 vertices), ``meta`` (``street.json``), ``n_points``,
         ``n_frames``, ``azimuth_steps``, ``n_faces``, ``scene``, ``layout``, ``n_passes``.
@@ -122,6 +123,16 @@ def make_street_sample(out_dir: str | Path, n_points: int = 100_000, seed: int =
                                                 scan.poses[:, :3, 3])
     if "kitti" in formats:
         result["kitti"] = write_kitti_sequence(out_dir / "kitti", scan)
+    # the cloud-optimized forms surveys are published in: street.copc.laz (copclib) and street_ept/ept.json
+    if "copc" in formats:
+        from ..io.indexed_write import write_copc
+
+        result["copc"] = write_copc(out_dir / "street.copc.laz", scan.xyz, wkt=crs_wkt,
+                                    gps_time=frame_time[scan.frame])
+    if "ept" in formats:
+        from ..io.indexed_write import write_ept
+
+        result["ept"] = write_ept(out_dir / "street_ept", scan.xyz, wkt=crs_wkt)
     result["gt_mesh"] = write_mesh(mesh, out_dir / "street_gt.ply")
     result.update(n_points=scan.n_points, n_frames=scan.n_frames, azimuth_steps=azimuth_steps,
                   n_faces=mesh.n_faces, scene=scene.to_dict(), range_noise=float(range_noise),

@@ -1,0 +1,256 @@
+"""Tiled jobs over cloud-optimized inputs (COPC, EPT): the plan from their headers and hierarchies, and every
+tile's points read from the input by the tile's own task, on a worker, instead of a driver-side partition.
+
+* **Plan** (:func:`plan_indexed`): bounds, point count and CRS come from the headers; no point is read.
+* **Candidate tiles** (:func:`candidate_tiles`): the shallow levels of the octree are an even subsample of the
+  whole input (each node keeps about one point per cell of a grid over its cube). They are read (a few percent
+  of the points, at most :data:`SAMPLE_POINTS`) and give the tiles holding them exactly; every deeper node adds
+  the tiles its cube overlaps. That is a superset of the tiles with points: a candidate a task finds empty is
+  dropped.
+* **Tile reads** (:func:`read_tile`, one task per candidate): the points of the nodes overlapping the tile's
+  block, filtered to the block, in the input's stream order (:mod:`tiled_gridpull.io.indexed`), written as the
+  tile's spill file by :func:`tiled_gridpull.partition.partition`. The file is byte for byte the one the
+  streaming partition writes for the same input, so the tile's solve key, which hashes it, is derived from
+  what the tile read, and a resumed job keys every tile as the interrupted one did.
+* **Dry run** (:func:`estimate_specs`): tiles, points and occupied bricks estimated from the subsample and the
+  deeper nodes' counts, in seconds.
+
+Inputs that need every point on the driver (a trajectory, ``drop_outliers``) take the streaming partition:
+COPC files are LAZ files and EPTs are a registered format, so they stream like any other input.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+from pathlib import Path
+
+import numpy as np
+
+from .crs import check_same_crs
+from .errors import InputError
+from .io.indexed import PointIndex, indexed_kind, read_box, read_index, read_levels
+from .kernels import BRICK
+from .partition import partition
+from .tile_plan import TilePlan, TileSpec, plan_tiles
+from .tiling import TilingConfig
+
+__all__ = ["SAMPLE_POINTS", "all_indexed", "cached_index", "plan_indexed", "candidate_tiles", "read_tile",
+           "estimate_specs", "dense_region"]
+
+#: points of the octree's shallow levels read on the driver (candidate tiles, dry run), at most
+SAMPLE_POINTS = 2_000_000
+
+
+def all_indexed(inputs: list) -> bool:
+    """Whether every input is a COPC file or an EPT (by name)."""
+    return bool(inputs) and all(indexed_kind(p) is not None and not Path(p).is_dir() for p in inputs)
+
+
+@functools.lru_cache(maxsize=64)
+def _index(path: str, size: int, mtime_ns: int) -> PointIndex:
+    return read_index(path)
+
+
+def cached_index(path: str | os.PathLike) -> PointIndex:
+    """:func:`~tiled_gridpull.io.indexed.read_index`, kept per process while the file is unchanged (a worker
+    reads many tiles of one input)."""
+    p = Path(path)
+    try:
+        st = p.stat()
+    except OSError as exc:
+        raise InputError(f"{p}: cannot read ({exc.strerror or exc})") from None
+    return _index(str(p), st.st_size, st.st_mtime_ns)
+
+
+def plan_indexed(inputs: list[str], tiling: TilingConfig) -> tuple[TilePlan, dict, list[PointIndex]]:
+    """The tile plan of indexed inputs from their headers and hierarchies (no point read).
+
+    Returns
+    -------
+    plan : TilePlan
+    scan : dict
+        As :func:`tiled_gridpull.prepare.scan_inputs` (bounds, points, ``has_sensor`` False, crs), plus
+        ``indexed``: the inputs' kinds.
+    indexes : list of PointIndex
+    """
+    indexes = [cached_index(p) for p in inputs]
+    check_same_crs([(ix.crs, ix.path) for ix in indexes])
+    lo = np.min([ix.bounds[0] for ix in indexes], axis=0)
+    hi = np.max([ix.bounds[1] for ix in indexes], axis=0)
+    n = int(sum(ix.points for ix in indexes))
+    if n == 0:
+        raise InputError(f"{', '.join(map(str, inputs))}: no points")
+    if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi)) and np.all(lo <= hi)):
+        raise InputError(f"{', '.join(map(str, inputs))}: the header's bounds are not finite or inverted")
+    scan = {"bounds": np.stack([lo, hi]), "points": n, "has_sensor": False,
+            "crs": next((ix.crs for ix in indexes if ix.crs), None),
+            "indexed": sorted({ix.kind for ix in indexes})}
+    return plan_tiles(scan["bounds"], n, tiling), scan, indexes
+
+
+def _sample_depth(index: PointIndex, brick_size: float, budget: int) -> int:
+    """The depth above which the octree is read as a subsample: deep enough that a node's grid cell is no larger
+    than a brick, shallow enough to stay within ``budget`` points."""
+    depths = index.keys[:, 0]
+    edge = float((index.hi[0] - index.lo[0]).max()) * 2.0 ** depths[0] if len(depths) else 0.0
+    depth = 0
+    while depth <= int(depths.max(initial=0)):
+        if index.counts[depths <= depth].sum() > budget:
+            break
+        depth += 1
+        if edge / 128 / 2.0 ** (depth - 1) <= brick_size:
+            break
+    return max(depth, 1)
+
+
+def _box_tiles(plan: TilePlan, lo: np.ndarray, hi: np.ndarray) -> set:
+    """Tiles whose block overlaps any of the boxes [lo_i, hi_i] (world units)."""
+    T, O = plan.config.tile_cells, plan.config.overlap_cells
+    rng = np.asarray(plan.tile_range)
+    a = np.clip(np.floor((plan.lattice.to_index(lo) - O) / T).astype(np.int64), 0, rng - 1)
+    b = np.clip(np.floor((plan.lattice.to_index(hi) + O) / T).astype(np.int64), 0, rng - 1)
+    out = set()
+    for (i0, j0, k0), (i1, j1, k1) in zip(a, b):
+        for i in range(i0, i1 + 1):
+            for j in range(j0, j1 + 1):
+                for k in range(k0, k1 + 1):
+                    out.add((i, j, k))
+    return out
+
+
+def _sample(indexes: list[PointIndex], plan: TilePlan, budget: int):
+    """The shallow levels' points of every input, and each input's sample depth."""
+    brick = BRICK * plan.lattice.cell_size
+    per_input = max(budget // len(indexes), 1)
+    for ix in indexes:
+        depth = _sample_depth(ix, brick, per_input)
+        yield ix, depth, [c.xyz for c in read_levels(ix, depth)]
+
+
+def candidate_tiles(indexes: list[PointIndex], plan: TilePlan, budget: int = SAMPLE_POINTS) -> list[tuple]:
+    """Every tile that may hold points (a superset of those that do), sorted."""
+    tiles: set = set()
+    for ix, depth, parts in _sample(indexes, plan, budget):
+        for xyz in parts:
+            _, t = plan.tiles_of(plan.lattice.to_index(xyz))
+            tiles.update(map(tuple, np.unique(t, axis=0).tolist()))
+        deep = ix.keys[:, 0] >= depth
+        if deep.any():
+            lo = np.maximum(ix.lo[deep], ix.bounds[0])
+            hi = np.minimum(ix.hi[deep], ix.bounds[1])
+            tiles |= _box_tiles(plan, lo, hi)
+    return sorted(tiles)
+
+
+def _read_box(plan: TilePlan, tile: tuple) -> tuple[np.ndarray, np.ndarray]:
+    """World box holding every point the tile's block may receive (``tiles_of`` gives border tiles the points
+    beyond the lattice's edge: their side of the box is open)."""
+    T, O = plan.config.tile_cells, plan.config.overlap_cells
+    t = np.asarray(tile)
+    lo_i = (t * T - O - 1).astype(np.float64)
+    hi_i = ((t + 1) * T + O + 1).astype(np.float64)
+    lo = plan.lattice.to_world(lo_i[None])[0]
+    hi = plan.lattice.to_world(hi_i[None])[0]
+    return np.where(t == 0, -np.inf, lo), np.where(t == np.asarray(plan.tile_range) - 1, np.inf, hi)
+
+
+def read_tile(inputs: list[str], plan: TilePlan, tile: tuple, out_dir: str) -> TileSpec | None:
+    """One tile's task: read its points from the indexed ``inputs`` and write its spill file and occupancy in
+    ``out_dir`` (the job's points directory). None when the tile holds no point.
+    """
+    lo, hi = _read_box(plan, tuple(tile))
+
+    def chunks():
+        for path in inputs:
+            ix = cached_index(path)
+            # an open side (a border tile) reaches as far as the input's octree does
+            yield from read_box(ix, np.where(np.isinf(lo), ix.lo.min(axis=0, initial=np.inf), lo),
+                                np.where(np.isinf(hi), ix.hi.max(axis=0, initial=-np.inf), hi))
+
+    specs = partition(chunks(), plan, out_dir, False, only=tuple(tile))
+    return specs[0] if specs else None
+
+
+def estimate_specs(indexes: list[PointIndex], plan: TilePlan,
+                   budget: int = SAMPLE_POINTS) -> tuple[list[TileSpec], dict, float]:
+    """A dry run's tiles without reading them: points per tile from the subsample (its own points) plus every
+    deeper node's count spread over its cube by volume; occupied bricks from the subsample.
+
+    Returns
+    -------
+    specs : list of TileSpec
+        ``n_points`` estimated; no spill paths.
+    occupancy : dict
+        Tile index -> (BX, BY, BZ) bool, from the subsample.
+    share : float
+        Share of the points the subsample holds.
+    """
+    occupancy: dict = {}
+    counts: dict = {}
+    sampled = 0
+    for ix, depth, parts in _sample(indexes, plan, budget):
+        occ: dict = {}
+        for spec in partition(_clouds(parts), plan, None, False, occupancy=occ):
+            counts[spec.index] = counts.get(spec.index, 0) + spec.n_points
+        for t, grid in occ.items():
+            occupancy[t] = occupancy[t] | grid if t in occupancy else grid
+        sampled += sum(len(x) for x in parts)
+        deep = np.flatnonzero(ix.keys[:, 0] >= depth)
+        for r in deep:
+            lo = np.maximum(ix.lo[r], ix.bounds[0])
+            hi = np.minimum(ix.hi[r], ix.bounds[1])
+            vol = np.prod(np.maximum(hi - lo, 1e-12))
+            for t in _box_tiles(plan, lo[None], hi[None]):
+                blo, bhi = _read_box(plan, t)
+                blo, bhi = np.maximum(blo, plan.bounds[0]), np.minimum(bhi, plan.bounds[1])
+                share = np.prod(np.maximum(np.minimum(hi, bhi) - np.maximum(lo, blo), 0) + 1e-12 * (hi == lo)) / vol
+                counts[t] = counts.get(t, 0) + float(ix.counts[r]) * float(min(share, 1.0))
+    bshape = tuple(int(v) for v in -(-np.asarray(plan.spec((0, 0, 0)).block.shape) // BRICK))
+    specs = []
+    for t in sorted(counts):
+        n = int(round(counts[t]))
+        if n == 0:
+            continue
+        occ = occupancy.setdefault(t, np.zeros(bshape, bool))
+        specs.append(plan.spec(t, n_points=n, occupied_bricks=int(occ.sum())))
+    total = sum(ix.points for ix in indexes)
+    return specs, occupancy, sampled / total if total else 0.0
+
+
+def dense_region(path: str | os.PathLike, limit: int, regions: int = 8):
+    """Up to ``limit`` points of an indexed input at full density, for measuring its sample spacing.
+
+    An indexed input's first points are its coarsest level of detail, spread thin over the whole survey, so
+    they say nothing of its spacing. This reads every point (all levels) inside the cubes of ``regions`` of the
+    deepest nodes, chosen at even steps of their cumulative point count: regions in proportion to where the
+    points are, as the first points of a plain file sample them. None for an input without points.
+    """
+    from .cloud import PointCloud
+
+    ix = cached_index(path)
+    if len(ix.keys) == 0:
+        return None
+    deep = np.flatnonzero(ix.keys[:, 0] >= ix.keys[:, 0].max() - 1)
+    cum = np.cumsum(ix.counts[deep])
+    steps = (np.arange(regions) + 0.5) / regions * cum[-1]
+    chosen = np.unique(deep[np.searchsorted(cum, steps)])
+    per_region = max(limit // len(chosen), 1)
+    parts = []
+    for r in chosen:
+        got = 0
+        for cloud in read_box(ix, ix.lo[r], ix.hi[r]):
+            parts.append(cloud.xyz[:per_region - got])
+            got += len(parts[-1])
+            if got >= per_region:
+                break
+    if not parts:
+        return None
+    return PointCloud(np.concatenate(parts), crs=ix.crs, source=str(path))
+
+
+def _clouds(parts):
+    from .cloud import PointCloud
+
+    for xyz in parts:
+        yield PointCloud(xyz)
