@@ -319,6 +319,20 @@ def main() -> None:
                   "(seeded): each method meshes the other 90 %, and the held-out points' distance to the mesh "
                   "(file units) scores it; Poisson (depth 10, same normals and trim as above) in the same run.", "",
                   holdout_table, ""]
+    partition_rows = load("partition")
+    if partition_rows:
+        from benchmarks import partition as partition_bench
+
+        parts += ["## The partition on the workers (`benchmarks/partition.py`)", "",
+                  "The street written as LAZ and as COPC (several files side by side for the largest case); each "
+                  "method in a fresh process, so the peak RSS is its driver's. `stream` is the one pass on the "
+                  "driver every input had before; `segments LAZ` runs the scan and partition as tasks (4M-point "
+                  "segments, per file) on a LocalCluster of 2 workers and joins their files; `index COPC` plans from "
+                  "the headers and reads every tile from the files in a task of its own; the cluster's start (which "
+                  "a job pays anyway, for its tiles) is timed apart. Ratios are to the one pass over the same files "
+                  "in the same run; `dry` rows are `--dry-run` (a counting pass, or the index). Medians of the runs "
+                  "listed.", "",
+                  partition_bench.table(partition_rows), ""]
     estimates_table = estimate.render(load("estimates"))
     if estimates_table:
         parts += ["## The dry run's time estimate against finished jobs (`benchmarks/estimate.py`)", "",
