@@ -46,7 +46,8 @@ def _run(args: dict) -> dict:
     import hashlib
 
     import tiled_gridpull.prepare as prepare
-    from benchmarks.common import peak_rss_mb
+    # VmHWM: ru_maxrss would carry over the parent's high-water mark across fork and exec
+    from tiled_gridpull.memory import peak_rss_mb
     from tiled_gridpull.config import SolverConfig
     from tiled_gridpull.jobdir import JobPaths
     from tiled_gridpull.tiling import TilingConfig

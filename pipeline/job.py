@@ -285,7 +285,8 @@ class DaskExecutor:
         their results in order. A task's error is raised here, as raised in the task."""
         if not args:
             return []
-        client = self._connect(len(args), root)
+        # sized for the tiles that follow on the same cluster, not for this first batch of tasks
+        client = self._connect(os.cpu_count() or 1, root)
         futures = [client.submit(fn, *a, pure=False, retries=self.options.retries) for a in args]
         try:
             return client.gather(futures)

@@ -165,6 +165,7 @@ def test_an_index_that_loses_points_is_refused(inputs, tmp_path):
     las.write(str(e / "ept-data" / f"{name}.laz"))
     with pytest.raises(InputError, match="truncated EPT node"):
         prepare_job([str(e / "ept.json")], TILING, JobPaths(tmp_path / "j"))
+    assert not (tmp_path / "j" / "points").exists()  # the tiles read before it are not left behind
 
 
 def test_tile_reads_run_as_dask_tasks_and_give_the_serial_job(inputs, tmp_path):

@@ -103,8 +103,9 @@ def test_a_damaged_segment_is_one_line_naming_the_file(files, tmp_path):
     data = Path(files["laz"]).read_bytes()
     bad.write_bytes(data[: len(data) * 2 // 3])
     with pytest.raises(InputError, match="bad.laz"):
-        prepare_job([str(bad)], TILING, JobPaths(tmp_path / "j"), run_tasks=_serial_map, chunk_size=2500,
-                    segment_points=5000)
+        prepare_job([str(bad), files["npy"]], TILING, JobPaths(tmp_path / "j"), run_tasks=_serial_map,
+                    chunk_size=2500, segment_points=5000)
+    assert not (tmp_path / "j" / "points").exists()  # no segment's files are left behind
 
 
 def test_several_files_are_partitioned_as_dask_tasks_into_the_one_pass(files, tmp_path):

@@ -100,7 +100,7 @@ def partition(chunks: Iterable, plan: TilePlan, out_dir: str | Path | None, has_
         # by tile, then by row: a tile's points keep the stream's order whatever the chunks (tiles_of lists the
         # pairs by block corner, not by row), so a stream cut anywhere -- in chunks, in segments partitioned
         # apart, or read back by region from an index -- gives the same spill files
-        order = np.argsort(key_arr * len(xyz) + pidx)
+        order = np.lexsort((pidx, key_arr))
         key_sorted = key_arr[order]
         starts = np.flatnonzero(np.r_[True, key_sorted[1:] != key_sorted[:-1]])
         ends = np.r_[starts[1:], len(order)]

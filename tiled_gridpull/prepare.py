@@ -8,6 +8,7 @@ are described in :mod:`tiled_gridpull.jobdir`.
 from __future__ import annotations
 
 import contextlib
+import shutil
 import warnings
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -371,11 +372,12 @@ def prepare_job(inputs: list[str], tiling: TilingConfig, paths: JobPaths, *, fra
     paths.manifest.unlink(missing_ok=True)  # the manifest commits a partition: none while one is under way
     segments = (plan_segments(inputs, chunk_size, segment_points or SEGMENT_POINTS) if run_tasks is not None
                 else [])
+    shutil.rmtree(paths.points() / ".segments", ignore_errors=True)  # a stopped run's segment files
     if all_indexed(inputs) and trajectory is None and not tiling.drop_outliers:
-        plan, scan, specs = _read_indexed(inputs, tiling, paths, check, run_tasks)
+        plan, scan, specs = _uncommitted_on_failure(paths, _read_indexed, inputs, tiling, paths, check, run_tasks)
     elif len(segments) > 1 and not tiling.drop_outliers:
-        plan, scan, specs = _partition_in_segments(inputs, tiling, paths, segments, chunk_size, frames, trajectory,
-                                                   check, run_tasks)
+        plan, scan, specs = _uncommitted_on_failure(paths, _partition_in_segments, inputs, tiling, paths, segments,
+                                                    chunk_size, frames, trajectory, check, run_tasks)
     else:
         plan, scan, chunks = plan_inputs(inputs, tiling, chunk_size=chunk_size, frames=frames,
                                          trajectory=trajectory)
@@ -390,11 +392,19 @@ def prepare_job(inputs: list[str], tiling: TilingConfig, paths: JobPaths, *, fra
     return plan, specs, scan
 
 
+def _uncommitted_on_failure(paths: JobPaths, fn, *args):
+    """``fn(*args)``; when it fails (a task's error, a refusal), the points directory it was filling goes: no
+    manifest commits it, and tiles already written by other tasks would only be left behind."""
+    try:
+        return fn(*args)
+    except BaseException:
+        shutil.rmtree(paths.points(), ignore_errors=True)
+        raise
+
+
 def _partition_in_segments(inputs, tiling, paths: JobPaths, segments, chunk_size, frames, trajectory, check,
                            run_tasks):
     """The scan and the partition as one task per segment of the stream, joined in stream order."""
-    import shutil
-
     plan, scan, _ = plan_inputs(inputs, tiling, chunk_size=chunk_size, frames=frames, trajectory=trajectory,
                                 segments=segments, run_tasks=run_tasks)
     traj = read_trajectory(trajectory) if trajectory is not None else None
