@@ -120,20 +120,20 @@ def _box_tiles(plan: TilePlan, lo: np.ndarray, hi: np.ndarray) -> set:
 
 
 def _sample(indexes: list[PointIndex], plan: TilePlan, budget: int):
-    """The shallow levels' points of every input, and each input's sample depth."""
+    """Every input with its sample depth and its shallow levels' points (clouds)."""
     brick = BRICK * plan.lattice.cell_size
     per_input = max(budget // len(indexes), 1)
     for ix in indexes:
         depth = _sample_depth(ix, brick, per_input)
-        yield ix, depth, [c.xyz for c in read_levels(ix, depth)]
+        yield ix, depth, list(read_levels(ix, depth))
 
 
 def candidate_tiles(indexes: list[PointIndex], plan: TilePlan, budget: int = SAMPLE_POINTS) -> list[tuple]:
     """Every tile that may hold points (a superset of those that do), sorted."""
     tiles: set = set()
     for ix, depth, parts in _sample(indexes, plan, budget):
-        for xyz in parts:
-            _, t = plan.tiles_of(plan.lattice.to_index(xyz))
+        for cloud in parts:
+            _, t = plan.tiles_of(plan.lattice.to_index(cloud.xyz))
             tiles.update(map(tuple, np.unique(t, axis=0).tolist()))
         deep = ix.keys[:, 0] >= depth
         if deep.any():
@@ -191,11 +191,11 @@ def estimate_specs(indexes: list[PointIndex], plan: TilePlan,
     sampled = 0
     for ix, depth, parts in _sample(indexes, plan, budget):
         occ: dict = {}
-        for spec in partition(_clouds(parts), plan, None, False, occupancy=occ):
+        for spec in partition(parts, plan, None, False, occupancy=occ):
             counts[spec.index] = counts.get(spec.index, 0) + spec.n_points
         for t, grid in occ.items():
             occupancy[t] = occupancy[t] | grid if t in occupancy else grid
-        sampled += sum(len(x) for x in parts)
+        sampled += sum(len(c) for c in parts)
         deep = np.flatnonzero(ix.keys[:, 0] >= depth)
         for r in deep:
             lo = np.maximum(ix.lo[r], ix.bounds[0])
@@ -247,10 +247,3 @@ def dense_region(path: str | os.PathLike, limit: int, regions: int = 8):
     if not parts:
         return None
     return PointCloud(np.concatenate(parts), crs=ix.crs, source=str(path))
-
-
-def _clouds(parts):
-    from .cloud import PointCloud
-
-    for xyz in parts:
-        yield PointCloud(xyz)

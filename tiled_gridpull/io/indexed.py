@@ -25,6 +25,7 @@ import numpy as np
 
 from ..cloud import PointCloud
 from ..errors import InputError
+from .input_errors import input_errors
 
 __all__ = ["PointIndex", "indexed_kind", "read_index", "read_box", "read_levels", "chunks", "read", "count",
            "crs", "ept_files"]
@@ -90,18 +91,11 @@ def read_index(path: str | os.PathLike) -> PointIndex:
     kind = indexed_kind(p)
     if kind is None:
         raise InputError(f"{p}: not a cloud-optimized point cloud (a *.copc.laz file or an ept.json)")
-    try:
-        return _copc_index(p) if kind == "COPC" else _ept_index(p)
-    except InputError:
-        raise
-    except FileNotFoundError as exc:
-        raise InputError(f"{p}: {kind} file missing: {exc.filename}") from None
-    except (OSError, ValueError, KeyError, TypeError, IndexError, AttributeError) as exc:
-        raise InputError(f"{p}: not a readable {kind} ({type(exc).__name__}: {str(exc).splitlines()[0][:200]})") \
-            from None
-    except Exception as exc:  # laspy's and lazrs's own errors
-        raise InputError(f"{p}: not a readable {kind} ({type(exc).__name__}: {str(exc).splitlines()[0][:200]})") \
-            from None
+    with input_errors(p, kind, f"not a readable {kind}"):
+        try:
+            return _copc_index(p) if kind == "COPC" else _ept_index(p)
+        except FileNotFoundError as exc:  # a hierarchy page or the file itself: name the one missing
+            raise InputError(f"{p}: {kind} file missing: {exc.filename}") from None
 
 
 # ---------------------------------------------------------------- COPC
@@ -211,13 +205,8 @@ def _ept_index(p: Path) -> PointIndex:
 def _ept_node(p: Path, meta: dict, key: np.ndarray, count: int) -> np.ndarray:
     name = "-".join(str(int(v)) for v in key)
     f = p.parent / "ept-data" / f"{name}.{'laz' if meta['dataType'] == 'laszip' else 'bin'}"
-    try:
+    with input_errors(f, "EPT node", "damaged EPT node"):
         xyz = _ept_node_points(f, meta, count)
-    except InputError:
-        raise
-    except Exception as exc:  # laspy's, lazrs's and the OS's: one line naming the node's file
-        detail = str(exc).splitlines()[0][:200] if str(exc) else type(exc).__name__
-        raise InputError(f"{f}: damaged EPT node ({type(exc).__name__}: {detail})") from None
     if len(xyz) != count:
         raise InputError(f"{f}: truncated EPT node (holds {len(xyz)} points, the hierarchy says {count})")
     return xyz
@@ -252,7 +241,7 @@ def _ept_points(index: PointIndex, rows: np.ndarray) -> Iterator[np.ndarray]:
 
 
 def _clouds(index: PointIndex, parts) -> Iterator[PointCloud]:
-    with _errors(index):
+    with input_errors(Path(index.path), index.kind, f"damaged {index.kind}"):
         for xyz in parts:
             if len(xyz):
                 yield PointCloud(xyz, crs=index.crs, source=index.path, report={"points_read": len(xyz)})
@@ -286,23 +275,6 @@ def read_levels(index: PointIndex, depth: int) -> Iterator[PointCloud]:
 
 def _lazy(fn, *args, **kwargs) -> Iterator[np.ndarray]:
     yield fn(*args, **kwargs)
-
-
-class _errors:
-    """Turn a reader failure on an index's nodes into one line naming the input."""
-
-    def __init__(self, index: PointIndex):
-        self.index = index
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, kind, exc, tb):
-        if exc is None or isinstance(exc, (InputError, GeneratorExit, KeyboardInterrupt)):
-            return False
-        detail = str(exc).splitlines()[0][:200] if str(exc) else type(exc).__name__
-        raise InputError(f"{self.index.path}: damaged {self.index.kind} ({type(exc).__name__}: {detail})") \
-            from None
 
 
 # ---------------------------------------------------------------- the format backend (whole inputs, for ".json")

@@ -32,11 +32,13 @@ def _reason(exc: BaseException) -> str:
 
 
 @contextlib.contextmanager
-def input_errors(path: Path, kind: str) -> Iterator[None]:
+def input_errors(path: Path, kind: str, problem: str | None = None) -> Iterator[None]:
     """Turn any parser failure into a one-line InputError naming the file (never a traceback).
 
-    ``kind`` names the format in messages ("LAZ", "PLY", "KITTI sequence", ...).
+    ``kind`` names the format in messages ("LAZ", "PLY", "KITTI sequence", ...); ``problem`` says what a parser
+    failure means (default "truncated or corrupted <kind> file").
     """
+    problem = problem or f"truncated or corrupted {kind} file"
     try:
         yield
     except GridPullError:
@@ -54,10 +56,10 @@ def input_errors(path: Path, kind: str) -> Iterator[None]:
     except OSError as exc:
         raise InputError(f"{path}: cannot read file ({_reason(exc)})") from None
     except Exception as exc:  # parsers raise anything (ValueError, LaspyException, LazrsError, ...)
-        raise InputError(f"{path}: truncated or corrupted {kind} file ({_reason(exc)})") from None
+        raise InputError(f"{path}: {problem} ({_reason(exc)})") from None
     except BaseException as exc:
         # a Rust extension (lazrs) that panics raises pyo3's PanicException, which derives from BaseException
         if type(exc).__name__ != "PanicException":
             raise
-        raise InputError(f"{path}: truncated or corrupted {kind} file ({_reason(exc)})") from None
+        raise InputError(f"{path}: {problem} ({_reason(exc)})") from None
 
