@@ -281,18 +281,59 @@ class DaskExecutor:
         return self._client
 
     def map(self, fn: Callable, args: list[tuple], root) -> list:
-        """``fn(*a)`` for every ``a`` in ``args`` as tasks on the cluster (the reads of indexed inputs' tiles);
-        their results in order. A task's error is raised here, as raised in the task."""
+        """``fn(*a)`` for every ``a`` in ``args`` as tasks on the cluster (the partition's tasks: segments of
+        plain inputs, tiles of indexed ones); their results in order.
+
+        Tasks go in as a sliding window of twice the cluster's threads (at most ``options.window``), which
+        keeps every thread busy without putting a survey's many thousand tasks on the scheduler at once. A
+        task's error is raised here, as raised in the task, once the tasks already running have returned:
+        Dask cannot stop a running task, and the caller removes the directory they write into, which a task
+        still running on an external cluster would fill again. Tasks not yet submitted never run.
+        """
         if not args:
             return []
+        from distributed import as_completed
+
         # sized for the tiles that follow on the same cluster, not for this first batch of tasks
         client = self._connect(os.cpu_count() or 1, root)
-        futures = [client.submit(fn, *a, pure=False, retries=self.options.retries) for a in args]
-        try:
-            return client.gather(futures)
-        finally:
-            for f in futures:
-                f.release()
+        threads = sum(client.nthreads().values()) or 1
+        window = max(1, min(self.options.window, 2 * threads))
+        results: list = [None] * len(args)
+        position: dict[str, int] = {}
+        pending = as_completed(with_results=True)
+        watch = _WorkerWatch(client, self.options.no_worker_timeout)
+        submitted, failure = 0, None
+
+        def submit(k: int) -> None:
+            nonlocal submitted
+            for i in range(submitted, min(len(args), submitted + k)):
+                fut = client.submit(fn, *args[i], pure=False, retries=self.options.retries)
+                position[fut.key] = i
+                pending.add(fut)
+            submitted = min(len(args), submitted + k)
+
+        submit(window)
+        while not pending.is_empty():
+            while not pending.has_ready():
+                if self.options.no_worker_timeout > 0:
+                    watch.check()
+                with pending.thread_condition:  # notified as each task finishes
+                    pending.thread_condition.wait(timeout=0.1)
+            for fut, result in pending.next_batch(block=False):
+                i = position.pop(fut.key)
+                fut.release()
+                if fut.status == "error" or isinstance(result, BaseException):
+                    if failure is None:
+                        failure = result
+                    continue
+                results[i] = result
+                if failure is None:
+                    submit(1)
+        if failure is not None:
+            if isinstance(failure, BaseException):  # cancelled (e.g. the cluster went away)
+                raise failure
+            raise failure[1].with_traceback(failure[2])
+        return results
 
     def run(self, specs: list[TileSpec], tiling: TilingConfig, solver: SolverConfig, paths: JobPaths, centre,
             key_ref) -> Iterator[TileEvent]:

@@ -223,3 +223,39 @@ def test_sample_street_writes_copc_and_ept_and_a_trajectory_streams_them(tmp_pat
     assert "indexed" not in scan and scan["has_sensor"] and all(s.has_sensor for s in specs)
     _, specs_i, scan_i = prepare_job([str(info["copc"])], tiling, JobPaths(tmp_path / "b"))
     assert scan_i["indexed"] == ["COPC"] and sum(s.n_points for s in specs_i) == sum(s.n_points for s in specs)
+
+
+def test_an_empty_input_does_not_widen_the_plan(inputs, tmp_path):
+    import json
+    import shutil
+
+    # an EPT with no point, its bounds at the origin (what writers put in an empty header): 4e6 m from the others
+    e = tmp_path / "empty"
+    shutil.copytree(inputs["EPT"].rsplit("/", 1)[0], e)
+    meta = json.loads((e / "ept.json").read_text())
+    meta.update(points=0, boundsConforming=[0, 0, 0, 0, 0, 0])
+    (e / "ept.json").write_text(json.dumps(meta))
+    pages = e / "ept-hierarchy"
+    for page in pages.iterdir():
+        page.write_text(json.dumps({k: 0 for k in json.loads(page.read_text())}))
+    plan_one, specs_one, _ = prepare_job([inputs["COPC"]], TILING, JobPaths(tmp_path / "a"))
+    plan, specs, scan = prepare_job([inputs["COPC"], str(e / "ept.json")], TILING, JobPaths(tmp_path / "b"))
+    assert plan.to_dict() == plan_one.to_dict()
+    assert _files(specs) == _files(specs_one)
+
+
+def test_a_point_no_tile_task_read_is_refused(inputs, tmp_path, monkeypatch):
+    import tiled_gridpull.indexed_inputs as indexed_inputs
+
+    plan, specs, scan = prepare_job([inputs["EPT"]], TILING, JobPaths(tmp_path / "a"))
+    # every point is owned by one tile whatever the overlaps copy: the owned counts add up to the header's
+    owned = sum(indexed_inputs.read_tile([inputs["EPT"]], plan, s.index, str(tmp_path / "x"))[1] for s in specs)
+    assert owned == scan["points"]
+    # a candidate tile missing from the tasks (its points are also in its neighbours' overlaps, so the tiles
+    # still hold more points than the input declares): the driver refuses the job instead of meshing a hole
+    real = prepare.candidate_tiles
+    dropped = max(specs, key=lambda s: s.n_points).index
+    monkeypatch.setattr(prepare, "candidate_tiles", lambda *a: [t for t in real(*a) if t != dropped])
+    with pytest.raises(InputError, match="the tiles read [0-9,]+ points, the headers declare"):
+        prepare_job([inputs["EPT"]], TILING, JobPaths(tmp_path / "b"))
+    assert not (tmp_path / "b" / "points").exists()

@@ -333,3 +333,45 @@ def test_external_scheduler_without_workers_or_shared_directory(tmp_path):
         check_workers_see(client, tmp_path, 30)
         with pytest.raises(ClusterError, match="cannot see the job directory .*shared"):
             check_workers_see(client, tmp_path / "not-on-the-workers", 30)
+
+
+def _slow_marked(i, where):
+    """A task: marks its start, fails at once when ``i`` is 3, else marks its end after 0.2 s."""
+    from pathlib import Path
+
+    Path(where, f"{i}.start").touch()
+    if i == 3:
+        raise ValueError("task 3 failed")
+    time.sleep(0.2)
+    Path(where, f"{i}.end").touch()
+    return i * i
+
+
+def test_executor_map_keeps_order_and_a_failure_leaves_no_task_running(tmp_path):
+    from distributed import Client, LocalCluster
+
+    from tiled_gridpull.pipeline.job import DaskExecutor, JobOptions
+
+    cluster = LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=":0")
+    executor = DaskExecutor(JobOptions(progress=False))
+    executor._client = Client(cluster)
+    try:
+        ok = tmp_path / "ok"
+        ok.mkdir()
+        assert executor.map(_slow_marked, [(i, str(ok)) for i in (5, 1, 4, 2, 6, 0)], tmp_path) == \
+            [25, 1, 16, 4, 36, 0]
+        bad = tmp_path / "bad"
+        bad.mkdir()
+        with pytest.raises(ValueError, match="task 3 failed"):
+            executor.map(_slow_marked, [(i, str(bad)) for i in range(40)], tmp_path)
+        started = {p.stem for p in bad.glob("*.start")}
+        ended = {p.stem for p in bad.glob("*.end")}
+        # every task that started (but the failed one) had returned when the error came; the rest never ran,
+        # not even later: the caller may now remove what they wrote
+        assert ended == started - {"3"}
+        assert len(started) <= 3 + 2 * 2 + 1
+        time.sleep(0.5)
+        assert {p.stem for p in bad.glob("*.start")} == started
+    finally:
+        executor._client.close()
+        cluster.close()

@@ -228,3 +228,24 @@ def test_an_absurd_cell_size_is_one_line(voxel):
 def test_record_fields_are_not_settings_of_their_own(kw, needle):
     with pytest.raises(ConfigError, match=needle):
         TilingConfig(**kw)
+
+
+def test_every_point_has_one_owner_among_the_tiles_holding_it_and_boxes_span_them():
+    from tiled_gridpull.tile_plan import plan_tiles
+
+    rng = np.random.default_rng(3)
+    cfg = TilingConfig(voxel_size=0.5, tile_size=8.0, overlap=2.0)  # 16-cell cores, 4-cell overlaps
+    xyz = rng.uniform([0, 0, 0], [40, 30, 9], (4000, 3))
+    plan = plan_tiles(np.stack([xyz.min(0), xyz.max(0)]), len(xyz), cfg)
+    idx = plan.lattice.to_index(xyz)
+    idx[:50, 0] = 16.0 * rng.integers(1, 3, 50)  # on core borders, where a floor decides the owner
+    owner = plan.owner_of(idx)
+    rows, tiles = plan.tiles_of(idx)
+    holds = {(int(r), *map(int, t)) for r, t in zip(rows, tiles)}
+    assert all((r, *map(int, owner[r])) in holds for r in range(len(xyz)))
+    assert len(holds) > len(xyz)  # overlaps copy points, owners do not
+    # a box's span covers every tile holding a point of the box, and no tile beyond the grid
+    lo, hi = idx.min(0), idx.max(0)
+    first, last = plan.tile_span(lo[None], hi[None])
+    assert np.all(tiles >= first) and np.all(tiles <= last)
+    assert np.all(first >= 0) and np.all(last < np.asarray(plan.tile_range))

@@ -76,11 +76,13 @@ def plan_indexed(inputs: list[str], tiling: TilingConfig) -> tuple[TilePlan, dic
     """
     indexes = [cached_index(p) for p in inputs]
     check_same_crs([(ix.crs, ix.path) for ix in indexes])
-    lo = np.min([ix.bounds[0] for ix in indexes], axis=0)
-    hi = np.max([ix.bounds[1] for ix in indexes], axis=0)
     n = int(sum(ix.points for ix in indexes))
     if n == 0:
         raise InputError(f"{', '.join(map(str, inputs))}: no points")
+    # an empty input's header bounds are whatever its writer put there (often zeros): they bound no point
+    holding = [ix for ix in indexes if ix.points > 0]
+    lo = np.min([ix.bounds[0] for ix in holding], axis=0)
+    hi = np.max([ix.bounds[1] for ix in holding], axis=0)
     if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi)) and np.all(lo <= hi)):
         raise InputError(f"{', '.join(map(str, inputs))}: the header's bounds are not finite or inverted")
     scan = {"bounds": np.stack([lo, hi]), "points": n, "has_sensor": False,
@@ -106,10 +108,7 @@ def _sample_depth(index: PointIndex, brick_size: float, budget: int) -> int:
 
 def _box_tiles(plan: TilePlan, lo: np.ndarray, hi: np.ndarray) -> set:
     """Tiles whose block overlaps any of the boxes [lo_i, hi_i] (world units)."""
-    T, O = plan.config.tile_cells, plan.config.overlap_cells
-    rng = np.asarray(plan.tile_range)
-    a = np.clip(np.floor((plan.lattice.to_index(lo) - O) / T).astype(np.int64), 0, rng - 1)
-    b = np.clip(np.floor((plan.lattice.to_index(hi) + O) / T).astype(np.int64), 0, rng - 1)
+    a, b = plan.tile_span(plan.lattice.to_index(lo), plan.lattice.to_index(hi))
     out = set()
     for (i0, j0, k0), (i1, j1, k1) in zip(a, b):
         for i in range(i0, i1 + 1):
@@ -155,21 +154,34 @@ def _read_box(plan: TilePlan, tile: tuple) -> tuple[np.ndarray, np.ndarray]:
     return np.where(t == 0, -np.inf, lo), np.where(t == np.asarray(plan.tile_range) - 1, np.inf, hi)
 
 
-def read_tile(inputs: list[str], plan: TilePlan, tile: tuple, out_dir: str) -> TileSpec | None:
+def read_tile(inputs: list[str], plan: TilePlan, tile: tuple, out_dir: str) -> tuple[TileSpec | None, int]:
     """One tile's task: read its points from the indexed ``inputs`` and write its spill file and occupancy in
-    ``out_dir`` (the job's points directory). None when the tile holds no point.
+    ``out_dir`` (the job's points directory).
+
+    Returns
+    -------
+    spec : TileSpec or None
+        None when the tile holds no point.
+    owned : int
+        Points read whose owner is this tile (:meth:`TilePlan.owner_of`): summed over the tiles, every point of
+        the inputs once, which is how the driver checks that no point was lost between the tasks.
     """
-    lo, hi = _read_box(plan, tuple(tile))
+    tile = tuple(int(v) for v in tile)
+    lo, hi = _read_box(plan, tile)
+    owned = 0
 
     def chunks():
+        nonlocal owned
         for path in inputs:
             ix = cached_index(path)
             # an open side (a border tile) reaches as far as the input's octree does
-            yield from read_box(ix, np.where(np.isinf(lo), ix.lo.min(axis=0, initial=np.inf), lo),
-                                np.where(np.isinf(hi), ix.hi.max(axis=0, initial=-np.inf), hi))
+            for cloud in read_box(ix, np.where(np.isinf(lo), ix.lo.min(axis=0, initial=np.inf), lo),
+                                  np.where(np.isinf(hi), ix.hi.max(axis=0, initial=-np.inf), hi)):
+                owned += int(np.all(plan.owner_of(plan.lattice.to_index(cloud.xyz)) == tile, axis=1).sum())
+                yield cloud
 
-    specs = partition(chunks(), plan, out_dir, False, only=tuple(tile))
-    return specs[0] if specs else None
+    specs = partition(chunks(), plan, out_dir, False, only=tile)
+    return (specs[0] if specs else None), owned
 
 
 def estimate_specs(indexes: list[PointIndex], plan: TilePlan,

@@ -436,12 +436,14 @@ def _read_indexed(inputs, tiling, paths: JobPaths, check, run_tasks):
     resolved = [str(Path(p).resolve()) for p in inputs]
     args = [(resolved, plan, t, str(out)) for t in tiles]
     results = run_tasks(read_tile, args) if run_tasks is not None else [read_tile(*a) for a in args]
-    specs = [s for s in results if s is not None]
+    specs = [s for s, _ in results if s is not None]
     scan["candidate_tiles"] = len(tiles)
-    if sum(s.n_points for s in specs) < scan["points"]:
-        # the overlaps copy points into several tiles, so the tiles can only hold more than the input
-        raise InputError(f"{', '.join(map(str, inputs))}: the tiles read {sum(s.n_points for s in specs):,} "
-                         f"points, fewer than the headers declare ({scan['points']:,}): a damaged index")
+    owned = sum(n for _, n in results)
+    if owned != scan["points"]:
+        # every point has one owner tile, whatever the overlaps copy: fewer means a node no candidate tile read
+        # or a node holding fewer points than its hierarchy entry says, more a point read twice
+        raise InputError(f"{', '.join(map(str, inputs))}: the tiles read {owned:,} points, the headers declare "
+                         f"{scan['points']:,}: a damaged index")
     if check is not None:
         try:
             check(specs, None)

@@ -124,6 +124,31 @@ class TilePlan:
         return TileSpec(tuple(int(v) for v in index), tuple(int(v) for v in core_lo), tuple(int(v) for v in core_hi),
                         block, mesh_lo=tuple(int(v) for v in mesh_lo), mesh_hi=tuple(int(v) for v in mesh_hi), **kw)
 
+    def tile_span(self, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """First and last tile (inclusive, per axis) whose block (core +- overlap) may reach into each box.
+
+        Parameters
+        ----------
+        lo, hi : (N, 3) float64
+            Boxes' corners in the job lattice's index coordinates (a point is the box ``lo == hi``).
+
+        Returns
+        -------
+        first, last : (N, 3) int64
+            Clipped to the tile grid, so points beyond the lattice's edge fall to the border tiles.
+        """
+        T, O = self.config.tile_cells, self.config.overlap_cells
+        top = np.asarray(self.tile_range) - 1
+        first = np.clip(np.floor((np.asarray(lo) - O) / T).astype(np.int64), 0, top)
+        last = np.clip(np.floor((np.asarray(hi) + O) / T).astype(np.int64), 0, top)
+        return first, last
+
+    def owner_of(self, index_coords: np.ndarray) -> np.ndarray:
+        """(N, 3) int64: the one tile whose core holds each point (clipped to the grid), so that counting the
+        points each tile owns counts every point once, whatever the overlaps copy."""
+        top = np.asarray(self.tile_range) - 1
+        return np.clip(np.floor(np.asarray(index_coords) / self.config.tile_cells).astype(np.int64), 0, top)
+
     def tiles_of(self, index_coords: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Every (point, tile) pair whose block holds the point.
 
@@ -140,11 +165,7 @@ class TilePlan:
             Tile index of each pair.
         """
         T, O = self.config.tile_cells, self.config.overlap_cells
-        rng = np.asarray(self.tile_range)
-        lo = np.floor((index_coords - O) / T).astype(np.int64)
-        hi = np.floor((index_coords + O) / T).astype(np.int64)
-        lo = np.clip(lo, 0, rng - 1)
-        hi = np.clip(hi, 0, rng - 1)
+        lo, hi = self.tile_span(index_coords, index_coords)
         pts, tiles = [], []
         n = len(index_coords)
         for dx in (0, 1):
