@@ -280,7 +280,9 @@ def cmd_reconstruct(args) -> int:
     finally:
         if bar:
             bar.close()
-    mesh.metadata["inputs"] = [str(Path(p).resolve()) for p in args.inputs]
+    from tiled_gridpull.io.remote import resolved
+
+    mesh.metadata["inputs"] = [resolved(p) for p in args.inputs]
     if cloud.crs:
         mesh.metadata["crs"] = cloud.crs
     write_mesh_and_sidecar(mesh, out, float32=args.float32)
@@ -316,13 +318,16 @@ def _reconstruct_tiled(args, out: Path, solver, tiling) -> int:
     if out.suffix.lower() != ".ply":
         raise ConfigError(f"output {out}: tiled mode writes PLY")
     frames = _parse_frames(args.frames)
+    from tiled_gridpull.io.remote import is_url
+
     for p in args.inputs:
-        if not Path(p).exists():
+        if not is_url(p) and not Path(p).exists():
             raise InputError(f"{p}: file not found")
-    from tiled_gridpull.prepare import check_registered, resolve_units
+    from tiled_gridpull.prepare import check_registered, check_remote, resolve_units
     from tiled_gridpull.tiling import check_compatible
 
     check_registered(args.inputs)  # before the job directory is made
+    check_remote(args.inputs, args.trajectory, tiling)
     if args.trajectory is not None:
         from tiled_gridpull.trajectory import read_trajectory
 

@@ -30,6 +30,7 @@ import numpy as np
 from .crs import check_same_crs
 from .errors import InputError
 from .io.indexed import PointIndex, indexed_kind, read_box, read_index, read_levels
+from .io.remote import is_url, validators
 from .kernels import BRICK
 from .partition import partition
 from .tile_plan import TilePlan, TileSpec, plan_tiles
@@ -43,18 +44,23 @@ SAMPLE_POINTS = 2_000_000
 
 
 def all_indexed(inputs: list) -> bool:
-    """Whether every input is a COPC file or an EPT (by name)."""
-    return bool(inputs) and all(indexed_kind(p) is not None and not Path(p).is_dir() for p in inputs)
+    """Whether every input is a COPC file or an EPT (by name; a path or a URL)."""
+    return bool(inputs) and all(indexed_kind(p) is not None and (is_url(p) or not Path(p).is_dir())
+                                for p in inputs)
 
 
 @functools.lru_cache(maxsize=64)
-def _index(path: str, size: int, mtime_ns: int) -> PointIndex:
+def _index(path: str, *version) -> PointIndex:
     return read_index(path)
 
 
 def cached_index(path: str | os.PathLike) -> PointIndex:
     """:func:`~tiled_gridpull.io.indexed.read_index`, kept per process while the file is unchanged (a worker
-    reads many tiles of one input)."""
+    reads many tiles of one input): a local file's size and modification time, a URL's size, ETag and
+    Last-Modified (one HEAD request)."""
+    if is_url(path):
+        v = validators(path)
+        return _index(path, v["size"], v["etag"], v["last_modified"])
     p = Path(path)
     try:
         st = p.stat()

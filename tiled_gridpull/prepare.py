@@ -21,6 +21,8 @@ from .crs import check_same_crs, crs_name
 from .errors import ConfigError, InputError
 from .cloud import PointCloud
 from .io import iter_point_chunks, iter_row_chunks, read_kitti_sequence
+from .io.indexed import indexed_kind
+from .io.remote import is_url, resolved
 from .jobdir import JobPaths, write_manifest
 from .outliers import SAMPLE_STRIDE, body_box, describe, far_mask
 from .indexed_inputs import all_indexed, candidate_tiles, plan_indexed, read_tile
@@ -50,6 +52,32 @@ def check_registered(inputs: list[str]) -> None:
         raise InputError(f"{shown}: a KITTI scan file is in its own sensor frame and cannot be merged with other "
                          f"inputs ({len(inputs)} given) without poses; give the sequence directory (velodyne/*.bin "
                          f"with poses.txt) instead, or one scan alone")
+
+
+def check_remote(inputs: list[str], trajectory=None, tiling: TilingConfig | None = None) -> None:
+    """Refuse URL inputs that would have to be streamed whole: only COPC files and EPTs are read from a web
+    server (by region, through their index), and only when every input is one and nothing needs every point on
+    the driver (a trajectory, ``drop_outliers``).
+
+    Raises
+    ------
+    InputError
+        Naming the first URL and what to do instead (download it).
+    """
+    urls = [p for p in inputs if is_url(p)]
+    if not urls:
+        return
+    plain = [p for p in inputs if indexed_kind(p) is None]
+    if plain and plain[0] in urls:
+        raise InputError(f"{plain[0]}: only COPC files and EPTs are read from a URL (by region, through their "
+                         "index); download it and give its path")
+    why = (f"{plain[0]}, given with it, is not a COPC file or an EPT" if plain else
+           "--trajectory reads every point's GPS time on the driver" if trajectory is not None else
+           "drop_outliers reads every point on the driver" if tiling is not None and tiling.drop_outliers else
+           None)
+    if why:
+        raise InputError(f"{urls[0]}: a URL is read tile by tile through its index, but {why}; download the "
+                         "files and give their paths")
 
 
 #: points ``voxel_size: auto`` reads at least from the start of each input (up to its budget over all of them)
@@ -365,6 +393,7 @@ def prepare_job(inputs: list[str], tiling: TilingConfig, paths: JobPaths, *, fra
     (:func:`~tiled_gridpull.partition.merge_segments`) into the very files one pass writes. ``drop_outliers``
     keeps the one pass.
     """
+    check_remote(inputs, trajectory, tiling)
     key = partition_key(inputs, tiling, frames, trajectory)
     reused = load_partition(paths, key, tiling)
     if reused is not None:
@@ -385,7 +414,7 @@ def prepare_job(inputs: list[str], tiling: TilingConfig, paths: JobPaths, *, fra
             occupancy: dict = {}
             check(partition(chunks(), plan, None, scan["has_sensor"], occupancy=occupancy), occupancy)
         specs = partition(chunks(), plan, paths.points(), scan["has_sensor"])
-    write_manifest(paths.manifest, plan, specs, {"inputs": [str(Path(p).resolve()) for p in inputs],
+    write_manifest(paths.manifest, plan, specs, {"inputs": [resolved(p) for p in inputs],
                                                  "crs": scan["crs"], "version": __version__,
                                                  "partition_key": key, "scan": scan_record(scan)})
     scan["partition_reused"] = False
@@ -433,8 +462,8 @@ def _read_indexed(inputs, tiling, paths: JobPaths, check, run_tasks):
     tiles = candidate_tiles(indexes, plan)
     out = paths.points()
     out.mkdir(parents=True, exist_ok=True)
-    resolved = [str(Path(p).resolve()) for p in inputs]
-    args = [(resolved, plan, t, str(out)) for t in tiles]
+    sources = [resolved(p) for p in inputs]
+    args = [(sources, plan, t, str(out)) for t in tiles]
     results = run_tasks(read_tile, args) if run_tasks is not None else [read_tile(*a) for a in args]
     specs = [s for s, _ in results if s is not None]
     scan["candidate_tiles"] = len(tiles)

@@ -41,6 +41,7 @@ from ._version import __version__
 from .config import SolverConfig
 from .errors import ConfigError, InputError
 from .io.atomic import json_default, write_json
+from .io.remote import is_url, validators
 from .jobdir import JobPaths, spill_record
 from .stitch import mesh_tile
 from .tile_plan import TileSpec, plan_tiles
@@ -77,6 +78,9 @@ def input_fingerprint(inputs: list) -> list[dict]:
     """Resolved path, size and modification time of every input (every file of a sequence directory)."""
     out = []
     for raw in inputs:
+        if is_url(raw):
+            out.append(_url_fingerprint(raw))
+            continue
         p = Path(raw).resolve()
         try:
             if p.is_dir():
@@ -98,6 +102,24 @@ def input_fingerprint(inputs: list) -> list[dict]:
         except (OSError, InputError):  # missing, unreadable or not a sequence: the scan reports it; never reused
             out.append({"path": str(p), "unreadable": os.urandom(8).hex()})
     return out
+
+
+def _url_fingerprint(url: str) -> dict:
+    """A URL input's version on its server: the file's size, ETag and Last-Modified; for an EPT also its
+    hierarchy's root page (what it holds, as bytes), since an EPT is rewritten file by file. A node file
+    replaced on the server under the same hierarchy is not seen (asking for every node's headers would cost a
+    request per node); each tile's solve key still hashes the points it read."""
+    from .io.indexed import indexed_kind
+    from .io.remote import fetch, url_join
+
+    try:
+        facts = validators(url)
+        if indexed_kind(url) == "EPT":
+            root = fetch(url_join(url, "ept-hierarchy", "0-0-0-0.json"))
+            facts["hierarchy_sha256"] = hashlib.sha256(root).hexdigest()
+        return facts
+    except InputError:  # unreachable: the scan reports it; never reused
+        return {"url": url, "unreadable": os.urandom(8).hex()}
 
 
 def partition_key(inputs: list, tiling: TilingConfig, frames=None, trajectory=None) -> str:

@@ -9,8 +9,9 @@ order (nodes by file offset), an EPT's nodes in key order; within a node, as sto
 partition sees them, and a tile read from the index is byte for byte the tile the streaming partition writes.
 
 COPC is read with laspy's ``CopcReader`` (lazrs decompresses the nodes' chunks); EPT is parsed here (a JSON
-header, JSON hierarchy pages) with its nodes read by laspy (``laszip``) or NumPy (``binary``). Both are local
-files; remote (http) sources are not read.
+header, JSON hierarchy pages) with its nodes read by laspy (``laszip``) or NumPy (``binary``). Either may be a
+local path or an ``http(s)://`` URL (:mod:`tiled_gridpull.io.remote`): a COPC file is then read by byte ranges,
+an EPT's JSON and node files are fetched one by one, so a tile's task fetches only the nodes its box overlaps.
 """
 
 from __future__ import annotations
@@ -26,14 +27,15 @@ import numpy as np
 from ..cloud import PointCloud
 from ..errors import InputError
 from .input_errors import input_errors
+from .remote import RemoteFile, fetch, is_url, url_join, url_name
 
 __all__ = ["PointIndex", "indexed_kind", "read_index", "read_box", "read_levels", "chunks", "read", "count",
            "crs", "ept_files"]
 
 
 def indexed_kind(path: str | os.PathLike) -> str | None:
-    """``"COPC"`` for ``*.copc.laz``, ``"EPT"`` for an ``ept.json``, else None (by name only)."""
-    name = Path(path).name.lower()
+    """``"COPC"`` for ``*.copc.laz``, ``"EPT"`` for an ``ept.json`` (a path or a URL), else None (by name only)."""
+    name = (url_name(path) if is_url(path) else Path(path).name).lower()
     if name.endswith(".copc.laz"):
         return "COPC"
     if name == "ept.json":
@@ -87,7 +89,7 @@ def _cubes(keys: np.ndarray, cube_lo: np.ndarray, size: float) -> tuple[np.ndarr
 
 def read_index(path: str | os.PathLike) -> PointIndex:
     """The header and hierarchy of a COPC file or an EPT; InputError (one line) when they are not readable."""
-    p = Path(path)
+    p = path if is_url(path) else Path(path)
     kind = indexed_kind(p)
     if kind is None:
         raise InputError(f"{p}: not a cloud-optimized point cloud (a *.copc.laz file or an ept.json)")
@@ -101,14 +103,17 @@ def read_index(path: str | os.PathLike) -> PointIndex:
 # ---------------------------------------------------------------- COPC
 
 
-def _copc_reader(p: Path):
+def _copc_reader(p):
     from laspy import CopcReader, DecompressionSelection
 
     sel = DecompressionSelection
-    return CopcReader.open(str(p), decompression_selection=sel.XY_RETURNS_CHANNEL | sel.Z)
+    selection = sel.XY_RETURNS_CHANNEL | sel.Z
+    if is_url(p):
+        return CopcReader(RemoteFile(p), decompression_selection=selection)
+    return CopcReader.open(str(p), decompression_selection=selection)
 
 
-def _copc_index(p: Path) -> PointIndex:
+def _copc_index(p) -> PointIndex:
     from laspy.copc import load_octree_for_query
 
     from . import las
@@ -140,7 +145,7 @@ def _copc_points(index: PointIndex, lo=None, hi=None, depth: int | None = None) 
     order."""
     from laspy.copc import Bounds
 
-    with _copc_reader(Path(index.path)) as reader:
+    with _copc_reader(index.path) as reader:
         bounds = None
         if lo is not None:
             pad = 4 * np.asarray(reader.header.scales, np.float64)
@@ -159,8 +164,17 @@ _EPT_TYPES = {("signed", 1): "<i1", ("signed", 2): "<i2", ("signed", 4): "<i4", 
               ("floating", 4): "<f4", ("floating", 8): "<f8"}
 
 
-def _ept_meta(p: Path) -> dict:
-    meta = json.loads(p.read_text())
+def _read_bytes(source) -> bytes:
+    return fetch(source) if is_url(source) else Path(source).read_bytes()
+
+
+def _beside(ept_json, *parts: str):
+    """A file of the EPT whose ``ept.json`` is ``ept_json`` (a path or a URL)."""
+    return url_join(ept_json, *parts) if is_url(ept_json) else Path(ept_json).parent.joinpath(*parts)
+
+
+def _ept_meta(p) -> dict:
+    meta = json.loads(_read_bytes(p))
     for field in ("bounds", "points", "schema", "dataType"):
         if field not in meta:
             raise InputError(f"{p}: not an EPT ept.json (no '{field}')")
@@ -171,12 +185,12 @@ def _ept_meta(p: Path) -> dict:
     return meta
 
 
-def _ept_hierarchy(root: Path) -> dict[str, int]:
+def _ept_hierarchy(p) -> dict[str, int]:
     """Every node's point count, following the pages a count of -1 points to."""
     out: dict[str, int] = {}
     pages = ["0-0-0-0"]
     while pages:
-        page = json.loads((root / "ept-hierarchy" / f"{pages.pop()}.json").read_text())
+        page = json.loads(_read_bytes(_beside(p, "ept-hierarchy", f"{pages.pop()}.json")))
         for key, value in page.items():
             if int(value) == -1:
                 pages.append(key)
@@ -185,9 +199,9 @@ def _ept_hierarchy(root: Path) -> dict[str, int]:
     return out
 
 
-def _ept_index(p: Path) -> PointIndex:
+def _ept_index(p) -> PointIndex:
     meta = _ept_meta(p)
-    counts_by_key = {k: v for k, v in _ept_hierarchy(p.parent).items() if v > 0}
+    counts_by_key = {k: v for k, v in _ept_hierarchy(p).items() if v > 0}
     keys = np.array(sorted(tuple(int(v) for v in k.split("-")) for k in counts_by_key), np.int64).reshape(-1, 4)
     counts = np.array([counts_by_key["-".join(map(str, k))] for k in keys], np.int64)
     cube = np.asarray(meta["bounds"], np.float64)
@@ -202,9 +216,9 @@ def _ept_index(p: Path) -> PointIndex:
     return PointIndex(str(p), "EPT", conforming.reshape(2, 3), declared, crs, keys, lo, hi, counts)
 
 
-def _ept_node(p: Path, meta: dict, key: np.ndarray, count: int) -> np.ndarray:
+def _ept_node(p, meta: dict, key: np.ndarray, count: int) -> np.ndarray:
     name = "-".join(str(int(v)) for v in key)
-    f = p.parent / "ept-data" / f"{name}.{'laz' if meta['dataType'] == 'laszip' else 'bin'}"
+    f = _beside(p, "ept-data", f"{name}.{'laz' if meta['dataType'] == 'laszip' else 'bin'}")
     with input_errors(f, "EPT node", "damaged EPT node"):
         xyz = _ept_node_points(f, meta, count)
     if len(xyz) != count:
@@ -212,18 +226,21 @@ def _ept_node(p: Path, meta: dict, key: np.ndarray, count: int) -> np.ndarray:
     return xyz
 
 
-def _ept_node_points(f: Path, meta: dict, count: int) -> np.ndarray:
+def _ept_node_points(f, meta: dict, count: int) -> np.ndarray:
     if meta["dataType"] == "laszip":
+        import io
+
         import laspy
 
         from .las import laz_backend
 
-        with laspy.open(str(f), laz_backend=laz_backend()) as reader:
+        source = io.BytesIO(fetch(f)) if is_url(f) else str(f)  # a node is small: fetched whole
+        with laspy.open(source, laz_backend=laz_backend()) as reader:
             pts = reader.read_points(count)
         return np.column_stack([np.asarray(pts.x, np.float64), np.asarray(pts.y, np.float64),
                                 np.asarray(pts.z, np.float64)])
     dtype = np.dtype([(d["name"], _EPT_TYPES[(d["type"], int(d["size"]))]) for d in meta["schema"]])
-    raw = np.fromfile(f, dtype=dtype)
+    raw = np.frombuffer(fetch(f), dtype=dtype) if is_url(f) else np.fromfile(f, dtype=dtype)
     xyz = np.empty((len(raw), 3))
     for d in meta["schema"]:
         if d["name"] in ("X", "Y", "Z"):
@@ -232,16 +249,16 @@ def _ept_node_points(f: Path, meta: dict, count: int) -> np.ndarray:
 
 
 def _ept_points(index: PointIndex, rows: np.ndarray) -> Iterator[np.ndarray]:
-    meta = _ept_meta(Path(index.path))
+    meta = _ept_meta(index.path)
     for r in rows:
-        yield _ept_node(Path(index.path), meta, index.keys[r], int(index.counts[r]))
+        yield _ept_node(index.path, meta, index.keys[r], int(index.counts[r]))
 
 
 # ---------------------------------------------------------------- reading
 
 
 def _clouds(index: PointIndex, parts) -> Iterator[PointCloud]:
-    with input_errors(Path(index.path), index.kind, f"damaged {index.kind}"):
+    with input_errors(index.path, index.kind, f"damaged {index.kind}"):
         for xyz in parts:
             if len(xyz):
                 yield PointCloud(xyz, crs=index.crs, source=index.path, report={"points_read": len(xyz)})

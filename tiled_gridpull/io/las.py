@@ -63,6 +63,14 @@ def crs(p: Path) -> str | None:
     """The CRS in the header (WKT), without reading points; None when it has none."""
     import laspy
 
+    from .remote import RemoteFile, is_url
+
+    if is_url(p):  # a COPC file on a web server: its header and EVLRs through range requests
+        with RemoteFile(p) as fh:
+            _las_precheck_stream(p, fh, fh.size)
+            fh.seek(0)
+            with laspy.open(fh, closefd=False, laz_backend=laz_backend()) as reader:
+                return _las_crs(reader.header)
     _las_precheck(p)
     with laspy.open(str(p), laz_backend=laz_backend()) as reader:
         return _las_crs(reader.header)
@@ -131,12 +139,16 @@ def _las_precheck(p: Path) -> int | None:
 
     Returns the number of chunks of a LAZ file's chunk table (None: not LAZ, or no usable table).
     """
-    size = p.stat().st_size
-    n_chunks = None
     with open(p, "rb") as fh:
-        head = fh.read(375)
-        if head[:4] == b"LASF" and len(head) >= 227 and head[104] & 0xC0:
-            n_chunks = _laz_chunk_table_check(p, fh, int.from_bytes(head[96:100], "little"), size)
+        return _las_precheck_stream(p, fh, p.stat().st_size)
+
+
+def _las_precheck_stream(p, fh, size: int) -> int | None:
+    """:func:`_las_precheck` on an open binary file of ``size`` bytes (``p`` names it in messages)."""
+    n_chunks = None
+    head = fh.read(375)
+    if head[:4] == b"LASF" and len(head) >= 227 and head[104] & 0xC0:
+        n_chunks = _laz_chunk_table_check(p, fh, int.from_bytes(head[96:100], "little"), size)
     if head[:4] != b"LASF":
         raise InputError(f"{p}: not a LAS/LAZ file (no LASF signature)")
     if len(head) < 227:

@@ -25,6 +25,7 @@ from ..errors import ConfigError, InputError
 from .formats import PointFormat, point_format
 from .input_errors import check_path, input_errors
 from .kitti import kitti_chunks, kitti_sequence_count, read_kitti_sequence
+from .remote import is_url
 
 __all__ = ["read_points", "iter_point_chunks", "iter_row_chunks", "point_count"]
 
@@ -56,6 +57,9 @@ def read_points(path: str | os.PathLike, *, clean: bool = True,
     ConfigError
         ``frames`` given for a file, or an invalid ``frames`` selection.
     """
+    if is_url(path):
+        cloud = _read_url(path)
+        return clean_points(cloud, what=path) if clean else cloud
     p = check_path(path)
     if p.is_dir():
         cloud = read_kitti_sequence(p, frames)
@@ -68,6 +72,20 @@ def read_points(path: str | os.PathLike, *, clean: bool = True,
     if clean:
         cloud = clean_points(cloud, what=str(p))
     return cloud
+
+
+def _read_url(url: str) -> PointCloud:
+    """A whole COPC file or EPT on a web server, every node in stream order."""
+    from ..cloud import concat_clouds
+    from .indexed import indexed_kind, read_index, read_levels
+
+    if indexed_kind(url) is None:
+        raise InputError(f"{url}: only COPC files and EPTs are read from a URL; download it and give its path")
+    index = read_index(url)
+    parts = list(read_levels(index, int(index.keys[:, 0].max(initial=0)) + 1))
+    if not parts:
+        raise InputError(f"{url}: no points")
+    return concat_clouds(parts, url)
 
 
 def iter_point_chunks(paths: str | os.PathLike | Iterable[str | os.PathLike],
@@ -170,6 +188,10 @@ def point_count(path: str | os.PathLike) -> int:
     InputError
         As :func:`read_points` for a missing, unreadable, unknown or corrupted file.
     """
+    if is_url(path):  # a COPC file or an EPT on a web server: its header
+        from .indexed import read_index
+
+        return read_index(path).points
     p = check_path(path)
     if p.is_dir():
         with input_errors(p, "KITTI sequence"):
@@ -188,6 +210,10 @@ def read_crs(path: str | os.PathLike) -> str | None:
     InputError
         As :func:`point_count`.
     """
+    if is_url(path):
+        from .indexed import read_index
+
+        return read_index(path).crs
     p = check_path(path)
     if p.is_dir():
         return None

@@ -1,0 +1,255 @@
+"""COPC files and EPTs read from a web server (a local one here, answering range requests as object stores do):
+the same index, the same tiles byte for byte as the files on disk, only the bytes a tile needs, and one-line
+errors for what a server can do wrong."""
+
+import email.utils
+import hashlib
+import http.server
+import os
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tiled_gridpull.errors import InputError
+from tiled_gridpull.io.indexed import read_index
+from tiled_gridpull.io.indexed_write import write_copc, write_ept
+from tiled_gridpull.io.remote import RemoteFile, url_join, url_name
+from tiled_gridpull.jobdir import JobPaths
+from tiled_gridpull.prepare import prepare_job
+from tiled_gridpull.tiling import TilingConfig
+
+pytest.importorskip("copclib", reason="writing COPC test files needs copclib (pip install 'tiled-gridpull[copc]')")
+
+TILING = TilingConfig(voxel_size=0.2, tile_size=6.4, overlap=1.6)
+ORIGIN = np.array([500000.0, 4000000.0, 20.0])
+WKT = 'PROJCS["WGS 84 / UTM zone 31N",GEOGCS["WGS 84"],UNIT["metre",1]]'
+
+
+class _Handler(http.server.SimpleHTTPRequestHandler):
+    """Files of the served directory with HEAD, ETag, Last-Modified and single ``Range: bytes=a-b`` requests
+    (206), counting the body bytes sent; ``ranges = False`` on the server answers 200 with the whole file."""
+
+    def log_message(self, *args):
+        pass
+
+    def _file(self):
+        f = Path(self.translate_path(self.path))
+        return f if f.is_file() else None
+
+    def _headers(self, f: Path, status: int, length: int, extra: dict | None = None):
+        st = f.stat()
+        self.send_response(status)
+        self.send_header("Content-Length", str(length))
+        self.send_header("ETag", f'"{st.st_size:x}-{st.st_mtime_ns:x}"')
+        self.send_header("Last-Modified", email.utils.formatdate(st.st_mtime, usegmt=True))
+        for k, v in (extra or {}).items():
+            self.send_header(k, v)
+        self.end_headers()
+
+    def do_HEAD(self):
+        f = self._file()
+        if f is None:
+            self.send_error(404)
+            return
+        self._headers(f, 200, f.stat().st_size)
+
+    def do_GET(self):
+        f = self._file()
+        if f is None:
+            self.send_error(404)
+            return
+        data = f.read_bytes()
+        rng = self.headers.get("Range")
+        if rng and self.server.ranges:
+            a, b = rng.split("=")[1].split("-")
+            a, b = int(a), min(int(b), len(data) - 1)
+            body = data[a:b + 1]
+            self._headers(f, 206, len(body), {"Content-Range": f"bytes {a}-{b}/{len(data)}"})
+        else:
+            body = data
+            self._headers(f, 200, len(body))
+        self.server.sent[f.name] = self.server.sent.get(f.name, 0) + len(body)
+        self.wfile.write(body)
+
+
+@pytest.fixture(scope="module")
+def served(tmp_path_factory):
+    root = tmp_path_factory.mktemp("served")
+    rng = np.random.default_rng(8)
+    n = 40000
+    x = np.concatenate([rng.uniform(0, 10, n // 2), rng.uniform(30, 40, n // 2)])
+    y = rng.uniform(0, 12, n)
+    xyz = np.column_stack([x, y, 0.3 * np.sin(x) * np.cos(y / 2)]) + ORIGIN
+    write_copc(root / "s.copc.laz", xyz, max_node_points=3000, wkt=WKT)
+    write_ept(root / "ept", xyz, max_node_points=3000, wkt=WKT)
+
+    def handler(*args, **kwargs):
+        return _Handler(*args, directory=str(root), **kwargs)
+
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+    server.sent, server.ranges = {}, True
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    base = f"http://127.0.0.1:{server.server_address[1]}"
+    yield {"root": root, "server": server, "base": base,
+           "COPC": (f"{base}/s.copc.laz", str(root / "s.copc.laz")),
+           "EPT": (f"{base}/ept/ept.json", str(root / "ept" / "ept.json"))}
+    server.shutdown()
+
+
+def _files(specs):
+    return {s.name: (s.n_points, s.points_sha256, Path(s.points_path).read_bytes(),
+                     Path(s.occupancy_path).read_bytes()) for s in specs}
+
+
+def test_url_names_and_siblings():
+    url = "https://example.org/lidar/area/ept.json?sig=abc"
+    assert url_name(url) == "ept.json"
+    assert url_join(url, "ept-data", "0-0-0-0.laz") == "https://example.org/lidar/area/ept-data/0-0-0-0.laz?sig=abc"
+
+
+def test_remote_file_reads_what_the_file_holds(served):
+    url, local = served["COPC"]
+    data = Path(local).read_bytes()
+    rng = np.random.default_rng(0)
+    with RemoteFile(url) as fh:
+        assert fh.size == len(data)
+        for _ in range(60):
+            a = int(rng.integers(0, len(data)))
+            n = int(rng.choice([1, 7, 375, 70_000, 200_000]))
+            fh.seek(a)
+            assert fh.read(n) == data[a:a + n]
+        fh.seek(-10, os.SEEK_END)
+        assert fh.read() == data[-10:]
+        assert fh.read(5) == b""
+
+
+@pytest.mark.parametrize("kind", ["COPC", "EPT"])
+def test_an_index_read_from_a_url_is_the_index_on_disk(served, kind):
+    url, local = served[kind]
+    a, b = read_index(url), read_index(local)
+    np.testing.assert_array_equal(a.keys, b.keys)
+    np.testing.assert_array_equal(a.counts, b.counts)
+    np.testing.assert_array_equal(a.bounds, b.bounds)
+    assert a.crs == b.crs and "UTM zone 31N" in a.crs and a.points == b.points == 40000
+
+
+@pytest.mark.parametrize("kind", ["COPC", "EPT"])
+def test_tiles_read_from_a_url_are_the_tiles_of_the_file_and_a_job_resumes(served, tmp_path, kind):
+    url, local = served[kind]
+    plan, specs, scan = prepare_job([url], TILING, JobPaths(tmp_path / "url"))
+    plan_l, specs_l, _ = prepare_job([local], TILING, JobPaths(tmp_path / "local"))
+    assert scan["indexed"] == [kind] and len(specs) >= 4
+    assert plan.to_dict() == plan_l.to_dict()
+    assert _files(specs) == _files(specs_l)
+    _, again, scan2 = prepare_job([url], TILING, JobPaths(tmp_path / "url"))
+    assert scan2["partition_reused"] and _files(again) == _files(specs)
+
+
+def test_a_tile_fetches_a_part_of_a_copc_file(served, tmp_path):
+    from tiled_gridpull.indexed_inputs import plan_indexed, read_tile
+
+    import laspy
+    from laspy.copc import load_octree_for_query
+
+    from tiled_gridpull.indexed_inputs import _read_box
+    from tiled_gridpull.io.remote import BLOCK
+
+    url, local = served["COPC"]
+    plan, _, _ = plan_indexed([url], TILING)
+    tile = (plan.tile_range[0] - 1, 0, 0)  # the far end of the second patch
+    lo, hi = _read_box(plan, tile)
+    ix = read_index(local)
+    lo, hi = np.where(np.isinf(lo), ix.lo.min(0), lo), np.where(np.isinf(hi), ix.hi.max(0), hi)
+    with laspy.CopcReader.open(local) as r:
+        nodes = [n for n in load_octree_for_query(r.source, r.copc_info, r.root_page) if n.point_count > 0]
+    lo_n, hi_n = ix.lo, ix.hi  # same order as ix.keys: by file offset
+    nodes.sort(key=lambda n: n.offset)
+    overlapping = np.all((lo_n <= hi + 1e-3) & (hi_n >= lo - 1e-3), axis=1)
+    needed = sum(n.byte_size for n, o in zip(nodes, overlapping) if o)
+    size = Path(local).stat().st_size
+    assert needed < 0.7 * size  # the tile's nodes are a part of the file (else the test says nothing)
+    served["server"].sent.clear()
+    spec, owned = read_tile([url], plan, tile, str(tmp_path))
+    assert spec is not None and owned > 0
+    # the chunks of the nodes overlapping the tile, plus the header and hierarchy pages in a few blocks
+    assert served["server"].sent["s.copc.laz"] <= needed + 4 * BLOCK, (served["server"].sent, needed, size)
+
+
+def test_a_changed_file_on_the_server_is_read_again(served, tmp_path):
+    import shutil
+
+    url, local = served["COPC"]
+    copy = served["root"] / "copy.copc.laz"
+    shutil.copy(local, copy)
+    curl = f"{served['base']}/copy.copc.laz"
+    _, first, _ = prepare_job([curl], TILING, JobPaths(tmp_path / "j"))
+    xyz = np.random.default_rng(3).uniform(0, 10, (5000, 3)) + ORIGIN
+    write_copc(copy, xyz, max_node_points=3000, wkt=WKT)
+    os.utime(copy, ns=(copy.stat().st_atime_ns, copy.stat().st_mtime_ns + 10**9))
+    _, second, scan = prepare_job([curl], TILING, JobPaths(tmp_path / "j"))
+    assert not scan["partition_reused"] and scan["points"] == 5000
+    copy.unlink()
+
+
+def test_server_problems_are_one_line(served, tmp_path):
+    base = served["base"]
+    with pytest.raises(InputError, match=r"^http://.*/nothing\.copc\.laz: file not found \(HTTP 404\)$"):
+        read_index(f"{base}/nothing.copc.laz")
+    # an EPT whose hierarchy page is missing names the page
+    with pytest.raises(InputError, match=r"ept-hierarchy/0-0-0-0\.json: file not found"):
+        import shutil
+
+        shutil.copy(served["root"] / "ept" / "ept.json", served["root"] / "ept.json")
+        read_index(f"{base}/ept.json")
+    with pytest.raises(InputError, match="cannot reach the server"):
+        read_index("http://127.0.0.1:9/x.copc.laz")  # the discard port: nothing listens
+    served["server"].ranges = False
+    try:
+        with pytest.raises(InputError, match="does not answer range requests"):
+            read_index(served["COPC"][0])
+    finally:
+        served["server"].ranges = True
+
+
+def test_urls_that_would_need_streaming_are_refused(served, tmp_path):
+    url = served["COPC"][0]
+    with pytest.raises(InputError, match="only COPC files and EPTs are read from a URL"):
+        prepare_job([f"{served['base']}/a.laz"], TILING, JobPaths(tmp_path / "a"))
+    with pytest.raises(InputError, match="--trajectory"):
+        prepare_job([url], TILING, JobPaths(tmp_path / "b"), trajectory=__file__)
+    with pytest.raises(InputError, match="given with it, is not a COPC"):
+        prepare_job([url, __file__], TILING, JobPaths(tmp_path / "c"))
+    assert not any((tmp_path / d / "points").exists() for d in "abc")
+
+
+def test_one_shape_read_and_cli_dry_run_from_a_url(served, tmp_path, capsys):
+    from tiled_gridpull.io import read_points
+    from tiled_gridpull.pipeline.cli import main
+
+    url, local = served["EPT"]
+    a, b = read_points(url), read_points(local)
+    np.testing.assert_array_equal(a.xyz, b.xyz)
+    assert hashlib.sha256(a.xyz.tobytes()).hexdigest() == hashlib.sha256(b.xyz.tobytes()).hexdigest()
+    code = main(["reconstruct", served["COPC"][0], "-o", str(tmp_path / "x.ply"), "--dry-run",
+                 "--voxel-size", "0.2", "--tile-size", "6.4", "--overlap", "2.4"])
+    cap = capsys.readouterr()
+    assert code == 0 and "tiles" in cap.out, cap.err
+    assert not (tmp_path / "x.ply").exists()
+
+
+def test_dask_workers_read_the_tiles_from_the_url(served, tmp_path):
+    from tiled_gridpull.pipeline.job import DaskExecutor, JobOptions
+
+    url, local = served["EPT"]
+    executor = DaskExecutor(JobOptions(workers=1, progress=False))
+    try:
+        _, specs, scan = prepare_job([url], TILING, JobPaths(tmp_path / "d"),
+                                     run_tasks=lambda fn, a: executor.map(fn, a, tmp_path))
+        assert executor._client is not None  # the reads ran on the cluster's worker process
+    finally:
+        executor.close()
+    _, specs_l, _ = prepare_job([local], TILING, JobPaths(tmp_path / "l"))
+    assert scan["candidate_tiles"] >= len(specs) >= 4
+    assert _files(specs) == _files(specs_l)
