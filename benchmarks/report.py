@@ -333,8 +333,8 @@ def main() -> None:
                   "in the same run; `dry` rows are `--dry-run` (a counting pass, or the index). Medians of the runs "
                   "listed.", "",
                   partition_bench.table(partition_rows), "",
-                  "What it shows (2026-11-25, 2 cores): the driver's peak memory no longer grows with the input "
-                  "(160-300 MB against 870-1,000 MB for the one pass, up to the 56M points of four 14M files); "
+                  "What it shows (2026-11-25, 2 cores): the driver's peak memory is 0.18-0.32x the one pass's "
+                  "(160-300 MB against 870-1,000 MB, up to the 56M points of four 14M files); "
                   "every route gives the one pass's tiles byte for byte; and `--dry-run` from the index takes "
                   "0.02-0.05x the counting pass's time with the same estimate (within 4 %). On 2 cores the "
                   "parallel routes save little time: segments 0.68-0.82x of the one pass from 12M points up (1.28x "
