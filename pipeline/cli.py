@@ -280,9 +280,9 @@ def cmd_reconstruct(args) -> int:
     finally:
         if bar:
             bar.close()
-    from tiled_gridpull.io.remote import resolved
+    from tiled_gridpull.io.remote import recorded
 
-    mesh.metadata["inputs"] = [resolved(p) for p in args.inputs]
+    mesh.metadata["inputs"] = [recorded(p) for p in args.inputs]
     if cloud.crs:
         mesh.metadata["crs"] = cloud.crs
     write_mesh_and_sidecar(mesh, out, float32=args.float32)

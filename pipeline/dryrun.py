@@ -22,6 +22,7 @@ def plan_job(inputs: list[str], tiling: TilingConfig, solver: SolverConfig, work
              chunk_size: int = 2_000_000) -> dict:
     """Everything the dry run reports (see :func:`format_plan`)."""
     from tiled_gridpull.indexed_inputs import all_indexed, estimate_specs, plan_indexed
+    from tiled_gridpull.io.remote import recorded
     from tiled_gridpull.jobdir import JobPaths
     from tiled_gridpull.memory import estimate_tiles
     from tiled_gridpull.partition import partition
@@ -55,7 +56,7 @@ def plan_job(inputs: list[str], tiling: TilingConfig, solver: SolverConfig, work
     wall_s = job_wall_time(est, int(scan["points"]), n_workers)
     peak = max(est, key=lambda e: e["peak"]) if est else None
     return {
-        "inputs": [str(p) for p in inputs], "points": int(scan["points"]), "has_sensor": bool(scan["has_sensor"]),
+        "inputs": [recorded(p) for p in inputs], "points": int(scan["points"]), "has_sensor": bool(scan["has_sensor"]),
         "partition_reused": reused is not None, "index_sample": sampled,
         "lattice": {"origin": list(plan.lattice.origin), "cell_size": plan.lattice.cell_size,
                     "shape": list(plan.lattice.shape), "tile_cells": tiling.tile_cells,

@@ -300,7 +300,9 @@ class DaskExecutor:
         window = max(1, min(self.options.window, 2 * threads))
         results: list = [None] * len(args)
         position: dict[str, int] = {}
-        pending = as_completed(with_results=True)
+        # without with_results: a result fetched inside as_completed that fails to arrive (its worker died)
+        # would keep the future out of the queue for ever; here each is asked for as it comes
+        pending = as_completed()
         watch = _WorkerWatch(client, self.options.no_worker_timeout)
         submitted, failure = 0, None
 
@@ -319,20 +321,21 @@ class DaskExecutor:
                     watch.check()
                 with pending.thread_condition:  # notified as each task finishes
                     pending.thread_condition.wait(timeout=0.1)
-            for fut, result in pending.next_batch(block=False):
+            for fut in pending.next_batch(block=False):
                 i = position.pop(fut.key)
-                fut.release()
-                if fut.status == "error" or isinstance(result, BaseException):
+                # the outcome is read before the future is released: release cancels its state, after which
+                # its status reads "cancelled" whatever the task did
+                try:
+                    results[i] = fut.result()
+                except BaseException as exc:  # the task's error, or cancelled (e.g. the cluster went away)
                     if failure is None:
-                        failure = result
-                    continue
-                results[i] = result
+                        failure = exc
+                finally:
+                    fut.release()
                 if failure is None:
                     submit(1)
         if failure is not None:
-            if isinstance(failure, BaseException):  # cancelled (e.g. the cluster went away)
-                raise failure
-            raise failure[1].with_traceback(failure[2])
+            raise failure
         return results
 
     def run(self, specs: list[TileSpec], tiling: TilingConfig, solver: SolverConfig, paths: JobPaths, centre,

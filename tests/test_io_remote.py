@@ -15,7 +15,8 @@ import pytest
 from tiled_gridpull.errors import InputError
 from tiled_gridpull.io.indexed import read_index
 from tiled_gridpull.io.indexed_write import write_copc, write_ept
-from tiled_gridpull.io.remote import RemoteFile, url_join, url_name
+from tiled_gridpull.io import remote
+from tiled_gridpull.io.remote import RemoteFile, shown, url_join, url_name
 from tiled_gridpull.jobdir import JobPaths
 from tiled_gridpull.prepare import prepare_job
 from tiled_gridpull.tiling import TilingConfig
@@ -48,17 +49,17 @@ class _Handler(http.server.SimpleHTTPRequestHandler):
             self.send_header(k, v)
         self.end_headers()
 
-    def do_HEAD(self):
-        f = self._file()
-        if f is None:
-            self.send_error(404)
-            return
-        self._headers(f, 200, f.stat().st_size)
+    def do_HEAD(self):  # refused, as an object store refuses HEAD on a URL pre-signed for GET
+        self.send_error(403, "SignatureDoesNotMatch")
 
     def do_GET(self):
         f = self._file()
         if f is None:
             self.send_error(404)
+            return
+        self.server.gets[f.name] = self.server.gets.get(f.name, 0) + 1
+        if f.name in self.server.flaky and self.server.gets[f.name] == 1:
+            self.send_error(503, "Slow Down")  # a transient failure: the first request of the file
             return
         data = f.read_bytes()
         rng = self.headers.get("Range")
@@ -83,13 +84,14 @@ def served(tmp_path_factory):
     y = rng.uniform(0, 12, n)
     xyz = np.column_stack([x, y, 0.3 * np.sin(x) * np.cos(y / 2)]) + ORIGIN
     write_copc(root / "s.copc.laz", xyz, max_node_points=3000, wkt=WKT)
+    write_copc(root / "far.copc.laz", xyz + [0, 60, 0], max_node_points=3000, wkt=WKT)
     write_ept(root / "ept", xyz, max_node_points=3000, wkt=WKT)
 
     def handler(*args, **kwargs):
         return _Handler(*args, directory=str(root), **kwargs)
 
     server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
-    server.sent, server.ranges = {}, True
+    server.sent, server.ranges, server.gets, server.flaky = {}, True, {}, set()
     threading.Thread(target=server.serve_forever, daemon=True).start()
     base = f"http://127.0.0.1:{server.server_address[1]}"
     yield {"root": root, "server": server, "base": base,
@@ -107,6 +109,8 @@ def test_url_names_and_siblings():
     url = "https://example.org/lidar/area/ept.json?sig=abc"
     assert url_name(url) == "ept.json"
     assert url_join(url, "ept-data", "0-0-0-0.laz") == "https://example.org/lidar/area/ept-data/0-0-0-0.laz?sig=abc"
+    assert shown(url) == "https://example.org/lidar/area/ept.json?..."
+    assert shown("https://user:pw@example.org/a.copc.laz") == "https://example.org/a.copc.laz"
 
 
 def test_remote_file_reads_what_the_file_holds(served):
@@ -123,6 +127,12 @@ def test_remote_file_reads_what_the_file_holds(served):
         fh.seek(-10, os.SEEK_END)
         assert fh.read() == data[-10:]
         assert fh.read(5) == b""
+        fh.seek(-3, os.SEEK_END)
+        assert fh.read(1 << 62) == data[-3:]  # a huge length (a damaged header's) reads what is left
+        with pytest.raises(ValueError):
+            fh.seek(0, 7)
+    with pytest.raises(ValueError):
+        fh.read(1)  # closed
 
 
 @pytest.mark.parametrize("kind", ["COPC", "EPT"])
@@ -203,8 +213,12 @@ def test_server_problems_are_one_line(served, tmp_path):
 
         shutil.copy(served["root"] / "ept" / "ept.json", served["root"] / "ept.json")
         read_index(f"{base}/ept.json")
-    with pytest.raises(InputError, match="cannot reach the server"):
-        read_index("http://127.0.0.1:9/x.copc.laz")  # the discard port: nothing listens
+    with pytest.raises(InputError, match="cannot reach the server.*after 2 attempts$"):
+        with pytest.MonkeyPatch.context() as m:
+            m.setattr(remote, "ATTEMPTS", 2)
+            read_index("http://127.0.0.1:9/x.copc.laz")  # the discard port: nothing listens
+    with pytest.raises(InputError, match="not a valid URL"):
+        read_index("http://[::1/x.copc.laz")
     served["server"].ranges = False
     try:
         with pytest.raises(InputError, match="does not answer range requests"):
@@ -253,3 +267,72 @@ def test_dask_workers_read_the_tiles_from_the_url(served, tmp_path):
     _, specs_l, _ = prepare_job([local], TILING, JobPaths(tmp_path / "l"))
     assert scan["candidate_tiles"] >= len(specs) >= 4
     assert _files(specs) == _files(specs_l)
+
+
+def test_a_presigned_url_is_read_with_gets_only_resumes_re_signed_and_is_never_recorded(served, tmp_path):
+    import json
+
+    url = served["COPC"][0]
+    signed = [f"{url}?X-Amz-Signature=secret{k}" for k in (1, 2)]
+    _, specs, scan = prepare_job([signed[0]], TILING, JobPaths(tmp_path / "j"))  # HEAD is refused: GETs only
+    assert scan["indexed"] == ["COPC"] and len(specs) >= 4
+    _, _, scan2 = prepare_job([signed[1]], TILING, JobPaths(tmp_path / "j"))  # the same file, signed again
+    assert scan2["partition_reused"]
+    written = "".join(p.read_text(errors="replace") for p in (tmp_path / "j").rglob("*.json"))
+    assert "secret" not in written and "s.copc.laz" in written
+    assert json.loads((tmp_path / "j" / "manifest.json").read_text())["inputs"] == [f"{url}?..."]
+
+
+def test_transient_server_errors_are_retried(served, tmp_path):
+    url, local = served["EPT"]
+    served["server"].flaky = {"ept.json", "0-0-0-0.json", "0-0-0-0.laz"}
+    served["server"].gets.clear()
+    try:
+        _, specs, _ = prepare_job([url], TILING, JobPaths(tmp_path / "u"))
+    finally:
+        served["server"].flaky = set()
+    assert served["server"].gets["0-0-0-0.laz"] >= 2  # refused once (503), then read
+    _, specs_l, _ = prepare_job([local], TILING, JobPaths(tmp_path / "l"))
+    assert _files(specs) == _files(specs_l)
+
+
+def test_a_tile_task_does_not_open_the_inputs_it_does_not_reach(served, tmp_path):
+    from tiled_gridpull.indexed_inputs import indexed_sources, plan_indexed, read_tile
+
+    urls = [served["COPC"][0], f"{served['base']}/far.copc.laz"]
+    plan, _, _ = plan_indexed(urls, TILING)
+    sources = indexed_sources(urls)
+    served["server"].sent.clear()
+    served["server"].gets.clear()
+    spec, owned = read_tile(sources, plan, (0, 0, 0), str(tmp_path))
+    assert spec is not None and owned > 0
+    assert "far.copc.laz" not in served["server"].gets and "s.copc.laz" in served["server"].sent
+
+
+def test_a_server_error_on_a_dask_worker_reaches_the_driver_as_one_line(served, tmp_path):
+    import shutil
+
+    from tiled_gridpull.pipeline.job import DaskExecutor, JobOptions
+
+    e = served["root"] / "ept_gone"
+    shutil.copytree(served["root"] / "ept", e)
+    victim = sorted((e / "ept-data").iterdir())[-1]
+    victim.unlink()  # a node file missing on the server
+    url = f"{served['base']}/ept_gone/ept.json?sig=secret"
+    executor = DaskExecutor(JobOptions(workers=1, progress=False))
+    try:
+        with pytest.raises(InputError) as info:
+            prepare_job([url], TILING, JobPaths(tmp_path / "d"), run_tasks=lambda fn, a: executor.map(fn, a, tmp_path))
+    finally:
+        executor.close()
+    msg = str(info.value)
+    assert type(info.value) is InputError and len(msg.splitlines()) == 1, msg
+    assert f"ept-data/{victim.name}?...: file not found (HTTP 404)" in msg and "secret" not in msg
+    assert not (tmp_path / "d" / "points").exists()
+
+
+def test_a_url_input_does_not_clash_with_the_work_directory(served, tmp_path, monkeypatch):
+    from tiled_gridpull.io.outputs import check_outputs
+
+    monkeypatch.chdir(tmp_path)
+    check_outputs([served["COPC"][0]], tmp_path / "x.ply", work_dir=".")

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import functools
 import os
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -30,14 +31,14 @@ import numpy as np
 from .crs import check_same_crs
 from .errors import InputError
 from .io.indexed import PointIndex, indexed_kind, read_box, read_index, read_levels
-from .io.remote import is_url, validators
+from .io.remote import is_url, resolved, validators
 from .kernels import BRICK
 from .partition import partition
 from .tile_plan import TilePlan, TileSpec, plan_tiles
 from .tiling import TilingConfig
 
-__all__ = ["SAMPLE_POINTS", "all_indexed", "cached_index", "plan_indexed", "candidate_tiles", "read_tile",
-           "estimate_specs", "dense_region"]
+__all__ = ["SAMPLE_POINTS", "IndexedSource", "all_indexed", "source_version", "cached_index", "indexed_sources",
+           "plan_indexed", "candidate_tiles", "read_tile", "estimate_specs", "dense_region"]
 
 #: points of the octree's shallow levels read on the driver (candidate tiles, dry run), at most
 SAMPLE_POINTS = 2_000_000
@@ -49,24 +50,64 @@ def all_indexed(inputs: list) -> bool:
                                 for p in inputs)
 
 
-@functools.lru_cache(maxsize=64)
-def _index(path: str, *version) -> PointIndex:
-    return read_index(path)
+@dataclass(frozen=True)
+class IndexedSource:
+    """An indexed input as a tile task gets it: where it is, which version of it the driver planned from (so a
+    worker's cached index is keyed without asking the file system or the server again), and the cube its octree
+    spans (so a task skips the inputs its box does not reach without opening them).
+
+    Attributes
+    ----------
+    path : str
+        Absolute path or URL.
+    version : tuple
+        :func:`source_version`.
+    lo, hi : (3,) tuple of float
+        Corners of the union of the octree's nodes, file units.
+    """
+
+    path: str
+    version: tuple
+    lo: tuple
+    hi: tuple
 
 
-def cached_index(path: str | os.PathLike) -> PointIndex:
-    """:func:`~tiled_gridpull.io.indexed.read_index`, kept per process while the file is unchanged (a worker
-    reads many tiles of one input): a local file's size and modification time, a URL's size, ETag and
-    Last-Modified (one HEAD request)."""
+def source_version(path: str | os.PathLike) -> tuple:
+    """What identifies this version of an input: a local file's size and modification time, a URL's size, ETag
+    and Last-Modified (one request)."""
     if is_url(path):
         v = validators(path)
-        return _index(path, v["size"], v["etag"], v["last_modified"])
+        return ("url", v["size"], v["etag"], v["last_modified"])
     p = Path(path)
     try:
         st = p.stat()
     except OSError as exc:
         raise InputError(f"{p}: cannot read ({exc.strerror or exc})") from None
-    return _index(str(p), st.st_size, st.st_mtime_ns)
+    return ("file", st.st_size, st.st_mtime_ns)
+
+
+@functools.lru_cache(maxsize=256)
+def _index(path: str, version: tuple) -> PointIndex:
+    return read_index(path)
+
+
+def cached_index(path: str | os.PathLike, version: tuple | None = None) -> PointIndex:
+    """:func:`~tiled_gridpull.io.indexed.read_index`, kept per process for this ``version`` of the input
+    (:func:`source_version`, asked when not given): a worker reads many tiles of one input."""
+    path = path if is_url(path) else str(Path(path))
+    return _index(path, version if version is not None else source_version(path))
+
+
+def indexed_sources(inputs: list[str]) -> list[IndexedSource]:
+    """The inputs as the tile tasks get them (their indexes read, and cached, here)."""
+    out = []
+    for p in inputs:
+        version = source_version(p)
+        ix = cached_index(p, version)
+        lo = tuple(float(v) for v in ix.lo.min(axis=0, initial=np.inf))
+        hi = tuple(float(v) for v in ix.hi.max(axis=0, initial=-np.inf))
+        out.append(IndexedSource(resolved(p), version, lo, hi))
+    return out
 
 
 def plan_indexed(inputs: list[str], tiling: TilingConfig) -> tuple[TilePlan, dict, list[PointIndex]]:
@@ -160,9 +201,10 @@ def _read_box(plan: TilePlan, tile: tuple) -> tuple[np.ndarray, np.ndarray]:
     return np.where(t == 0, -np.inf, lo), np.where(t == np.asarray(plan.tile_range) - 1, np.inf, hi)
 
 
-def read_tile(inputs: list[str], plan: TilePlan, tile: tuple, out_dir: str) -> tuple[TileSpec | None, int]:
-    """One tile's task: read its points from the indexed ``inputs`` and write its spill file and occupancy in
-    ``out_dir`` (the job's points directory).
+def read_tile(inputs: list, plan: TilePlan, tile: tuple, out_dir: str) -> tuple[TileSpec | None, int]:
+    """One tile's task: read its points from the indexed ``inputs`` (:class:`IndexedSource`, or paths and URLs)
+    and write its spill file and occupancy in ``out_dir`` (the job's points directory). An input whose octree
+    does not reach the tile's box is not opened.
 
     Returns
     -------
@@ -178,11 +220,15 @@ def read_tile(inputs: list[str], plan: TilePlan, tile: tuple, out_dir: str) -> t
 
     def chunks():
         nonlocal owned
-        for path in inputs:
-            ix = cached_index(path)
+        for src in inputs:
+            if not isinstance(src, IndexedSource):
+                src = indexed_sources([src])[0]
+            s_lo, s_hi = np.asarray(src.lo), np.asarray(src.hi)
+            if not (np.all(s_lo <= hi) and np.all(s_hi >= lo)):
+                continue
+            ix = cached_index(src.path, src.version)
             # an open side (a border tile) reaches as far as the input's octree does
-            for cloud in read_box(ix, np.where(np.isinf(lo), ix.lo.min(axis=0, initial=np.inf), lo),
-                                  np.where(np.isinf(hi), ix.hi.max(axis=0, initial=-np.inf), hi)):
+            for cloud in read_box(ix, np.where(np.isinf(lo), s_lo, lo), np.where(np.isinf(hi), s_hi, hi)):
                 owned += int(np.all(plan.owner_of(plan.lattice.to_index(cloud.xyz)) == tile, axis=1).sum())
                 yield cloud
 

@@ -22,10 +22,10 @@ from .errors import ConfigError, InputError
 from .cloud import PointCloud
 from .io import iter_point_chunks, iter_row_chunks, read_kitti_sequence
 from .io.indexed import indexed_kind
-from .io.remote import is_url, resolved
+from .io.remote import is_url, recorded, shown
 from .jobdir import JobPaths, write_manifest
 from .outliers import SAMPLE_STRIDE, body_box, describe, far_mask
-from .indexed_inputs import all_indexed, candidate_tiles, plan_indexed, read_tile
+from .indexed_inputs import all_indexed, candidate_tiles, indexed_sources, plan_indexed, read_tile
 from .partition import merge_segments, partition
 from .resume import load_partition, partition_key, scan_record
 from .tile_plan import LatticeSpanError, TilePlan, TileSpec, plan_tiles
@@ -69,14 +69,14 @@ def check_remote(inputs: list[str], trajectory=None, tiling: TilingConfig | None
         return
     plain = [p for p in inputs if indexed_kind(p) is None]
     if plain and plain[0] in urls:
-        raise InputError(f"{plain[0]}: only COPC files and EPTs are read from a URL (by region, through their "
+        raise InputError(f"{shown(plain[0])}: only COPC files and EPTs are read from a URL (by region, through their "
                          "index); download it and give its path")
     why = (f"{plain[0]}, given with it, is not a COPC file or an EPT" if plain else
            "--trajectory reads every point's GPS time on the driver" if trajectory is not None else
            "drop_outliers reads every point on the driver" if tiling is not None and tiling.drop_outliers else
            None)
     if why:
-        raise InputError(f"{urls[0]}: a URL is read tile by tile through its index, but {why}; download the "
+        raise InputError(f"{shown(urls[0])}: a URL is read tile by tile through its index, but {why}; download the "
                          "files and give their paths")
 
 
@@ -414,7 +414,7 @@ def prepare_job(inputs: list[str], tiling: TilingConfig, paths: JobPaths, *, fra
             occupancy: dict = {}
             check(partition(chunks(), plan, None, scan["has_sensor"], occupancy=occupancy), occupancy)
         specs = partition(chunks(), plan, paths.points(), scan["has_sensor"])
-    write_manifest(paths.manifest, plan, specs, {"inputs": [resolved(p) for p in inputs],
+    write_manifest(paths.manifest, plan, specs, {"inputs": [recorded(p) for p in inputs],
                                                  "crs": scan["crs"], "version": __version__,
                                                  "partition_key": key, "scan": scan_record(scan)})
     scan["partition_reused"] = False
@@ -462,7 +462,7 @@ def _read_indexed(inputs, tiling, paths: JobPaths, check, run_tasks):
     tiles = candidate_tiles(indexes, plan)
     out = paths.points()
     out.mkdir(parents=True, exist_ok=True)
-    sources = [resolved(p) for p in inputs]
+    sources = indexed_sources(inputs)
     args = [(sources, plan, t, str(out)) for t in tiles]
     results = run_tasks(read_tile, args) if run_tasks is not None else [read_tile(*a) for a in args]
     specs = [s for s, _ in results if s is not None]

@@ -81,6 +81,9 @@ def check_outputs(inputs: Sequence[str | Path], mesh: str | Path, *, work_dir: s
         where a directory goes), lies in a directory that cannot be written, or exists without this tool's marker
         and ``overwrite`` is False.
     """
+    from .remote import is_url
+
+    inputs = [p for p in inputs if not is_url(p)]  # a URL is nothing an output could overwrite
     ins = [_resolved(p) for p in inputs]
     mesh = Path(mesh)
     files = {"output": mesh, "sidecar": sidecar_path(mesh)}

@@ -25,7 +25,7 @@ from ..errors import ConfigError, InputError
 from .formats import PointFormat, point_format
 from .input_errors import check_path, input_errors
 from .kitti import kitti_chunks, kitti_sequence_count, read_kitti_sequence
-from .remote import is_url
+from .remote import is_url, shown
 
 __all__ = ["read_points", "iter_point_chunks", "iter_row_chunks", "point_count"]
 
@@ -59,7 +59,7 @@ def read_points(path: str | os.PathLike, *, clean: bool = True,
     """
     if is_url(path):
         cloud = _read_url(path)
-        return clean_points(cloud, what=path) if clean else cloud
+        return clean_points(cloud, what=shown(path)) if clean else cloud
     p = check_path(path)
     if p.is_dir():
         cloud = read_kitti_sequence(p, frames)
@@ -80,12 +80,12 @@ def _read_url(url: str) -> PointCloud:
     from .indexed import indexed_kind, read_index, read_levels
 
     if indexed_kind(url) is None:
-        raise InputError(f"{url}: only COPC files and EPTs are read from a URL; download it and give its path")
+        raise InputError(f"{shown(url)}: only COPC files and EPTs are read from a URL; download it and give its path")
     index = read_index(url)
     parts = list(read_levels(index, int(index.keys[:, 0].max(initial=0)) + 1))
     if not parts:
-        raise InputError(f"{url}: no points")
-    return concat_clouds(parts, url)
+        raise InputError(f"{shown(url)}: no points")
+    return concat_clouds(parts, shown(url))
 
 
 def iter_point_chunks(paths: str | os.PathLike | Iterable[str | os.PathLike],

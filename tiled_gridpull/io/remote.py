@@ -4,31 +4,37 @@ COPC files and EPTs are published on web servers and object stores (S3, Azure, G
 a reader can fetch one region without the rest: a COPC file's header, hierarchy pages and point chunks are byte
 ranges of one file (HTTP ``Range`` requests), an EPT's are small files of their own. This module is the transport:
 :class:`RemoteFile`, a read-only seekable file over range requests, for laspy's readers; :func:`fetch` for whole
-small files; :func:`validators` for what identifies a version of a file on the server (size, ``ETag``,
-``Last-Modified``), which keys the per-process index cache and a job's resume. Every failure is one
-:class:`~tiled_gridpull.errors.InputError` line naming the URL.
+small files and ranges; :func:`validators` for what identifies a version of a file on the server (size, ``ETag``,
+``Last-Modified``), which keys the index cache and a job's resume. Every failure is one
+:class:`~tiled_gridpull.errors.InputError` line naming the URL without its query (:func:`shown`: a pre-signed
+URL's query is a credential, so it is never written to a message, a manifest or a sidecar).
 
-Only the standard library is used (``urllib``), so remote inputs need no extra package. Credentials are whatever
-the URL carries (a pre-signed object-store URL works; a bucket needing signed requests does not).
+Only the standard library is used (``urllib``), so remote inputs need no extra package. Only GET requests are
+sent (a URL pre-signed for GET refuses HEAD); transient failures (a dropped connection, a timeout, HTTP 5xx or
+429) are retried :data:`ATTEMPTS` times with a growing pause.
 """
 
 from __future__ import annotations
 
-import contextlib
+import http.client
 import io
 import posixpath
+import re
+import time
 import urllib.error
 import urllib.parse
 import urllib.request
 from collections import OrderedDict
-from collections.abc import Iterator
 
 from ..errors import InputError
 
-__all__ = ["is_url", "url_name", "url_join", "resolved", "RemoteFile", "fetch", "validators", "TIMEOUT_S"]
+__all__ = ["is_url", "url_name", "url_join", "shown", "resolved", "recorded", "RemoteFile", "fetch", "validators",
+           "TIMEOUT_S", "ATTEMPTS"]
 
-#: seconds a request may wait for the server before the input is reported unreachable
+#: seconds a request may wait for the server before it counts as a failed attempt
 TIMEOUT_S = 60.0
+#: attempts at a request that failed transiently (connection, timeout, HTTP 5xx or 429)
+ATTEMPTS = 4
 #: bytes a small read fetches at once (a LAS header is read field by field: one request each would be hundreds)
 BLOCK = 1 << 16
 #: blocks kept per open file
@@ -40,62 +46,114 @@ def is_url(source) -> bool:
     return isinstance(source, str) and source[:8].lower().startswith(("http://", "https://"))
 
 
+def _split(url: str) -> urllib.parse.SplitResult:
+    try:
+        return urllib.parse.urlsplit(url)
+    except ValueError as exc:
+        raise InputError(f"{shown(url)}: not a valid URL ({exc})") from None
+
+
 def url_name(url: str) -> str:
     """The last segment of the URL's path, without query or fragment (``.../a/ept.json?sig=..`` -> ``ept.json``)."""
-    return posixpath.basename(urllib.parse.urlsplit(url).path)
+    return posixpath.basename(urllib.parse.unquote(_split(url).path))
 
 
 def url_join(url: str, *parts: str) -> str:
-    """``parts`` appended to the directory of ``url``'s path, keeping its query (a pre-signed URL's signature
-    belongs to one object, so a sibling needs its own: this keeps the query for servers that sign a prefix)."""
-    s = urllib.parse.urlsplit(url)
+    """``parts`` appended to the directory of ``url``'s path, keeping its query (servers that sign a prefix, e.g.
+    a container's SAS token, accept the same query for every file under it)."""
+    s = _split(url)
     path = posixpath.join(posixpath.dirname(s.path), *parts)
     return urllib.parse.urlunsplit((s.scheme, s.netloc, path, s.query, ""))
 
 
-@contextlib.contextmanager
-def _errors(url: str) -> Iterator[None]:
-    try:
-        yield
-    except urllib.error.HTTPError as exc:
-        if exc.code == 404:
-            raise InputError(f"{url}: file not found (HTTP 404)") from None
-        raise InputError(f"{url}: the server refused the request (HTTP {exc.code} {exc.reason})") from None
-    except urllib.error.URLError as exc:
-        raise InputError(f"{url}: cannot reach the server ({exc.reason})") from None
-    except (TimeoutError, ConnectionError, OSError) as exc:
-        raise InputError(f"{url}: cannot read from the server ({exc.__class__.__name__}: {exc})") from None
+def shown(url: str) -> str:
+    """``url`` as messages and records show it: without its query (a signature, a token) and user info."""
+    head, _, query = url.partition("?")
+    head = re.sub(r"^(https?://)[^/@]*@", r"\1", head.partition("#")[0], flags=re.IGNORECASE)
+    return head + ("?..." if query else "")
 
 
-def _open(url: str, start: int | None = None, stop: int | None = None, method: str = "GET"):
-    headers = {"User-Agent": "tiled-gridpull"}
+def resolved(source) -> str:
+    """An input as handed to workers: a URL as given, a path made absolute (workers of an external cluster do
+    not share the driver's working directory)."""
+    from pathlib import Path
+
+    return source if is_url(source) else str(Path(source).resolve())
+
+
+def recorded(source) -> str:
+    """An input as a manifest or sidecar records it: :func:`resolved`, with a URL :func:`shown`."""
+    return shown(source) if is_url(source) else resolved(source)
+
+
+_TRANSIENT_STATUS = {429, 500, 502, 503, 504}
+
+
+def _request(url: str, start: int | None = None, stop: int | None = None):
+    """(status, headers, body) of a GET of ``url`` or of its range ``[start, stop)``; retried when transient.
+    InputError (one line, no chained exception: it may cross a process boundary, and an HTTP error holds its
+    open response, which does not pickle) for anything else."""
+    headers = {"User-Agent": "tiled-gridpull", "Accept-Encoding": "identity"}
     if start is not None:
         headers["Range"] = f"bytes={start}-{stop - 1}"
-    return urllib.request.urlopen(urllib.request.Request(url, headers=headers, method=method), timeout=TIMEOUT_S)
+    problem = None
+    for attempt in range(ATTEMPTS):
+        if attempt:
+            time.sleep(0.5 * 2 ** (attempt - 1))
+        try:
+            with urllib.request.urlopen(urllib.request.Request(url, headers=headers), timeout=TIMEOUT_S) as r:
+                body = r.read()
+                if start is None and (r.headers.get("Content-Encoding") or "").lower() == "gzip":
+                    import gzip  # a server may compress a whole file though asked for it as it is
+
+                    body = gzip.decompress(body)
+                return r.status, r.headers, body
+        except urllib.error.HTTPError as exc:
+            exc.close()
+            if exc.code == 404:
+                problem = "file not found (HTTP 404)"
+            else:
+                problem = f"the server refused the request (HTTP {exc.code} {exc.reason})"
+            if exc.code not in _TRANSIENT_STATUS:
+                break
+        except urllib.error.URLError as exc:
+            problem = f"cannot reach the server ({exc.reason})"
+            if isinstance(exc.reason, (ValueError, LookupError)):
+                break
+        except (TimeoutError, ConnectionError, http.client.IncompleteRead) as exc:
+            problem = f"the connection failed ({exc.__class__.__name__})"
+        except (http.client.HTTPException, ValueError, OSError) as exc:
+            problem = f"cannot read from the server ({exc.__class__.__name__}: {exc})"
+            break
+    raise InputError(f"{shown(url)}: {problem}" + (f" after {attempt + 1} attempts" if attempt else ""))
 
 
 def fetch(url: str, start: int | None = None, stop: int | None = None) -> bytes:
-    """The bytes of ``url``, or of its range ``[start, stop)``. A server that ignores the range (answers 200 with
-    the whole file) is refused: reading every node of a survey that way would fetch the survey once per node."""
-    with _errors(url):
-        with _open(url, start, stop) as r:
-            if start is not None and r.status != 206:
-                raise InputError(f"{url}: the server does not answer range requests (HTTP {r.status} to "
-                                 f"'Range: bytes={start}-{stop - 1}'), which reading by region needs")
-            data = r.read()
-    if start is not None and len(data) != stop - start:
-        raise InputError(f"{url}: truncated answer ({len(data)} bytes for a range of {stop - start})")
+    """The bytes of ``url``, or of its range ``[start, stop)``.
+
+    A server that ignores the range (answers 200 with the whole file) is refused unless the range was the whole
+    file: reading every node of a survey that way would fetch the survey once per node."""
+    status, _, data = _request(url, start, stop)
+    if start is not None and status != 206 and not (status == 200 and start == 0 and len(data) <= stop):
+        raise InputError(f"{shown(url)}: the server does not answer range requests (HTTP {status} to "
+                         f"'Range: bytes={start}-{stop - 1}'), which reading by region needs")
+    if start is not None and len(data) != stop - start and not (status == 200 and start == 0):
+        raise InputError(f"{shown(url)}: truncated answer ({len(data)} bytes for a range of {stop - start})")
     return data
 
 
 def validators(url: str) -> dict:
-    """What identifies this version of the file on the server: ``size``, ``etag``, ``last_modified`` (a HEAD
-    request; absent headers are None)."""
-    with _errors(url):
-        with _open(url, method="HEAD") as r:
-            size = r.headers.get("Content-Length")
-            return {"url": url, "size": int(size) if size is not None else None, "etag": r.headers.get("ETag"),
-                    "last_modified": r.headers.get("Last-Modified")}
+    """What identifies this version of the file on the server: ``size``, ``etag``, ``last_modified`` (from a
+    one-byte range GET: ``Content-Range`` carries the size; absent headers are None). The URL is recorded
+    without its query, so a re-signed URL of the same file keys the same version."""
+    status, h, data = _request(url, 0, 1)
+    size = None
+    m = re.search(r"/(\d+)\s*$", h.get("Content-Range") or "")
+    if status == 206 and m:
+        size = int(m.group(1))
+    elif status == 200:  # no range support: the whole file came back
+        size = len(data)
+    return {"url": shown(url), "size": size, "etag": h.get("ETag"), "last_modified": h.get("Last-Modified")}
 
 
 class RemoteFile(io.RawIOBase):
@@ -108,7 +166,7 @@ class RemoteFile(io.RawIOBase):
     ----------
     url : str
     size : int, optional
-        The file's length; asked of the server (HEAD) when not given.
+        The file's length; asked of the server (:func:`validators`) when not given.
     """
 
     def __init__(self, url: str, size: int | None = None):
@@ -116,8 +174,8 @@ class RemoteFile(io.RawIOBase):
         self.url = url
         self.size = size if size is not None else validators(url)["size"]
         if self.size is None:
-            raise InputError(f"{url}: the server does not say the file's length (no Content-Length), which "
-                             "reading by region needs")
+            raise InputError(f"{shown(url)}: the server does not say the file's length, which reading by region "
+                             "needs")
         self._pos = 0
         self._blocks: OrderedDict[int, bytes] = OrderedDict()
 
@@ -128,9 +186,13 @@ class RemoteFile(io.RawIOBase):
         return True
 
     def tell(self) -> int:
+        self._checkClosed()
         return self._pos
 
     def seek(self, offset: int, whence: int = io.SEEK_SET) -> int:
+        self._checkClosed()
+        if whence not in (io.SEEK_SET, io.SEEK_CUR, io.SEEK_END):
+            raise ValueError(f"invalid whence ({whence})")
         base = {io.SEEK_SET: 0, io.SEEK_CUR: self._pos, io.SEEK_END: self.size}[whence]
         if base + offset < 0:
             raise ValueError("negative seek position")
@@ -148,6 +210,7 @@ class RemoteFile(io.RawIOBase):
         return data
 
     def readinto(self, buffer) -> int:
+        self._checkClosed()
         view = memoryview(buffer).cast("B")
         n = min(len(view), max(self.size - self._pos, 0))
         if n == 0:
@@ -160,22 +223,17 @@ class RemoteFile(io.RawIOBase):
                 k, at = divmod(self._pos + done, BLOCK)
                 block = self._block(k)
                 take = min(n - done, len(block) - at)
+                if take <= 0:  # the server's file is shorter than it said
+                    raise InputError(f"{shown(self.url)}: the file ended early (changed on the server?)")
                 view[done:done + take] = block[at:at + take]
                 done += take
         self._pos += n
         return n
 
     def read(self, size: int = -1) -> bytes:
-        if size is None or size < 0:
-            size = max(self.size - self._pos, 0)
+        self._checkClosed()
+        left = max(self.size - self._pos, 0)
+        size = left if size is None or size < 0 else min(size, left)
         buf = bytearray(size)
         n = self.readinto(buf)
         return bytes(buf[:n])
-
-
-def resolved(source) -> str:
-    """An input as recorded and handed to workers: a URL as given, a path made absolute (workers of an external
-    cluster do not share the driver's working directory)."""
-    from pathlib import Path
-
-    return source if is_url(source) else str(Path(source).resolve())
