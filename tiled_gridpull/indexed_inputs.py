@@ -94,7 +94,8 @@ def _index(path: str, version: tuple) -> PointIndex:
 def cached_index(path: str | os.PathLike, version: tuple | None = None) -> PointIndex:
     """:func:`~tiled_gridpull.io.indexed.read_index`, kept per process for this ``version`` of the input
     (:func:`source_version`, asked when not given): a worker reads many tiles of one input."""
-    path = path if is_url(path) else str(Path(path))
+    # keyed by the absolute path: the driver plans from the path as given, its tasks read the resolved one
+    path = resolved(path)
     return _index(path, version if version is not None else source_version(path))
 
 

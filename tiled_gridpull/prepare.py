@@ -7,7 +7,6 @@ are described in :mod:`tiled_gridpull.jobdir`.
 
 from __future__ import annotations
 
-import contextlib
 import shutil
 import warnings
 from collections.abc import Callable, Iterator
@@ -474,13 +473,5 @@ def _read_indexed(inputs, tiling, paths: JobPaths, check, run_tasks):
         raise InputError(f"{', '.join(map(str, inputs))}: the tiles read {owned:,} points, the headers declare "
                          f"{scan['points']:,}: a damaged index")
     if check is not None:
-        try:
-            check(specs, None)
-        except BaseException:
-            for s in specs:  # a refused job leaves no partition behind
-                Path(s.points_path).unlink(missing_ok=True)
-                Path(s.occupancy_path).unlink(missing_ok=True)
-            with contextlib.suppress(OSError):
-                out.rmdir()
-            raise
+        check(specs, None)  # a refusal leaves no partition behind: _uncommitted_on_failure removes the tiles
     return plan, scan, specs

@@ -33,11 +33,6 @@ __all__ = ["PointIndex", "indexed_kind", "read_index", "read_box", "read_levels"
            "crs", "ept_files"]
 
 
-def _name(source) -> str:
-    """A source as messages show it (a URL without its query: a pre-signed URL's signature is a credential)."""
-    return shown(source) if is_url(source) else str(source)
-
-
 def indexed_kind(path: str | os.PathLike) -> str | None:
     """``"COPC"`` for ``*.copc.laz``, ``"EPT"`` for an ``ept.json`` (a path or a URL), else None (by name only)."""
     name = (url_name(path) if is_url(path) else Path(path).name).lower()
@@ -97,12 +92,12 @@ def read_index(path: str | os.PathLike) -> PointIndex:
     p = path if is_url(path) else Path(path)
     kind = indexed_kind(p)
     if kind is None:
-        raise InputError(f"{_name(p)}: not a cloud-optimized point cloud (a *.copc.laz file or an ept.json)")
+        raise InputError(f"{shown(p)}: not a cloud-optimized point cloud (a *.copc.laz file or an ept.json)")
     with input_errors(p, kind, f"not a readable {kind}"):
         try:
             return _copc_index(p) if kind == "COPC" else _ept_index(p)
         except FileNotFoundError as exc:  # a hierarchy page or the file itself: name the one missing
-            raise InputError(f"{_name(p)}: {kind} file missing: {exc.filename}") from None
+            raise InputError(f"{shown(p)}: {kind} file missing: {exc.filename}") from None
 
 
 # ---------------------------------------------------------------- COPC
@@ -139,7 +134,7 @@ def _copc_index(p) -> PointIndex:
         bounds = np.stack([np.asarray(header.mins, np.float64), np.asarray(header.maxs, np.float64)])
         declared = int(header.point_count)
     if counts.sum() != declared:
-        raise InputError(f"{_name(p)}: corrupted COPC file (its hierarchy holds {int(counts.sum())} points, its header "
+        raise InputError(f"{shown(p)}: corrupted COPC file (its hierarchy holds {int(counts.sum())} points, its header "
                          f"declares {declared})")
     return PointIndex(str(p), "COPC", bounds, declared, crs, keys, lo, hi, counts)
 
@@ -182,11 +177,11 @@ def _ept_meta(p) -> dict:
     meta = json.loads(_read_bytes(p))
     for field in ("bounds", "points", "schema", "dataType"):
         if field not in meta:
-            raise InputError(f"{_name(p)}: not an EPT ept.json (no '{field}')")
+            raise InputError(f"{shown(p)}: not an EPT ept.json (no '{field}')")
     if meta["dataType"] not in ("laszip", "binary"):
-        raise InputError(f"{_name(p)}: EPT dataType '{meta['dataType']}' is not read (laszip and binary are)")
+        raise InputError(f"{shown(p)}: EPT dataType '{meta['dataType']}' is not read (laszip and binary are)")
     if meta.get("hierarchyType", "json") != "json":
-        raise InputError(f"{_name(p)}: EPT hierarchyType '{meta['hierarchyType']}' is not read (json is)")
+        raise InputError(f"{shown(p)}: EPT hierarchyType '{meta['hierarchyType']}' is not read (json is)")
     return meta
 
 
@@ -214,7 +209,7 @@ def _ept_index(p) -> PointIndex:
     conforming = np.asarray(meta.get("boundsConforming", meta["bounds"]), np.float64)
     declared = int(meta["points"])
     if counts.sum() != declared:
-        raise InputError(f"{_name(p)}: corrupted EPT (its hierarchy holds {int(counts.sum())} points, ept.json "
+        raise InputError(f"{shown(p)}: corrupted EPT (its hierarchy holds {int(counts.sum())} points, ept.json "
                          f"declares {declared})")
     srs = meta.get("srs") or {}
     crs = srs.get("wkt") or None
@@ -227,7 +222,7 @@ def _ept_node(p, meta: dict, key: np.ndarray, count: int) -> np.ndarray:
     with input_errors(f, "EPT node", "damaged EPT node"):
         xyz = _ept_node_points(f, meta, count)
     if len(xyz) != count:
-        raise InputError(f"{_name(f)}: truncated EPT node (holds {len(xyz)} points, the hierarchy says {count})")
+        raise InputError(f"{shown(f)}: truncated EPT node (holds {len(xyz)} points, the hierarchy says {count})")
     return xyz
 
 

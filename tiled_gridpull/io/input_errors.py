@@ -39,10 +39,9 @@ def input_errors(path: Path, kind: str, problem: str | None = None) -> Iterator[
     failure means (default "truncated or corrupted <kind> file").
     """
     problem = problem or f"truncated or corrupted {kind} file"
-    from .remote import is_url, shown
+    from .remote import shown
 
-    if is_url(path):  # messages never carry a pre-signed URL's query
-        path = shown(path)
+    path = shown(path)  # messages never carry a pre-signed URL's query
     try:
         yield
     except GridPullError:

@@ -66,9 +66,12 @@ def url_join(url: str, *parts: str) -> str:
     return urllib.parse.urlunsplit((s.scheme, s.netloc, path, s.query, ""))
 
 
-def shown(url: str) -> str:
-    """``url`` as messages and records show it: without its query (a signature, a token) and user info."""
-    head, _, query = url.partition("?")
+def shown(source) -> str:
+    """An input as messages and records show it: a URL without its query (a signature, a token) and user info;
+    a path as given."""
+    if not is_url(source):
+        return str(source)
+    head, _, query = source.partition("?")
     head = re.sub(r"^(https?://)[^/@]*@", r"\1", head.partition("#")[0], flags=re.IGNORECASE)
     return head + ("?..." if query else "")
 
@@ -82,8 +85,8 @@ def resolved(source) -> str:
 
 
 def recorded(source) -> str:
-    """An input as a manifest or sidecar records it: :func:`resolved`, with a URL :func:`shown`."""
-    return shown(source) if is_url(source) else resolved(source)
+    """An input as a manifest or sidecar records it: :func:`resolved`, then :func:`shown`."""
+    return shown(resolved(source))
 
 
 _TRANSIENT_STATUS = {429, 500, 502, 503, 504}
