@@ -316,11 +316,7 @@ class DaskExecutor:
 
         submit(window)
         while not pending.is_empty():
-            while not pending.has_ready():
-                if self.options.no_worker_timeout > 0:
-                    watch.check()
-                with pending.thread_condition:  # notified as each task finishes
-                    pending.thread_condition.wait(timeout=0.1)
+            watch.wait_for(pending)
             for fut in pending.next_batch(block=False):
                 i = position.pop(fut.key)
                 # the outcome is read before the future is released: release cancels its state, after which
@@ -477,13 +473,7 @@ def run_tiles(client, specs: list[TileSpec], solve_fn, solve_args, mesh_fn, mesh
             submit("solve", solve_fn, [(specs[i], *solve_args(specs[i])) for i in take], take)
             next_solve += len(take)
             in_flight += len(take)
-        while not pending.has_ready():
-            if stop is not None and stop.is_set():
-                raise KeyboardInterrupt
-            if no_worker_timeout > 0:
-                watch.check()
-            with pending.thread_condition:  # notified as each task finishes
-                pending.thread_condition.wait(timeout=0.1)
+        watch.wait_for(pending, stop)
         for fut, result in pending.next_batch(block=False):
             kind, i = kinds.pop(fut.key)
             if fut.status == "error":
@@ -531,7 +521,19 @@ class _WorkerWatch:
         self.client, self.timeout = client, timeout
         self.last_seen = self.next_check = time.monotonic()
 
+    def wait_for(self, pending, stop: threading.Event | None = None) -> None:
+        """Block until the ``as_completed`` queue ``pending`` holds a finished future, checking every 0.1 s for
+        ``stop`` (then KeyboardInterrupt) and for a cluster without workers (:meth:`check`)."""
+        while not pending.has_ready():
+            if stop is not None and stop.is_set():
+                raise KeyboardInterrupt
+            self.check()
+            with pending.thread_condition:  # notified as each task finishes
+                pending.thread_condition.wait(timeout=0.1)
+
     def check(self) -> None:
+        if self.timeout <= 0:  # 0: wait for ever
+            return
         now = time.monotonic()
         if now < self.next_check:
             return
