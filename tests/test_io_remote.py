@@ -58,6 +58,7 @@ class _Handler(http.server.SimpleHTTPRequestHandler):
             self.send_error(404)
             return
         self.server.gets[f.name] = self.server.gets.get(f.name, 0) + 1
+        self.server.asked.append((f.name, self.headers.get("Range")))
         if f.name in self.server.flaky and self.server.gets[f.name] == 1:
             self.send_error(503, "Slow Down")  # a transient failure: the first request of the file
             return
@@ -91,7 +92,7 @@ def served(tmp_path_factory):
         return _Handler(*args, directory=str(root), **kwargs)
 
     server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
-    server.sent, server.ranges, server.gets, server.flaky = {}, True, {}, set()
+    server.sent, server.ranges, server.gets, server.flaky, server.asked = {}, True, {}, set(), []
     threading.Thread(target=server.serve_forever, daemon=True).start()
     base = f"http://127.0.0.1:{server.server_address[1]}"
     yield {"root": root, "server": server, "base": base,
@@ -143,6 +144,24 @@ def test_an_index_read_from_a_url_is_the_index_on_disk(served, kind):
     np.testing.assert_array_equal(a.counts, b.counts)
     np.testing.assert_array_equal(a.bounds, b.bounds)
     assert a.crs == b.crs and "UTM zone 31N" in a.crs and a.points == b.points == 40000
+
+
+def test_a_copc_index_from_a_url_asks_for_each_part_once(served):
+    # the header checks (CRS from the EVLRs) and the hierarchy share one remote file: one size request, and no
+    # block of the header fetched twice
+    url, _ = served["COPC"]
+    served["server"].asked.clear()
+    read_index(url)
+    asked = [r for name, r in served["server"].asked if name == "s.copc.laz"]
+    assert asked.count("bytes=0-0") == 1, asked
+    assert len(asked) == len(set(asked)), asked
+
+
+def test_a_url_that_is_not_a_copc_file_is_named_without_its_query(served):
+    (served["root"] / "junk.copc.laz").write_bytes(b"not a point cloud" * 40)
+    with pytest.raises(InputError, match="not a LAS/LAZ file") as err:
+        read_index(f"{served['base']}/junk.copc.laz?sig=s3cr3t")
+    assert "s3cr3t" not in str(err.value) and "junk.copc.laz?..." in str(err.value)
 
 
 @pytest.mark.parametrize("kind", ["COPC", "EPT"])

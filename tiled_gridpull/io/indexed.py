@@ -103,25 +103,36 @@ def read_index(path: str | os.PathLike) -> PointIndex:
 # ---------------------------------------------------------------- COPC
 
 
-def _copc_reader(p):
+def _copc_reader(p, stream=None):
+    """laspy's COPC reader of ``p`` (a path or a URL), or of ``stream``, an open file of it (left open)."""
     from laspy import CopcReader, DecompressionSelection
 
     sel = DecompressionSelection
     selection = sel.XY_RETURNS_CHANNEL | sel.Z
+    if stream is not None:
+        return CopcReader(stream, close_fd=False, decompression_selection=selection)
     if is_url(p):
         return CopcReader(RemoteFile(p), decompression_selection=selection)
     return CopcReader.open(str(p), decompression_selection=selection)
 
 
 def _copc_index(p) -> PointIndex:
-    from laspy.copc import load_octree_for_query
-
     from . import las
 
     # through the LAS reader: its checks of the header's counts come first, and it reads the EVLRs, where COPC
     # writers put the WKT (the COPC reader's header does not load them)
-    crs = las.crs(p)
-    with _copc_reader(p) as reader:
+    if not is_url(p):
+        return _copc_index_read(p, las.crs(p), None)
+    with RemoteFile(p) as fh:  # one remote file for both readers: its size asked once, its header fetched once
+        crs = las.stream_crs(shown(p), fh, fh.size)
+        fh.seek(0)
+        return _copc_index_read(p, crs, fh)
+
+
+def _copc_index_read(p, crs: str | None, stream) -> PointIndex:
+    from laspy.copc import load_octree_for_query
+
+    with _copc_reader(p, stream) as reader:
         header = reader.header
         nodes = [n for n in load_octree_for_query(reader.source, reader.copc_info, reader.root_page)
                  if n.point_count > 0]

@@ -63,16 +63,19 @@ def crs(p: Path) -> str | None:
     """The CRS in the header (WKT), without reading points; None when it has none."""
     import laspy
 
-    from .remote import RemoteFile, is_url
-
-    if is_url(p):  # a COPC file on a web server: its header and EVLRs through range requests
-        with RemoteFile(p) as fh:
-            _las_precheck_stream(p, fh, fh.size)
-            fh.seek(0)
-            with laspy.open(fh, closefd=False, laz_backend=laz_backend()) as reader:
-                return _las_crs(reader.header)
     _las_precheck(p)
     with laspy.open(str(p), laz_backend=laz_backend()) as reader:
+        return _las_crs(reader.header)
+
+
+def stream_crs(name: str, fh, size: int) -> str | None:
+    """:func:`crs` of an open binary file of ``size`` bytes (a COPC file on a web server, read by ranges);
+    ``name`` names it in messages. Leaves ``fh`` open."""
+    import laspy
+
+    _las_precheck_stream(name, fh, size)
+    fh.seek(0)
+    with laspy.open(fh, closefd=False, laz_backend=laz_backend()) as reader:
         return _las_crs(reader.header)
 
 
