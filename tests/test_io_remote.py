@@ -328,6 +328,19 @@ def test_a_tile_task_does_not_open_the_inputs_it_does_not_reach(served, tmp_path
     assert "far.copc.laz" not in served["server"].gets and "s.copc.laz" in served["server"].sent
 
 
+def test_a_job_asks_each_input_its_version_once(served, tmp_path, monkeypatch):
+    # the plan and the tile tasks use the versions the driver asked for: one request per input, not one per use
+    from tiled_gridpull import indexed_inputs
+
+    asked = []
+    real = indexed_inputs.source_version
+    monkeypatch.setattr(indexed_inputs, "source_version", lambda p: asked.append(p) or real(p))
+    indexed_inputs._index.cache_clear()
+    urls = [served["COPC"][0], served["EPT"][0]]
+    _, specs, _ = prepare_job(urls, TILING, JobPaths(tmp_path / "job"))
+    assert specs and sorted(asked) == sorted(urls), asked
+
+
 def test_a_server_error_on_a_dask_worker_reaches_the_driver_as_one_line(served, tmp_path):
     import shutil
 

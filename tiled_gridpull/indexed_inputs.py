@@ -111,8 +111,12 @@ def indexed_sources(inputs: list[str]) -> list[IndexedSource]:
     return out
 
 
-def plan_indexed(inputs: list[str], tiling: TilingConfig) -> tuple[TilePlan, dict, list[PointIndex]]:
+def plan_indexed(inputs: list[str], tiling: TilingConfig,
+                 sources: list[IndexedSource] | None = None) -> tuple[TilePlan, dict, list[PointIndex]]:
     """The tile plan of indexed inputs from their headers and hierarchies (no point read).
+
+    ``sources``: the inputs' :func:`indexed_sources`, when the caller has them (their versions are then not
+    asked again: for a URL, one request per input).
 
     Returns
     -------
@@ -122,7 +126,8 @@ def plan_indexed(inputs: list[str], tiling: TilingConfig) -> tuple[TilePlan, dic
         ``indexed``: the inputs' kinds.
     indexes : list of PointIndex
     """
-    indexes = [cached_index(p) for p in inputs]
+    indexes = ([cached_index(p) for p in inputs] if sources is None
+               else [cached_index(src.path, src.version) for src in sources])
     check_same_crs([(ix.crs, ix.path) for ix in indexes])
     n = int(sum(ix.points for ix in indexes))
     if n == 0:

@@ -457,11 +457,11 @@ def _partition_in_segments(inputs, tiling, paths: JobPaths, segments, chunk_size
 
 def _read_indexed(inputs, tiling, paths: JobPaths, check, run_tasks):
     """Plan indexed inputs from their headers and read every candidate tile in a task of its own."""
-    plan, scan, indexes = plan_indexed(inputs, tiling)
+    sources = indexed_sources(inputs)
+    plan, scan, indexes = plan_indexed(inputs, tiling, sources)
     tiles = candidate_tiles(indexes, plan)
     out = paths.points()
     out.mkdir(parents=True, exist_ok=True)
-    sources = indexed_sources(inputs)
     args = [(sources, plan, t, str(out)) for t in tiles]
     results = run_tasks(read_tile, args) if run_tasks is not None else [read_tile(*a) for a in args]
     specs = [s for s, _ in results if s is not None]
