@@ -328,6 +328,15 @@ def test_a_tile_task_does_not_open_the_inputs_it_does_not_reach(served, tmp_path
     assert "far.copc.laz" not in served["server"].gets and "s.copc.laz" in served["server"].sent
 
 
+def test_job_messages_name_urls_without_their_query(served, tmp_path):
+    other = 'PROJCS["WGS 84 / UTM zone 32N",GEOGCS["WGS 84"],UNIT["metre",1]]'
+    write_copc(served["root"] / "utm32.copc.laz", np.array([[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]]) + ORIGIN, wkt=other)
+    urls = [f"{served['COPC'][0]}?sig=s3cr3t", f"{served['base']}/utm32.copc.laz?sig=s3cr3t"]
+    with pytest.raises(InputError, match="different coordinate reference systems") as err:
+        prepare_job(urls, TILING, JobPaths(tmp_path / "job"))
+    assert "s3cr3t" not in str(err.value) and "utm32.copc.laz?..." in str(err.value)
+
+
 def test_a_job_asks_each_input_its_version_once(served, tmp_path, monkeypatch):
     # the plan and the tile tasks use the versions the driver asked for: one request per input, not one per use
     from tiled_gridpull import indexed_inputs

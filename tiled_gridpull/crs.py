@@ -155,8 +155,10 @@ def _crs_text(crs: str) -> str:
 
 
 def _file_of(source) -> str:
-    """The file of a chunk's ``source`` (``path[start:stop]``)."""
-    return re.sub(r"\[\d+:\d+\]$", "", str(source))
+    """The file of a chunk's ``source`` (``path[start:stop]``), as messages show it (a URL without its query)."""
+    from .io.remote import shown
+
+    return shown(re.sub(r"\[\d+:\d+\]$", "", str(source)))
 
 
 def crs_name(crs: str) -> str:

@@ -31,7 +31,7 @@ import numpy as np
 from .crs import check_same_crs
 from .errors import InputError
 from .io.indexed import PointIndex, indexed_kind, read_box, read_index, read_levels
-from .io.remote import is_url, resolved, validators
+from .io.remote import is_url, resolved, shown, validators
 from .kernels import BRICK
 from .partition import partition
 from .tile_plan import TilePlan, TileSpec, plan_tiles
@@ -131,13 +131,13 @@ def plan_indexed(inputs: list[str], tiling: TilingConfig,
     check_same_crs([(ix.crs, ix.path) for ix in indexes])
     n = int(sum(ix.points for ix in indexes))
     if n == 0:
-        raise InputError(f"{', '.join(map(str, inputs))}: no points")
+        raise InputError(f"{', '.join(map(shown, inputs))}: no points")
     # an empty input's header bounds are whatever its writer put there (often zeros): they bound no point
     holding = [ix for ix in indexes if ix.points > 0]
     lo = np.min([ix.bounds[0] for ix in holding], axis=0)
     hi = np.max([ix.bounds[1] for ix in holding], axis=0)
     if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi)) and np.all(lo <= hi)):
-        raise InputError(f"{', '.join(map(str, inputs))}: the header's bounds are not finite or inverted")
+        raise InputError(f"{', '.join(map(shown, inputs))}: the header's bounds are not finite or inverted")
     scan = {"bounds": np.stack([lo, hi]), "points": n, "has_sensor": False,
             "crs": next((ix.crs for ix in indexes if ix.crs), None),
             "indexed": sorted({ix.kind for ix in indexes})}

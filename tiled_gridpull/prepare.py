@@ -129,7 +129,7 @@ def resolve_units(inputs: list[str], tiling: TilingConfig, frames=None,
         if read >= chunk_size:
             break
     if read < 16:
-        raise InputError(f"voxel_size auto: too few points in {', '.join(map(str, inputs))} to measure their "
+        raise InputError(f"voxel_size auto: too few points in {', '.join(map(shown, inputs))} to measure their "
                          "spacing; give voxel_size")
     sp = point_spacing(np.concatenate(parts))
     cell = auto_cell_size(sp)
@@ -184,7 +184,7 @@ def _joined_scan(parts: list[dict], inputs) -> dict:
     check_same_crs([(p["crs"], p["crs_source"]) for p in parts])
     n = sum(p["points"] for p in parts)
     if n == 0:
-        raise InputError(f"{', '.join(map(str, inputs))}: no points")
+        raise InputError(f"{', '.join(map(shown, inputs))}: no points")
     lo = np.min([p["lo"] for p in parts], axis=0)
     hi = np.max([p["hi"] for p in parts], axis=0)
     return {"bounds": np.stack([lo, hi]), "points": n,
@@ -350,7 +350,7 @@ def plan_inputs(inputs: list[str], tiling: TilingConfig, *, chunk_size: int = 2_
         scan["far_points_dropped"] = n_far
         if n_far:
             if inside is None:
-                raise InputError(f"{', '.join(map(str, inputs))}: drop_outliers would drop every point")
+                raise InputError(f"{', '.join(map(shown, inputs))}: drop_outliers would drop every point")
             warnings.warn(f"drop_outliers: {describe(n_far, scan['points'], box, example)}: dropped",
                           stacklevel=2)
             scan["bounds"], scan["points"] = inside, scan["points"] - n_far
@@ -470,7 +470,7 @@ def _read_indexed(inputs, tiling, paths: JobPaths, check, run_tasks):
     if owned != scan["points"]:
         # every point has one owner tile, whatever the overlaps copy: fewer means a node no candidate tile read
         # or a node holding fewer points than its hierarchy entry says, more a point read twice
-        raise InputError(f"{', '.join(map(str, inputs))}: the tiles read {owned:,} points, the headers declare "
+        raise InputError(f"{', '.join(map(shown, inputs))}: the tiles read {owned:,} points, the headers declare "
                          f"{scan['points']:,}: a damaged index")
     if check is not None:
         check(specs, None)  # a refusal leaves no partition behind: _uncommitted_on_failure removes the tiles
