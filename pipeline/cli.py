@@ -11,6 +11,7 @@ import argparse
 import errno
 import json
 import logging
+import math
 import os
 import sys
 import time
@@ -127,6 +128,8 @@ def build_parser() -> argparse.ArgumentParser:
                          "scanned by one pass per street ('grid')")
     sm.add_argument("--origin", type=float, nargs=3, default=(0.0, 0.0, 0.0), metavar=("X", "Y", "Z"),
                     help="street: offset added to every coordinate (e.g. UTM-like 500000 4000000 100)")
+    sm.add_argument("--range-noise", type=float, default=0.0, metavar="M",
+                    help="street: Gaussian noise of each return's range, in metres (a survey scanner: about 0.01-0.03)")
     sm.add_argument("--seed", type=int, default=0)
     _add_common(sm)
 
@@ -379,18 +382,22 @@ def cmd_sample(args) -> int:
 
     if args.points < 100:
         raise ConfigError(f"--points must be at least 100, got {args.points}")
+    if not (math.isfinite(args.range_noise) and args.range_noise >= 0):
+        raise ConfigError(f"--range-noise must be a length >= 0 in metres, got {args.range_noise}")
     out = Path(args.out_dir)
     if args.kind == "street":
         from tiled_gridpull.synthetic.street_sample import make_street_sample
 
         formats = ("laz",) + tuple(f for f in ("kitti", "copc", "ept") if getattr(args, f))
         info = make_street_sample(out, n_points=args.points, seed=args.seed, origin=tuple(args.origin),
-                                  formats=formats, layout=args.layout)
+                                  formats=formats, layout=args.layout, range_noise=args.range_noise)
         log.info("wrote %s (%s layout, %d points, %d frames in %d passes) and ground truth %s", info["points"],
                  info["layout"], info["n_points"], info["n_frames"], info["n_passes"], info["gt_mesh"])
         return 0
     if args.layout != "street":
         raise ConfigError(f"--layout {args.layout} applies to 'sample street' only, not '{args.kind}'")
+    if args.range_noise:
+        raise ConfigError(f"--range-noise applies to 'sample street' only, not '{args.kind}'")
     from tiled_gridpull import synthetic
     from tiled_gridpull.io import write_mesh
     from tiled_gridpull.io.atomic import atomic_path

@@ -512,3 +512,27 @@ def test_cli_sample_grid(tmp_path, capsys):
     assert "applies to 'sample street' only" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(["sample", "street", str(tmp_path / "x"), "--layout", "blocks"])
+
+
+def test_cli_sample_street_with_range_noise(tmp_path, capsys):
+    """--range-noise moves each return along its ray: the same scan, its points off the clean ones by about the
+    noise, recorded in street.json; a bad value or another kind is refused in one line."""
+    import laspy
+
+    from tiled_gridpull.pipeline.cli import main
+
+    assert main(["sample", "street", str(tmp_path / "clean"), "--points", "5000"]) == 0
+    assert main(["sample", "street", str(tmp_path / "noisy"), "--points", "5000", "--range-noise", "0.03"]) == 0
+    meta = json.loads((tmp_path / "noisy" / "street.json").read_text())
+    assert meta["range_noise"] == 0.03
+    clean = laspy.read(tmp_path / "clean" / "street.laz").xyz
+    noisy = laspy.read(tmp_path / "noisy" / "street.laz").xyz
+    assert clean.shape == noisy.shape
+    moved = np.linalg.norm(noisy - clean, axis=1)
+    assert 0.015 < np.median(moved) < 0.03   # |N(0, 0.03)| has median 0.0202
+    for argv, needle in ((["street", str(tmp_path / "x"), "--range-noise", "-1"], "--range-noise must be"),
+                         (["street", str(tmp_path / "x"), "--range-noise", "nan"], "--range-noise must be"),
+                         (["sphere", str(tmp_path / "s"), "--range-noise", "0.01"], "applies to 'sample street'")):
+        assert main(["sample", *argv, "--points", "200"]) != 0
+        assert needle in capsys.readouterr().err
+    assert not (tmp_path / "x").exists() and not (tmp_path / "s").exists()
