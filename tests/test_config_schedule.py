@@ -23,6 +23,32 @@ def test_queries_follow_the_points_between_the_floor_and_the_cap():
     assert SolverConfig(queries=50_000).queries_for(100) == 50_000  # 0 (default): the paper's fixed count
 
 
+def test_the_refinement_levels_draw_their_own_rate_of_queries():
+    cfg = SolverConfig(queries=50_000, queries_per_point=4, refine_queries_per_point=16, min_queries=2048)
+    assert cfg.queries_for(1000) == 4000 and cfg.queries_for(1000, refine=True) == 16_000
+    assert cfg.queries_for(100, refine=True) == 2048           # the same floor
+    assert cfg.queries_for(5000, refine=True) == 50_000        # and cap
+    assert [cfg.level_settings(level, 3, 1000).queries for level in range(3)] == [4000, 16_000, 16_000]
+    # unset (0): the refinement levels draw queries_per_point, as before the option existed
+    same = SolverConfig(queries=50_000, queries_per_point=4, min_queries=2048)
+    assert [same.level_settings(level, 3, 1000).queries for level in range(3)] == [4000, 4000, 4000]
+    # a single-level solve has only its coarsest level
+    assert cfg.level_settings(0, 1, 1000).queries == 4000
+    # the solve records what it drew per level
+    pts = _sphere_cloud(1500)
+    small = SolverConfig(resolution=64, levels=2, iterations=20, coarse_iterations=20, queries=20_000,
+                         queries_per_point=2, refine_queries_per_point=6, min_queries=512, lr_step=10,
+                         refine_lr_step=10)
+    fld = solve(pts, Lattice.fit(pts, small.resolution, small.margin), small)
+    coarse, fine = fld.info["levels"]
+    assert coarse["queries"] == max(512, 2 * coarse["points"]) and fine["queries"] == 6 * 1500
+
+
+def test_a_refinement_rate_alone_scales_only_the_refinement_levels():
+    cfg = SolverConfig(queries=50_000, refine_queries_per_point=16, min_queries=2048)
+    assert [cfg.level_settings(level, 3, 1000).queries for level in range(3)] == [50_000, 16_000, 16_000]
+
+
 def test_level_settings_carry_per_level_iterations():
     cfg = SolverConfig(levels=3, coarse_iterations=800, middle_iterations=400, iterations=200,
                        lr_step=400, refine_lr_step=100)
@@ -66,7 +92,8 @@ def test_a_small_cloud_draws_fewer_queries_and_the_solve_records_them():
 @pytest.mark.parametrize("kw,needle", [({"queries_per_point": -1}, "queries_per_point"),
                                        ({"min_queries": 0}, "min_queries"),
                                        ({"middle_iterations": -5}, "middle_iterations"),
-                                       ({"queries_per_point": float("nan")}, "queries_per_point")])
+                                       ({"queries_per_point": float("nan")}, "queries_per_point"),
+                                       ({"refine_queries_per_point": -2}, "refine_queries_per_point")])
 def test_schedule_settings_are_validated(kw, needle):
     with pytest.raises(ConfigError, match=needle):
         SolverConfig(**kw)

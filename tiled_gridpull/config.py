@@ -165,6 +165,10 @@ class Sampling:
         0 (paper): every iteration draws ``queries`` queries. ``r > 0``: a level holding ``N`` points (after
         the coarse levels' thinning) draws ``min(queries, max(min_queries, ceil(r N)))`` per iteration, so
         a tile's query cost follows what it holds (a tile of 500 points gets ``min_queries``, not 50,000).
+    refine_queries_per_point : float
+        The rate on the refinement levels (every level but the coarsest); 0 (default): ``queries_per_point``.
+        The refinement levels hold every point (no thinning) and their band is narrow, so their pull loss is the
+        one short of queries on sparse tiles (docs/solver.md, "Queries on the refinement levels").
     min_queries : int
         Floor of the per-iteration query count when ``queries_per_point > 0``.
     query_pool : int
@@ -181,6 +185,7 @@ class Sampling:
     m1: int = setting(3)
     queries: int = setting(50_000)
     queries_per_point: float = setting(0.0)
+    refine_queries_per_point: float = setting(0.0)
     min_queries: int = setting(2048)
     query_pool: int = setting(200)
     knn: int = setting(16)
@@ -257,6 +262,7 @@ SETTINGS: dict[str, tuple[str | None, str]] = {
     "m1": ("sampling", "m1"),
     "queries": ("sampling", "queries"),
     "queries_per_point": ("sampling", "queries_per_point"),
+    "refine_queries_per_point": ("sampling", "refine_queries_per_point"),
     "min_queries": ("sampling", "min_queries"),
     "query_pool": ("sampling", "query_pool"),
     "knn": ("sampling", "knn"),
@@ -284,7 +290,8 @@ _POSITIVE = ("resolution", "iterations", "queries", "min_queries", "lr", "lr_ste
              "coarse_iterations", "refine_lr", "refine_lr_step", "refine_sigma")
 _NONNEGATIVE = ("margin", "m1", "m2", "alpha", "beta", "gamma", "query_sigma", "init_radius", "normal_weight",
                 "seed", "refine_m2", "refine_gamma", "noise_cells", "udf_beta", "udf_polish", "query_pool",
-                "denoise", "denoise_bandwidth", "queries_per_point", "middle_iterations")
+                "denoise", "denoise_bandwidth", "queries_per_point", "refine_queries_per_point",
+                "middle_iterations")
 
 
 @dataclass(frozen=True, init=False)
@@ -423,12 +430,14 @@ class SolverConfig:
         """TV band half width of the finest level when all ``schedule.levels`` are used."""
         return (self.refine if self.schedule.levels > 1 else self.coarse).m2
 
-    def queries_for(self, n_points: int | None) -> int:
-        """Queries per iteration on a level holding ``n_points`` points (``None``: unknown, the most)."""
+    def queries_for(self, n_points: int | None, refine: bool = False) -> int:
+        """Queries per iteration on a level holding ``n_points`` points (``None``: unknown, the most); ``refine``:
+        on a refinement level (``refine_queries_per_point`` when set)."""
         s = self.sampling
-        if s.queries_per_point <= 0 or n_points is None:
+        rate = s.refine_queries_per_point if refine and s.refine_queries_per_point > 0 else s.queries_per_point
+        if rate <= 0 or n_points is None:
             return s.queries
-        return int(min(s.queries, max(s.min_queries, math.ceil(s.queries_per_point * n_points))))
+        return int(min(s.queries, max(s.min_queries, math.ceil(rate * n_points))))
 
     def level_settings(self, level: int, n_levels: int, n_points: int | None = None) -> LevelSchedule:
         """The schedule of ``level`` (0 = coarsest) out of ``n_levels``, for a level holding ``n_points`` points
@@ -439,7 +448,7 @@ class SolverConfig:
             iterations = sch.middle_iterations
         lv = self.coarse if level == 0 else self.refine
         # a pool longer than the level would never be cycled through
-        return LevelSchedule(iterations=iterations, queries=self.queries_for(n_points),
+        return LevelSchedule(iterations=iterations, queries=self.queries_for(n_points, refine=level > 0),
                              query_pool=min(self.sampling.query_pool, iterations), lr=lv.lr, lr_step=lv.lr_step,
                              m2=lv.m2, gamma=lv.gamma, sigma=lv.query_sigma, tv_form=lv.tv_form)
 
