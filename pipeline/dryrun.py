@@ -28,11 +28,12 @@ def plan_job(inputs: list[str], tiling: TilingConfig, solver: SolverConfig, work
     from tiled_gridpull.partition import partition
     from tiled_gridpull.prepare import check_registered, plan_inputs, resolve_units
     from tiled_gridpull.resume import load_partition, partition_key
-    from tiled_gridpull.tiling import check_compatible
+    from tiled_gridpull.tiling import check_compatible, with_halo
 
     check_registered(inputs)
     tiling = resolve_units(inputs, tiling, frames)
     check_compatible(tiling, solver)
+    tiling = with_halo(tiling, solver)
     paths = JobPaths(work_dir)
     reused = load_partition(paths, partition_key(inputs, tiling, frames, trajectory), tiling)
     occupancy = None

@@ -146,11 +146,28 @@ def test_plane_projection_removes_scatter_across_the_surface_only():
     assert np.array_equal(project_to_local_planes(pts, iterations=0), pts)
 
 
-def test_denoise_is_recorded_checked_and_refused_in_tiled_mode():
+def test_denoise_is_recorded_and_checked_and_tiled_mode_bounds_it():
     from tiled_gridpull.tiling import check_compatible, TilingConfig
 
-    with pytest.raises(ConfigError, match="denoise"):
-        check_compatible(TilingConfig(voxel_size=0.1), SolverConfig(denoise=2))
+    from tiled_gridpull.resume import partition_key
+    from tiled_gridpull.tiling import with_halo
+
+    # tiles take plain planes within a radius, and read a halo of points as wide as the passes reach
+    tiling = TilingConfig(voxel_size=0.1)
+    check_compatible(tiling, SolverConfig(denoise=2))
+    with pytest.raises(ConfigError, match="denoise_bandwidth applies to one-shape mode"):
+        check_compatible(tiling, SolverConfig(denoise=2, denoise_bandwidth=1.0))
+    assert with_halo(tiling, SolverConfig()).halo == 0
+    assert with_halo(tiling, SolverConfig(denoise=2)).halo == 12  # 2^2 x 3 cells
+    assert with_halo(tiling, SolverConfig(denoise=3, denoise_radius=1.5)).halo == 14  # 13.5, whole cells
+    # the partition a halo was read for is not the one without it
+    assert partition_key([], with_halo(tiling, SolverConfig(denoise=2))) != partition_key([], tiling)
+    for bad in (-1, 1.5, True):
+        with pytest.raises(ConfigError, match="halo"):
+            TilingConfig(voxel_size=0.1, halo=bad)
+    for bad in (0, -1.0, float("nan")):
+        with pytest.raises(ConfigError, match="denoise_radius"):
+            SolverConfig(denoise_radius=bad)
     with pytest.raises(ConfigError, match="denoise"):
         SolverConfig(denoise=-1)
     with pytest.raises(ConfigError, match="denoise_neighbors"):
@@ -159,6 +176,61 @@ def test_denoise_is_recorded_checked_and_refused_in_tiled_mode():
     assert preset.denoise_passes == 2 and preset.denoise_bandwidth > 0
     very = SolverConfig(**load_config_file(REPO / "configs" / "very_noisy.yaml")).noise
     assert very.denoise_passes == 2 and very.denoise_bandwidth == 0
+
+
+def _noisy_ground(n: int, sigma: float, seed: int = 0) -> np.ndarray:
+    """Wavy ground 12.8 m square with a wall along x = 6 (metres; georeferenced offset), Gaussian noise."""
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(0.0, 12.8, size=(n, 2))
+    ground = np.column_stack([xy, 0.4 * np.sin(xy[:, 0] / 2.0) * np.cos(xy[:, 1] / 3.0)])
+    wy = rng.uniform(0.0, 12.8, n // 4)
+    wall = np.column_stack([np.full(n // 4, 6.0), wy, rng.uniform(0.0, 3.0, n // 4)])
+    pts = np.vstack([ground, wall])
+    return pts + rng.normal(scale=sigma, size=pts.shape) + [500000.0, 4000000.0, 50.0]
+
+
+@pytest.mark.parametrize("tile_size", [3.2, 4.8])
+def test_tiles_denoise_every_point_as_the_whole_cloud_does(tile_size):
+    """Each tile reads its block plus a halo as wide as the denoising reaches: every point of every block, in
+    every tiling, gets the place the whole cloud's radius-bounded projection gives it (to the float32 rounding
+    of the tile files). Without the halo the points near an inner face would move otherwise, and are dropped."""
+    from tiled_gridpull.tile_plan import plan_tiles
+    from tiled_gridpull.tile_solve import _denoise
+    from tiled_gridpull.tiling import TilingConfig, with_halo
+
+    world = _noisy_ground(20_000, 0.02)
+    solver = SolverConfig(denoise=2, denoise_neighbors=32, denoise_radius=1.5)
+    whole = project_to_local_planes(world, 32, 2, radius=0.15)
+    bare = TilingConfig(voxel_size=0.1, tile_size=tile_size, overlap=1.6)
+    bounds = np.stack([world.min(axis=0), world.max(axis=0)])
+    for tiling in (with_halo(bare, solver), bare):
+        plan = plan_tiles(bounds, len(world), tiling)
+        point, tile = plan.tiles_of(plan.lattice.to_index(world))
+        block_points = dropped = halo_points = 0
+        near_face_error = 0.0
+        for key in {tuple(t) for t in tile.tolist()}:
+            spec = plan.spec(key)
+            rows = point[np.all(tile == key, axis=1)]
+            corner = np.asarray(spec.block.low_corner)
+            local = (world[rows] - corner).astype(np.float32).astype(np.float64)  # as the tile's spill file
+            summary: dict = {}
+            moved, use = _denoise(local, spec, tiling, solver, summary)
+            record = summary["denoise"]
+            assert record["points"] == use.sum() == len(moved) and record["moved_max_m"] <= 2 * 0.15 + 1e-9
+            assert np.abs(moved + corner - whole[rows[use]]).max() < 2e-5
+            in_block = np.all((local >= 0) & (local <= (np.asarray(spec.block.shape) - 1) * 0.1), axis=1)
+            block_points += int(in_block.sum())
+            dropped += record["dropped_near_faces"]
+            halo_points += record["halo_points"]
+            # the same points without their margin lose neighbours near an inner face and move otherwise
+            near = in_block & ~use
+            if near.any():
+                alone = project_to_local_planes(local, 32, 2, radius=0.15) + corner
+                near_face_error = max(near_face_error, float(np.abs(alone[near] - whole[rows[near]]).max()))
+        if tiling.halo:
+            assert tiling.halo == 6 and halo_points > 0 and dropped == 0
+        else:
+            assert halo_points == 0 and 0 < dropped < block_points and near_face_error > 1e-3
 
 
 def thin_part(gap: float, sigma: float, n: int = 40_000, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:

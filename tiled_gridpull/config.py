@@ -194,7 +194,8 @@ class Sampling:
 
 @dataclass(frozen=True)
 class NoiseHandling:
-    """One-shape mode: what is done about noise before the solve (tiled mode refuses these settings).
+    """What is done about noise before the solve. Tiled mode takes the denoising passes (with neighbourhoods bounded
+    by ``denoise_radius``) and refuses the rest.
 
     Attributes
     ----------
@@ -211,7 +212,13 @@ class NoiseHandling:
         Neighbours per plane fit.
     denoise_bandwidth : float
         0: plain least-squares planes. > 0: robust (bilateral) planes whose range scale is this many estimated
-        noise sigmas, so thin walls and sharp edges keep their sheets apart.
+        noise sigmas, so thin walls and sharp edges keep their sheets apart. One-shape mode only (the range
+        scale comes from an estimate over the whole cloud).
+    denoise_radius : float
+        Tiled mode: only neighbours within this many cells count (default 3). It bounds how far a point's
+        result reaches, so a tile denoises the points it keeps exactly as any other tiling would
+        (:func:`tiled_gridpull.noise.denoise_block`); the overlap must exceed ``denoise^2 x denoise_radius``
+        cells plus the finest TV band. One-shape mode fits the nearest neighbours without a bound.
     auto : bool
         One-shape mode: when the cloud looks noisy (:attr:`tiled_gridpull.noise.NoiseEstimate.ratio`) and none
         of the noise settings above nor ``beta`` was changed from its default, apply the treatment of
@@ -223,6 +230,7 @@ class NoiseHandling:
     denoise_passes: int = setting(0)
     denoise_neighbors: int = setting(64)
     denoise_bandwidth: float = setting(0.0)
+    denoise_radius: float = setting(3.0)
     auto: bool = setting(True, solve=False)
 
 
@@ -271,6 +279,7 @@ SETTINGS: dict[str, tuple[str | None, str]] = {
     "denoise": ("noise", "denoise_passes"),
     "denoise_neighbors": ("noise", "denoise_neighbors"),
     "denoise_bandwidth": ("noise", "denoise_bandwidth"),
+    "denoise_radius": ("noise", "denoise_radius"),
     "noise_auto": ("noise", "auto"),
 }
 
@@ -287,7 +296,7 @@ _DOTTED = {f"{section}.{name}": (section, name) for section, name in SETTINGS.va
 
 _CHOICES = {"tv_form": ("squared", "sqrt"), "refine_tv_form": ("squared", "sqrt"), "mode": ("sdf", "udf")}
 _POSITIVE = ("resolution", "iterations", "queries", "min_queries", "lr", "lr_step", "knn", "levels",
-             "coarse_iterations", "refine_lr", "refine_lr_step", "refine_sigma")
+             "coarse_iterations", "refine_lr", "refine_lr_step", "refine_sigma", "denoise_radius")
 _NONNEGATIVE = ("margin", "m1", "m2", "alpha", "beta", "gamma", "query_sigma", "init_radius", "normal_weight",
                 "seed", "refine_m2", "refine_gamma", "noise_cells", "udf_beta", "udf_polish", "query_pool",
                 "denoise", "denoise_bandwidth", "queries_per_point", "refine_queries_per_point",

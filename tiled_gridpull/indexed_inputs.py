@@ -198,7 +198,7 @@ def candidate_tiles(indexes: list[PointIndex], plan: TilePlan, budget: int = SAM
 def _read_box(plan: TilePlan, tile: tuple) -> tuple[np.ndarray, np.ndarray]:
     """World box holding every point the tile's block may receive (``tiles_of`` gives border tiles the points
     beyond the lattice's edge: their side of the box is open)."""
-    T, O = plan.config.tile_cells, plan.config.overlap_cells
+    T, O = plan.config.tile_cells, plan.reach_cells
     t = np.asarray(tile)
     lo_i = (t * T - O - 1).astype(np.float64)
     hi_i = ((t + 1) * T + O + 1).astype(np.float64)

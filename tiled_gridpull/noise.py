@@ -14,8 +14,8 @@ from pykdtree.kdtree import KDTree
 
 from .normals import plane_fits
 
-__all__ = ["estimate_noise", "NoiseEstimate", "project_to_local_planes", "select_treatment", "NOISY_RATIO",
-           "VERY_NOISY_RATIO", "LOCAL_NOISY_RATIO"]
+__all__ = ["estimate_noise", "NoiseEstimate", "project_to_local_planes", "denoise_margin", "denoise_block",
+           "select_treatment", "NOISY_RATIO", "VERY_NOISY_RATIO", "LOCAL_NOISY_RATIO"]
 
 #: ``sigma / spacing`` (64 neighbours) above which a cloud may be noisy (0.5 % noise: 1.22-1.53)
 NOISY_RATIO = 1.2
@@ -139,7 +139,7 @@ def _unit_frame(points: np.ndarray) -> tuple[np.ndarray, float]:
 
 
 def project_to_local_planes(points: np.ndarray, k: int = 64, iterations: int = 2, bandwidth: float = 0.0,
-                            chunk: int = 50_000) -> np.ndarray:
+                            chunk: int = 50_000, radius: float = np.inf) -> np.ndarray:
     """Denoise a cloud: move every point onto the plane of its ``k`` nearest neighbours, repeated.
 
     The classical point-set projection (:func:`tiled_gridpull.normals.plane_fits`, all points moved at once from
@@ -166,6 +166,11 @@ def project_to_local_planes(points: np.ndarray, k: int = 64, iterations: int = 2
         Robust range scale in units of the estimated noise sigma; 0 gives the plain least-squares plane.
     chunk : int
         Points whose neighbourhoods are fitted at once (bounds memory to about ``chunk * k * 48`` bytes).
+    radius : float
+        Only neighbours within this distance (world units) count (:func:`~tiled_gridpull.normals.plane_fits`);
+        a point with fewer than 4 stays where it is. With a bound, each pass moves a point by at most
+        ``radius`` and the result after ``P`` passes depends only on the points within ``P^2 radius``
+        (:func:`denoise_margin`).
 
     Returns
     -------
@@ -182,8 +187,58 @@ def project_to_local_planes(points: np.ndarray, k: int = 64, iterations: int = 2
     for _ in range(int(iterations)):
         h = bandwidth * estimate_noise(cur).sigma if bandwidth > 0 else 0.0
         out = np.empty_like(cur)
-        for a, b, centroid, normal in plane_fits(cur, k, chunk, bandwidth=h):
+        for a, b, centroid, normal in plane_fits(cur, k, chunk, bandwidth=h, radius=radius / scale):
             p = cur[a:b]
             out[a:b] = p - np.sum((p - centroid) * normal, axis=1)[:, None] * normal
         cur = out
     return cur * scale + centre
+
+
+def denoise_margin(passes: int, radius: float) -> float:
+    """How far the result of ``passes`` radius-bounded passes reaches (``passes^2 x radius``, units of ``radius``).
+
+    A pass moves a point onto a plane through the centroid of points within ``radius`` of it, so by at most
+    ``radius``. At pass ``t`` two points that both moved at most ``(t - 1) radius`` and are neighbours now started
+    within ``(2t - 1) radius`` of each other, so pass ``t`` adds ``(2t - 1) radius`` to the reach of pass
+    ``t - 1``: ``radius (1 + 3 + ... + (2P - 1)) = P^2 radius``.
+    """
+    return float(passes) ** 2 * float(radius)
+
+
+def denoise_block(points: np.ndarray, k: int, passes: int, radius: float, lo: np.ndarray,
+                  hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Denoise the points of one block of a tiling so that what it keeps does not depend on the tiling.
+
+    Every point of the block takes part in the ``passes`` radius-bounded projections
+    (:func:`project_to_local_planes`), but only the points farther than :func:`denoise_margin` from a face
+    beyond which the block misses points are kept: their neighbourhoods, pass after pass, lie inside the block,
+    so any block holding them gives them the same positions (to the rounding of their stored coordinates). The
+    points dropped near a face lie in a neighbouring tile's core and keep their place there.
+
+    Parameters
+    ----------
+    points : (N, 3) float
+        Every input point inside the block (any frame, e.g. metres from the block's low corner).
+    k : int
+        Neighbours per plane fit (the nearest, within ``radius``).
+    passes : int
+        Projections (> 0).
+    radius : float
+        Neighbourhood bound, units of ``points``.
+    lo, hi : (3,) float
+        The block's faces beyond which points exist that the block does not hold; ``-inf`` / ``inf`` on a side
+        with no points beyond (the outer faces of the tile grid).
+
+    Returns
+    -------
+    denoised : (M, 3) float64
+        The kept points, moved.
+    keep : (N,) bool
+        Which input points were kept.
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    margin = denoise_margin(passes, radius)
+    keep = np.all((pts >= np.asarray(lo, np.float64) + margin) & (pts <= np.asarray(hi, np.float64) - margin),
+                  axis=1)
+    moved = project_to_local_planes(pts, k, passes, 0.0, radius=radius)
+    return moved[keep], keep

@@ -16,7 +16,8 @@ __all__ = ["plane_fits", "local_planes", "estimate_normals", "orient_normals", "
            "orientation_score"]
 
 
-def plane_fits(points: np.ndarray, k: int, chunk: int = 200_000, bandwidth: float = 0.0, reweights: int = 3):
+def plane_fits(points: np.ndarray, k: int, chunk: int = 200_000, bandwidth: float = 0.0, reweights: int = 3,
+               radius: float = np.inf):
     """Least-squares plane (PCA) of every point's ``k`` nearest neighbours, ``chunk`` points at a time.
 
     With ``bandwidth > 0`` the fit is robust: each neighbour is then weighted by ``exp(-d^2 / (2
@@ -38,6 +39,11 @@ def plane_fits(points: np.ndarray, k: int, chunk: int = 200_000, bandwidth: floa
         Range scale of the robust weights, in the points' units; 0 gives the plain least-squares fit.
     reweights : int
         Weighted refits after the plain one (``bandwidth > 0`` only).
+    radius : float
+        Neighbours farther than this (the points' units) are left out: the neighbourhood is the ``k`` nearest
+        within ``radius``, so a fit depends on nothing outside that ball (what a tile needs to fit a point the
+        way its neighbour does). A point with fewer than 4 points in its ball gets itself as the centroid, so
+        projecting it onto its plane leaves it in place.
 
     Yields
     ------
@@ -54,16 +60,30 @@ def plane_fits(points: np.ndarray, k: int, chunk: int = 200_000, bandwidth: floa
     tree = KDTree(pts)
     for s in range(0, n, chunk):
         e = min(n, s + chunk)
-        _, idx = tree.query(pts[s:e], k=k)
-        nb = pts[idx.reshape(e - s, k).astype(np.int64)]
-        centroids, normals = _weighted_planes(nb, None)
+        if np.isfinite(radius):
+            _, idx = tree.query(pts[s:e], k=k, distance_upper_bound=float(radius))
+            idx = idx.reshape(e - s, k).astype(np.int64)
+            found = idx < n  # pykdtree marks a missing neighbour with index n
+            # a missing neighbour stands in as the point itself (the first column) with weight 0
+            idx = np.where(found, idx, idx[:, :1])
+            inside = found.astype(np.float64)
+        else:
+            _, idx = tree.query(pts[s:e], k=k)
+            idx = idx.reshape(e - s, k).astype(np.int64)
+            inside = None
+        nb = pts[idx]
+        centroids, normals = _weighted_planes(nb, inside)
         if bandwidth > 0:
             anchor = pts[s:e]
             for _ in range(int(reweights)):
                 offset = np.einsum("nki,ni->nk", nb - anchor[:, None], normals)
-                centroids, normals = _weighted_planes(nb, np.exp(-0.5 * (offset / bandwidth) ** 2))
+                weights = np.exp(-0.5 * (offset / bandwidth) ** 2)
+                centroids, normals = _weighted_planes(nb, weights if inside is None else weights * inside)
                 # follow the point's projection, so the weights climb to its sheet's densest level (mean shift)
                 anchor = pts[s:e] - np.einsum("ni,ni->n", pts[s:e] - centroids, normals)[:, None] * normals
+        if inside is not None:
+            few = inside.sum(axis=1) < 4
+            centroids[few] = pts[s:e][few]
         yield s, e, centroids, normals
 
 

@@ -131,6 +131,8 @@ def partition_key(inputs: list, tiling: TilingConfig, frames=None, trajectory=No
         facts["trajectory"] = input_fingerprint([trajectory])
     if tiling.drop_outliers:  # only when set: keys of partitions made without it stay as they were
         facts["drop_outliers"] = True
+    if tiling.halo:  # likewise
+        facts["halo"] = tiling.halo
     return digest(facts)
 
 

@@ -6,6 +6,8 @@ blocks and overlaps).
 
 from __future__ import annotations
 
+import itertools
+
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -124,8 +126,13 @@ class TilePlan:
         return TileSpec(tuple(int(v) for v in index), tuple(int(v) for v in core_lo), tuple(int(v) for v in core_hi),
                         block, mesh_lo=tuple(int(v) for v in mesh_lo), mesh_hi=tuple(int(v) for v in mesh_hi), **kw)
 
+    @property
+    def reach_cells(self) -> int:
+        """How far past its core a tile receives points: the overlap, plus the halo its denoising reads."""
+        return self.config.overlap_cells + self.config.halo
+
     def tile_span(self, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """First and last tile (inclusive, per axis) whose block (core +- overlap) may reach into each box.
+        """First and last tile (inclusive, per axis) whose block (core +- overlap, + halo) may reach into each box.
 
         Parameters
         ----------
@@ -137,7 +144,7 @@ class TilePlan:
         first, last : (N, 3) int64
             Clipped to the tile grid, so points beyond the lattice's edge fall to the border tiles.
         """
-        T, O = self.config.tile_cells, self.config.overlap_cells
+        T, O = self.config.tile_cells, self.reach_cells
         top = np.asarray(self.tile_range) - 1
         first = np.clip(np.floor((np.asarray(lo) - O) / T).astype(np.int64), 0, top)
         last = np.clip(np.floor((np.asarray(hi) + O) / T).astype(np.int64), 0, top)
@@ -150,7 +157,7 @@ class TilePlan:
         return np.clip(np.floor(np.asarray(index_coords) / self.config.tile_cells).astype(np.int64), 0, top)
 
     def tiles_of(self, index_coords: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Every (point, tile) pair whose block holds the point.
+        """Every (point, tile) pair whose block (with its halo, :attr:`reach_cells`) holds the point.
 
         Parameters
         ----------
@@ -164,26 +171,22 @@ class TilePlan:
         tile : (M, 3) int64
             Tile index of each pair.
         """
-        T, O = self.config.tile_cells, self.config.overlap_cells
+        T, O = self.config.tile_cells, self.reach_cells
         lo, hi = self.tile_span(index_coords, index_coords)
         pts, tiles = [], []
-        n = len(index_coords)
-        for dx in (0, 1):
-            for dy in (0, 1):
-                for dz in (0, 1):
-                    t = np.stack([np.where(dx, hi[:, 0], lo[:, 0]), np.where(dy, hi[:, 1], lo[:, 1]),
-                                  np.where(dz, hi[:, 2], lo[:, 2])], axis=1)
-                    # a combination exists only once: skip repeats where lo == hi on a chosen axis
-                    keep = np.ones(n, bool)
-                    for axis, d in enumerate((dx, dy, dz)):
-                        if d:
-                            keep &= hi[:, axis] != lo[:, axis]
-                    # the point must lie inside the tile's block (core +- O) on every axis
-                    core_lo = t * T
-                    inside = np.all((index_coords >= core_lo - O) & (index_coords <= core_lo + T + O), axis=1)
-                    sel = np.flatnonzero(keep & inside)
-                    pts.append(sel)
-                    tiles.append(t[sel])
+        # blocks overlap by at most half a tile, so without a halo a point lies in at most 2 tiles per axis; a
+        # halo (denoising) can make that 3
+        span = int((hi - lo).max(initial=0)) + 1
+        for offset in itertools.product(range(span), repeat=3):
+            t = lo + np.asarray(offset, np.int64)
+            # each (point, tile) pair once: tiles past the last of the point's span do not exist for it
+            keep = np.all(t <= hi, axis=1)
+            # the point must lie inside the tile's block (core +- O, halo included) on every axis
+            core_lo = t * T
+            inside = np.all((index_coords >= core_lo - O) & (index_coords <= core_lo + T + O), axis=1)
+            sel = np.flatnonzero(keep & inside)
+            pts.append(sel)
+            tiles.append(t[sel])
         return np.concatenate(pts), np.concatenate(tiles)
 
     def to_dict(self) -> dict:

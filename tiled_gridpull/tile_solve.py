@@ -13,6 +13,7 @@ from .errors import ConfigError, GridPullError
 from .kernels import BRICK
 from .lattice import Lattice
 from .memory import peak_rss_mb, reset_peak_rss
+from .noise import denoise_block
 from .normals import estimate_normals, orient_normals, orientation_score
 from .initial_field import plane_distance_init
 from .partition import read_tile_points
@@ -61,6 +62,9 @@ def solve_tile(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig, field
             summary["duplicates_dropped"] = int(len(xyz) - len(keep))
             xyz = xyz[keep]
             sensor32 = sensor32[keep] if sensor32 is not None else None
+        if solver.noise.denoise_passes > 0:
+            xyz, keep = _denoise(xyz, spec, tiling, solver, summary)
+            sensor32 = sensor32[keep] if sensor32 is not None else None
         summary["points_used"] = int(len(xyz))
         if len(xyz) < tiling.min_points:
             summary.update(status="skipped", reason=f"{len(xyz)} points (< min_points {tiling.min_points})")
@@ -105,6 +109,34 @@ def solve_tile(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig, field
     summary["time_s"] = time.perf_counter() - t0
     summary["peak_rss_mb"] = peak_rss_mb()
     return summary
+
+
+def _denoise(xyz: np.ndarray, spec: TileSpec, tiling: TilingConfig, solver: SolverConfig,
+             summary: dict) -> tuple[np.ndarray, np.ndarray]:
+    """The block's points denoised the same whatever the tiling (:func:`tiled_gridpull.noise.denoise_block`), and
+    which of ``xyz`` (N, 3; metres from the block's low corner, halo included) they are; figures go into
+    ``summary``."""
+    cell = spec.block.cell_size
+    size = (np.asarray(spec.block.shape, np.float64) - 1.0) * cell
+    halo = tiling.halo * cell
+    # the tile read its block and a halo around it (TilingConfig.halo); the outer faces of the tile grid have
+    # no points beyond them (mesh_lo/hi reach into the overlap there)
+    lo = np.where(np.asarray(spec.mesh_lo) < np.asarray(spec.core_lo), -np.inf, -halo)
+    hi = np.where(np.asarray(spec.mesh_hi) > np.asarray(spec.core_hi), np.inf, size + halo)
+    noise = solver.noise
+    moved, keep = denoise_block(xyz, noise.denoise_neighbors, noise.denoise_passes, noise.denoise_radius * cell,
+                                lo, hi)
+    # the halo's points only served the neighbourhoods: the solve takes the block's, every one of them when the
+    # halo covers the denoising's reach (as with_halo sets it); any other would be dropped, never left unmoved
+    in_block = np.all((xyz >= 0.0) & (xyz <= size), axis=1)
+    use = in_block & keep
+    moved = moved[use[keep]]
+    shift = np.linalg.norm(moved - xyz[use], axis=1)
+    summary["denoise"] = {"points": int(use.sum()), "halo_points": int((~in_block).sum()),
+                          "dropped_near_faces": int((in_block & ~keep).sum()),
+                          "moved_median_m": float(np.median(shift)) if len(shift) else 0.0,
+                          "moved_max_m": float(shift.max()) if len(shift) else 0.0}
+    return moved, use
 
 
 def _loss_point(record: dict, info: dict) -> dict:

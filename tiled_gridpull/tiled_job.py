@@ -37,7 +37,7 @@ from .resume import mesh_tile_resumable, solve_tile_resumable
 from .stitch import load_piece, mesh_tile, weld_pieces
 from .tile_plan import TilePlan, TileSpec
 from .tile_solve import solve_tile
-from .tiling import TilingConfig, check_compatible
+from .tiling import TilingConfig, check_compatible, with_halo
 
 log = logging.getLogger("tiled_gridpull")
 
@@ -251,6 +251,7 @@ def run_tiled_job(inputs: list[str], output: str | Path | None, tiling: TilingCo
     check_registered(inputs)  # before a KITTI scan's points are read to measure them
     tiling = resolve_units(inputs, tiling, frames)  # auto, or a cell size in metres on data in feet
     check_compatible(tiling, solver)
+    tiling = with_halo(tiling, solver)  # a denoising tile reads the points its margin needs
     executor.check()  # before the partition, not after it
     work_dir = Path(work_dir).resolve()  # workers of an external cluster do not share this process's cwd
     with job_lock(work_dir):

@@ -10,15 +10,16 @@ global brick grid and overlapping tiles store the very same vertices in the very
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 from .config import SolverConfig, finite_number
 from .crs import LENGTH_UNITS, LinearUnit, parse_length
 from .spacing import Spacing
 from .errors import ConfigError
+from .noise import denoise_margin
 from .kernels import BRICK
 
-__all__ = ["TilingConfig", "check_compatible", "auto_cell_size", "AUTO", "ORIENTATIONS", "MAX_TILE_CELLS",
+__all__ = ["TilingConfig", "check_compatible", "with_halo", "auto_cell_size", "AUTO", "ORIENTATIONS", "MAX_TILE_CELLS",
            "DEFAULT_TILE_CELLS", "DEFAULT_OVERLAP_CELLS"]
 
 ORIENTATIONS = ("auto", "sensor", "up", "outward", "sphere")
@@ -78,6 +79,10 @@ class TilingConfig:
     drop_outliers : bool
         Drop the points far from the rest of the input before planning (:mod:`tiled_gridpull.outliers`: outside
         the box of all but 0.1 % of a sample per axis, widened by half its size and at least a tile).
+    halo : int
+        Cells beyond the overlap whose points a tile reads but does not solve: what its denoising needs to move
+        every point of its block as any other tiling would. Set by the job from the solver (:func:`with_halo`);
+        0 without denoising.
     voxel_unit : str, optional
         The unit ``voxel_size`` was given in, until it is converted to the data's units (None: data units).
     derived : tuple of str
@@ -96,6 +101,7 @@ class TilingConfig:
     orientation: str = "auto"
     normal_neighbors: int = 16
     drop_outliers: bool = False
+    halo: int = 0
     voxel_unit: str | None = None
     derived: tuple[str, ...] = field(default=(), compare=False)
     units: str | None = field(default=None, compare=False)
@@ -187,6 +193,8 @@ class TilingConfig:
             if isinstance(v, bool) or not isinstance(v, int) or v < 1 or v >= 1 << 62:
                 shown = f"an integer of {v.bit_length()} bits" if isinstance(v, int) and v >= 1 << 62 else repr(v)
                 raise ConfigError(f"{name} must be a positive integer, got {shown}")
+        if isinstance(self.halo, bool) or not isinstance(self.halo, int) or not 0 <= self.halo <= MAX_TILE_CELLS:
+            raise ConfigError(f"halo must be a whole number of cells (0 to {MAX_TILE_CELLS}), got {self.halo!r}")
         if not isinstance(self.drop_outliers, bool):
             raise ConfigError(f"drop_outliers must be true or false, got {self.drop_outliers!r}")
         if self.orientation not in ORIENTATIONS:
@@ -250,7 +258,7 @@ class TilingConfig:
                             tile_size=None if "tile_size" in derived else self.tile_size,
                             overlap=None if "overlap" in derived else self.overlap,
                             **{k: getattr(self, k) for k in ("min_points", "trim_distance", "orientation",
-                                                             "normal_neighbors", "drop_outliers")})
+                                                             "normal_neighbors", "drop_outliers", "halo")})
 
     def _need_cell_size(self, what: str) -> None:
         if self.voxel_unit is not None:
@@ -280,9 +288,9 @@ def check_compatible(tiling: TilingConfig, solver: SolverConfig) -> None:
                           "faces farther than trim_distance from the points: open ground stays open)")
     if solver.noise.cell_sigmas > 0:
         raise ConfigError("noise_cells applies to one-shape mode (tiled mode fixes the cell size with voxel_size)")
-    if solver.noise.denoise_passes > 0:
-        raise ConfigError("denoise applies to one-shape mode (tiles are not denoised; it is untested across tile "
-                          "borders)")
+    if solver.noise.denoise_passes > 0 and solver.noise.denoise_bandwidth > 0:
+        raise ConfigError("denoise_bandwidth applies to one-shape mode (its range scale comes from the noise of the "
+                          "whole cloud; tiles fit plain planes within denoise_radius): set denoise_bandwidth: 0")
     if solver.losses.normal_weight > 0:
         raise ConfigError("normal_weight applies to one-shape mode (tiles orient estimated normals instead)")
     if not tiling.resolved:
@@ -292,6 +300,15 @@ def check_compatible(tiling: TilingConfig, solver: SolverConfig) -> None:
         raise ConfigError(f"overlap of {tiling.overlap_cells} cells is too small for a TV band of {m2} cells at "
                           f"the finest level: use overlap >= {(m2 + 1) * tiling.voxel_size:g} "
                           f"({m2 + 1} cells) or a narrower band")
+
+
+def with_halo(tiling: TilingConfig, solver: SolverConfig) -> TilingConfig:
+    """``tiling`` with the halo the solver's denoising needs: whole cells past :func:`noise.denoise_margin
+    <tiled_gridpull.noise.denoise_margin>` (``denoise^2 x denoise_radius``), 0 without denoising."""
+    halo = 0
+    if solver.noise.denoise_passes > 0:
+        halo = int(math.ceil(denoise_margin(solver.noise.denoise_passes, solver.noise.denoise_radius) - 1e-9))
+    return tiling if tiling.halo == halo else replace(tiling, halo=halo)
 
 
 #: Cell sizes ``auto`` picks from: 1, 2, 2.5 and 5 times a power of ten (readable, and stable against the small
