@@ -232,7 +232,7 @@ def resolve_settings(args) -> tuple:
         if "voxel_size" in settings:
             raise ConfigError("--normals applies to one-shape mode (tiles orient estimated normals instead)")
         solver_settings.setdefault("normal_weight", NORMALS_WEIGHT)
-    tiling_keys = set(TilingConfig.__dataclass_fields__) - {"derived", "units"}  # recorded, not settings
+    tiling_keys = set(TilingConfig.__dataclass_fields__) - {"derived", "units", "halo"}  # recorded, not settings
     unknown = set(settings) - tiling_keys
     if unknown:
         raise ConfigError(f"unknown setting(s): {', '.join(sorted(_shown_key(k) for k in unknown))}")

@@ -61,7 +61,8 @@ def plan_job(inputs: list[str], tiling: TilingConfig, solver: SolverConfig, work
         "partition_reused": reused is not None, "index_sample": sampled,
         "lattice": {"origin": list(plan.lattice.origin), "cell_size": plan.lattice.cell_size,
                     "shape": list(plan.lattice.shape), "tile_cells": tiling.tile_cells,
-                    "overlap_cells": tiling.overlap_cells, "tile_range": list(plan.tile_range),
+                    "overlap_cells": tiling.overlap_cells, "halo_cells": tiling.halo,
+                    "tile_range": list(plan.tile_range),
                     "derived": list(tiling.derived), "units": tiling.units,
                     "levels": solver.levels_for(tiling.tile_cells + 2 * tiling.overlap_cells)},
         "tiles": {"planned": int(np.prod(plan.tile_range)), "with_points": len(specs),
@@ -116,9 +117,11 @@ def format_plan(info: dict, max_memory: int | None = None) -> str:
         f"tiles:    {t['with_points']} with points of {t['planned']} planned "
         f"({' x '.join(str(v) for v in lat['tile_range'])}); "
         f"core {lat['tile_cells']} cells ({lat['tile_cells'] * cell:g}), "
-        f"overlap {lat['overlap_cells']} cells ({lat['overlap_cells'] * cell:g}) per side{_derived(lat)}",
+        f"overlap {lat['overlap_cells']} cells ({lat['overlap_cells'] * cell:g}) per side{_derived(lat)}"
+        + (f", and a halo of {lat['halo_cells']} cells read for denoising" if lat.get("halo_cells") else ""),
         f"points per tile: min {t['points_min']:,}, median {t['points_median']:,.0f}, max {t['points_max']:,} "
-        f"({t['overlap_points']:,} copies in overlaps; {t['below_min_points']} tile(s) below min_points)",
+        f"({t['overlap_points']:,} copies in overlaps{' and halos' if lat.get('halo_cells') else ''}; "
+        f"{t['below_min_points']} tile(s) below min_points)",
         f"memory:   peak per worker about {format_size(m['peak_bytes'])} (largest tile, {m['peak_tile']}); "
         f"median tile {format_size(m['median_bytes'])} (estimates are upper bounds)",
         f"time:     roughly {_duration(tm['wall_seconds'])} with {tm['workers']} one-thread worker(s) "

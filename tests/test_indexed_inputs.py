@@ -4,6 +4,7 @@ The promise tested here: a tile read from the index is byte for byte the tile th
 input writes, so everything after (solve keys, meshes, resume) is the same as for a streamed input.
 """
 
+import dataclasses
 
 import numpy as np
 import pytest
@@ -59,17 +60,20 @@ def _files(specs):
                      Path(s.occupancy_path).read_bytes()) for s in specs}
 
 
-@pytest.mark.parametrize("kind", ["COPC", "EPT"])
+@pytest.mark.parametrize("kind,halo", [("COPC", 0), ("EPT", 0), ("COPC", 12)])
 def test_each_tile_read_from_the_index_is_the_streaming_partition_byte_for_byte(inputs, tmp_path, monkeypatch,
-                                                                                kind):
+                                                                                kind, halo):
+    """Also with a denoising halo wide enough that a point reaches 3 tiles along an axis (8 + 12 cells past a
+    32-cell core)."""
     calls = []
 
     def run_tasks(fn, args):  # what an executor does, recorded
         calls.append(len(args))
         return [fn(*a) for a in args]
 
-    plan, specs, scan = prepare_job([inputs[kind]], TILING, JobPaths(tmp_path / "a"), run_tasks=run_tasks)
-    plan_s, specs_s, scan_s = _streamed(monkeypatch, [inputs[kind]], TILING, JobPaths(tmp_path / "b"))
+    tiling = dataclasses.replace(TILING, halo=halo)
+    plan, specs, scan = prepare_job([inputs[kind]], tiling, JobPaths(tmp_path / "a"), run_tasks=run_tasks)
+    plan_s, specs_s, scan_s = _streamed(monkeypatch, [inputs[kind]], tiling, JobPaths(tmp_path / "b"))
     assert calls and calls[0] == scan["candidate_tiles"] >= len(specs)  # one task per candidate tile
     assert plan.to_dict() == plan_s.to_dict()  # the header's bounds give the streamed plan
     assert scan["points"] == scan_s["points"] and scan["indexed"] == [kind]
@@ -77,6 +81,13 @@ def test_each_tile_read_from_the_index_is_the_streaming_partition_byte_for_byte(
     assert _files(specs) == _files(specs_s)
     # tiles over the empty gap are planned but hold nothing, in both
     assert len(specs) < np.prod(plan.tile_range)
+    # each spill holds exactly the points within its block and halo
+    index = plan.lattice.to_index(_scene())
+    reach = plan.config.overlap_cells + halo
+    for spec in specs:
+        core = np.asarray(spec.core_lo) - np.asarray(plan.lattice.offset)
+        inside = np.all((index >= core - reach) & (index <= core + plan.config.tile_cells + reach), axis=1)
+        assert spec.n_points == inside.sum()
 
 
 def test_candidate_tiles_cover_every_tile_with_points(inputs, tmp_path, monkeypatch):

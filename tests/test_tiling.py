@@ -61,6 +61,21 @@ def test_derived_is_not_a_user_setting(tmp_path, capsys):
     assert code == 2 and "unknown setting(s): derived" in capsys.readouterr().err
 
 
+def test_the_denoising_halo_is_set_by_the_job_and_shown_by_the_dry_run(tmp_path, capsys):
+    p = tmp_path / "c.npy"
+    np.save(p, np.random.default_rng(0).uniform(0, 30, size=(3000, 3)))
+    code = main(["reconstruct", str(p), "-o", str(tmp_path / "o.ply"), "--voxel-size", "0.1", "--dry-run",
+                 "--set", "halo=4", "-q"])
+    assert code == 2 and "unknown setting(s): halo" in capsys.readouterr().err
+    code = main(["reconstruct", str(p), "-o", str(tmp_path / "o.ply"), "--voxel-size", "0.1", "--tile-size",
+                 "12.8", "--dry-run", "--set", "denoise=2"])
+    out = capsys.readouterr().out
+    assert code == 0 and "and a halo of 12 cells read for denoising" in out and "copies in overlaps and halos" in out
+    code = main(["reconstruct", str(p), "-o", str(tmp_path / "o.ply"), "--voxel-size", "0.1", "--tile-size",
+                 "12.8", "--dry-run"])
+    assert code == 0 and "halo" not in capsys.readouterr().out
+
+
 def test_coarser_cells_with_the_scene_config_need_no_scaled_sizes(tmp_path, capsys):
     """`--voxel-size 0.5` with configs/scene.yaml used to be refused ("overlap of 8 cells is too small"); the
     dry run now plans 256-cell cores and says why."""
