@@ -158,7 +158,7 @@ def test_denoise_is_recorded_and_checked_and_tiled_mode_bounds_it():
     with pytest.raises(ConfigError, match="denoise_bandwidth applies to one-shape mode"):
         check_compatible(tiling, SolverConfig(denoise=2, denoise_bandwidth=1.0))
     assert with_halo(tiling, SolverConfig()).halo == 0
-    assert with_halo(tiling, SolverConfig(denoise=2)).halo == 12  # 2^2 x 3 cells
+    assert with_halo(tiling, SolverConfig(denoise=2)).halo == 8  # 2^2 x 2 cells
     assert with_halo(tiling, SolverConfig(denoise=3, denoise_radius=1.5)).halo == 14  # 13.5, whole cells
     # the partition a halo was read for is not the one without it
     assert partition_key([], with_halo(tiling, SolverConfig(denoise=2))) != partition_key([], tiling)

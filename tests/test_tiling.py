@@ -70,7 +70,7 @@ def test_the_denoising_halo_is_set_by_the_job_and_shown_by_the_dry_run(tmp_path,
     code = main(["reconstruct", str(p), "-o", str(tmp_path / "o.ply"), "--voxel-size", "0.1", "--tile-size",
                  "12.8", "--dry-run", "--set", "denoise=2"])
     out = capsys.readouterr().out
-    assert code == 0 and "and a halo of 12 cells read for denoising" in out and "copies in overlaps and halos" in out
+    assert code == 0 and "and a halo of 8 cells read for denoising" in out and "copies in overlaps and halos" in out
     code = main(["reconstruct", str(p), "-o", str(tmp_path / "o.ply"), "--voxel-size", "0.1", "--tile-size",
                  "12.8", "--dry-run"])
     assert code == 0 and "halo" not in capsys.readouterr().out

@@ -215,10 +215,11 @@ class NoiseHandling:
         noise sigmas, so thin walls and sharp edges keep their sheets apart. One-shape mode only (the range
         scale comes from an estimate over the whole cloud).
     denoise_radius : float
-        Tiled mode: only neighbours within this many cells count (default 3). It bounds how far a point's
-        result reaches, so a tile denoises the points it keeps exactly as any other tiling would
-        (:func:`tiled_gridpull.noise.denoise_block`); the overlap must exceed ``denoise^2 x denoise_radius``
-        cells plus the finest TV band. One-shape mode fits the nearest neighbours without a bound.
+        Tiled mode: only neighbours within this many cells count (default 2). It bounds how far a point's
+        result reaches, so a tile that reads ``denoise^2 x denoise_radius`` cells of points past its block (its
+        halo, :func:`tiled_gridpull.tiling.with_halo`) moves every point of its block exactly as any other tiling
+        would (:func:`tiled_gridpull.noise.denoise_block`). One-shape mode fits the nearest neighbours without a
+        bound.
     auto : bool
         One-shape mode: when the cloud looks noisy (:attr:`tiled_gridpull.noise.NoiseEstimate.ratio`) and none
         of the noise settings above nor ``beta`` was changed from its default, apply the treatment of
@@ -230,7 +231,7 @@ class NoiseHandling:
     denoise_passes: int = setting(0)
     denoise_neighbors: int = setting(64)
     denoise_bandwidth: float = setting(0.0)
-    denoise_radius: float = setting(3.0)
+    denoise_radius: float = setting(2.0)
     auto: bool = setting(True, solve=False)
 
 
