@@ -189,18 +189,31 @@ def _noisy_ground(n: int, sigma: float, seed: int = 0) -> np.ndarray:
     return pts + rng.normal(scale=sigma, size=pts.shape) + [500000.0, 4000000.0, 50.0]
 
 
-@pytest.mark.parametrize("tile_size", [3.2, 4.8])
-def test_tiles_denoise_every_point_as_the_whole_cloud_does(tile_size):
+def _grid_ground(step: float = 0.05) -> np.ndarray:
+    """Ground sampled on a regular grid, heights in whole centimetres: every neighbourhood has rings of equally
+    distant neighbours, so the k nearest are decided by ties."""
+    g = np.arange(0.0, 9.6, step)
+    x, y = np.meshgrid(g, g, indexing="ij")
+    z = np.round(0.4 * np.sin(x / 2.0) * np.cos(y / 3.0), 2)
+    return np.column_stack([x.ravel(), y.ravel(), z.ravel()]) + [500000.0, 4000000.0, 50.0]
+
+
+@pytest.mark.parametrize("tile_size,seed,neighbors,radius", [(3.2, 0, 32, 1.5), (4.8, 5, 16, 3.0),
+                                                             (3.2, None, 12, 1.5)])
+def test_tiles_denoise_every_point_as_the_whole_cloud_does(tile_size, seed, neighbors, radius):
     """Each tile reads its block plus a halo as wide as the denoising reaches: every point of every block, in
-    every tiling, gets the place the whole cloud's radius-bounded projection gives it (to the float32 rounding
-    of the tile files). Without the halo the points near an inner face would move otherwise, and are dropped."""
+    every tiling, gets the place the whole cloud's radius-bounded projection gives it. The cloud is quantised to
+    millimetres like a LAS file, or sampled on a grid, so neighbours tie at the radius and at the k-th distance
+    (the last two cases have more than k points in most balls); the tiles hold tile-local float64 offsets, as
+    their spill files do.
+    Without the halo the points near an inner face would move otherwise, and are dropped."""
     from tiled_gridpull.tile_plan import plan_tiles
     from tiled_gridpull.tile_solve import _denoise
     from tiled_gridpull.tiling import TilingConfig, with_halo
 
-    world = _noisy_ground(20_000, 0.02)
-    solver = SolverConfig(denoise=2, denoise_neighbors=32, denoise_radius=1.5)
-    whole = project_to_local_planes(world, 32, 2, radius=0.15)
+    world = _grid_ground() if seed is None else np.round(_noisy_ground(20_000, 0.02, seed=seed), 3)
+    solver = SolverConfig(denoise=2, denoise_neighbors=neighbors, denoise_radius=radius)
+    whole = project_to_local_planes(world, neighbors, 2, radius=radius * 0.1)
     bare = TilingConfig(voxel_size=0.1, tile_size=tile_size, overlap=1.6)
     bounds = np.stack([world.min(axis=0), world.max(axis=0)])
     for tiling in (with_halo(bare, solver), bare):
@@ -212,12 +225,12 @@ def test_tiles_denoise_every_point_as_the_whole_cloud_does(tile_size):
             spec = plan.spec(key)
             rows = point[np.all(tile == key, axis=1)]
             corner = np.asarray(spec.block.low_corner)
-            local = (world[rows] - corner).astype(np.float32).astype(np.float64)  # as the tile's spill file
+            local = world[rows] - corner  # as the tile's spill file holds them
             summary: dict = {}
             moved, use = _denoise(local, spec, tiling, solver, summary)
             record = summary["denoise"]
-            assert record["points"] == use.sum() == len(moved) and record["moved_max_m"] <= 2 * 0.15 + 1e-9
-            assert np.abs(moved + corner - whole[rows[use]]).max() < 2e-5
+            assert record["points"] == use.sum() == len(moved) and record["moved_max_m"] <= 2 * radius * 0.1
+            assert np.abs(moved + corner - whole[rows[use]]).max() < 1e-9
             in_block = np.all((local >= 0) & (local <= (np.asarray(spec.block.shape) - 1) * 0.1), axis=1)
             block_points += int(in_block.sum())
             dropped += record["dropped_near_faces"]
@@ -225,10 +238,10 @@ def test_tiles_denoise_every_point_as_the_whole_cloud_does(tile_size):
             # the same points without their margin lose neighbours near an inner face and move otherwise
             near = in_block & ~use
             if near.any():
-                alone = project_to_local_planes(local, 32, 2, radius=0.15) + corner
+                alone = project_to_local_planes(local, neighbors, 2, radius=radius * 0.1, centre=False) + corner
                 near_face_error = max(near_face_error, float(np.abs(alone[near] - whole[rows[near]]).max()))
         if tiling.halo:
-            assert tiling.halo == 6 and halo_points > 0 and dropped == 0
+            assert tiling.halo == int(np.ceil(4 * radius)) and halo_points > 0 and dropped == 0
         else:
             assert halo_points == 0 and 0 < dropped < block_points and near_face_error > 1e-3
 

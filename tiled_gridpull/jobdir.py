@@ -33,10 +33,13 @@ from .tile_plan import TilePlan, TileSpec
 __all__ = ["JobPaths", "job_lock", "SPILL_RECORD", "SPILL_RECORD_SENSOR", "spill_record", "neighbors_of",
            "write_manifest", "read_manifest", "sample_job_points"]
 
-#: One point of a spill file: float32 coordinates in metres from the block's low corner (tile-local).
-SPILL_RECORD = np.dtype([("xyz", "<f4", (3,))])
-#: One point of a spill file with its sensor origin (tile-local float32 metres, like ``xyz``).
-SPILL_RECORD_SENSOR = np.dtype([("xyz", "<f4", (3,)), ("sensor", "<f4", (3,))])
+#: One point of a spill file: float64 coordinates in metres from the block's low corner (tile-local). float64,
+#: because the difference of a georeferenced coordinate and a corner near it is exact (Sterbenz): every tile then
+#: holds a shared point at the same offsets from its neighbours, which denoising needs to give it the same place
+#: in every tile (float32 rounding, different per corner, flipped neighbours tied at the radius by millimetres).
+SPILL_RECORD = np.dtype([("xyz", "<f8", (3,))])
+#: One point of a spill file with its sensor origin (tile-local float32 metres: a direction needs no more).
+SPILL_RECORD_SENSOR = np.dtype([("xyz", "<f8", (3,)), ("sensor", "<f4", (3,))])
 
 
 def spill_record(has_sensor: bool) -> np.dtype:

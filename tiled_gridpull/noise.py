@@ -122,15 +122,16 @@ def estimate_noise(points: np.ndarray, k: int = 64, sample: int = 10_000, seed: 
     return NoiseEstimate(sigma * scale, spacing * scale)
 
 
-def _unit_frame(points: np.ndarray) -> tuple[np.ndarray, float]:
-    """Points centred and divided by a power of two near their extent, and that power.
+def _unit_frame(points: np.ndarray, centre: bool = True) -> tuple[np.ndarray, float]:
+    """Points centred (unless ``centre`` is false) and divided by a power of two near their extent, and that power.
 
     Centring keeps georeferenced values' precision; the power-of-two scale (exact in binary floating point, so
     ordinary clouds give the same bits as unscaled) keeps squared distances and covariances finite for extents
     up to float64's limit: past about 1e154 they overflow, and pykdtree then answers "no neighbour" with index
     2^32 - 1."""
     pts = np.asarray(points, dtype=np.float64)
-    pts = pts - pts.mean(axis=0)
+    if centre:
+        pts = pts - pts.mean(axis=0)
     extent = float(np.abs(pts).max()) if pts.size else 0.0
     if not (np.isfinite(extent) and extent > 0.0):
         return pts, 1.0
@@ -139,7 +140,7 @@ def _unit_frame(points: np.ndarray) -> tuple[np.ndarray, float]:
 
 
 def project_to_local_planes(points: np.ndarray, k: int = 64, iterations: int = 2, bandwidth: float = 0.0,
-                            chunk: int = 50_000, radius: float = np.inf) -> np.ndarray:
+                            chunk: int = 50_000, radius: float = np.inf, centre: bool = True) -> np.ndarray:
     """Denoise a cloud: move every point onto the plane of its ``k`` nearest neighbours, repeated.
 
     The classical point-set projection (:func:`tiled_gridpull.normals.plane_fits`, all points moved at once from
@@ -171,6 +172,9 @@ def project_to_local_planes(points: np.ndarray, k: int = 64, iterations: int = 2
         a point with fewer than 4 stays where it is. With a bound, each pass moves a point by at most
         ``radius`` and the result after ``P`` passes depends only on the points within ``P^2 radius``
         (:func:`denoise_margin`).
+    centre : bool
+        Work relative to the points' mean (keeps georeferenced values' precision). False for a tile's points,
+        already near the origin: each tile's mean differs, and so would the rounding of a shared point.
 
     Returns
     -------
@@ -178,8 +182,8 @@ def project_to_local_planes(points: np.ndarray, k: int = 64, iterations: int = 2
         The projected points, in the input's coordinates.
     """
     pts = np.asarray(points, dtype=np.float64)
-    centre = pts.mean(axis=0)
-    cur, scale = _unit_frame(pts)
+    mean = pts.mean(axis=0) if centre else np.zeros(3)
+    cur, scale = _unit_frame(pts, centre)
     n = len(cur)
     k = int(min(k, n))
     if k < 4 or iterations <= 0:
@@ -191,7 +195,7 @@ def project_to_local_planes(points: np.ndarray, k: int = 64, iterations: int = 2
             p = cur[a:b]
             out[a:b] = p - np.sum((p - centroid) * normal, axis=1)[:, None] * normal
         cur = out
-    return cur * scale + centre
+    return cur * scale + mean
 
 
 def denoise_margin(passes: int, radius: float) -> float:
@@ -240,5 +244,5 @@ def denoise_block(points: np.ndarray, k: int, passes: int, radius: float, lo: np
     margin = denoise_margin(passes, radius)
     keep = np.all((pts >= np.asarray(lo, np.float64) + margin) & (pts <= np.asarray(hi, np.float64) - margin),
                   axis=1)
-    moved = project_to_local_planes(pts, k, passes, 0.0, radius=radius)
+    moved = project_to_local_planes(pts, k, passes, 0.0, radius=radius, centre=False)
     return moved[keep], keep

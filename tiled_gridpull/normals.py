@@ -61,30 +61,57 @@ def plane_fits(points: np.ndarray, k: int, chunk: int = 200_000, bandwidth: floa
     for s in range(0, n, chunk):
         e = min(n, s + chunk)
         if np.isfinite(radius):
-            _, idx = tree.query(pts[s:e], k=k, distance_upper_bound=float(radius))
-            idx = idx.reshape(e - s, k).astype(np.int64)
-            found = idx < n  # pykdtree marks a missing neighbour with index n
-            # a missing neighbour stands in as the point itself (the first column) with weight 0
-            idx = np.where(found, idx, idx[:, :1])
-            inside = found.astype(np.float64)
-        else:
-            _, idx = tree.query(pts[s:e], k=k)
-            idx = idx.reshape(e - s, k).astype(np.int64)
-            inside = None
-        nb = pts[idx]
-        centroids, normals = _weighted_planes(nb, inside)
+            yield s, e, *_bounded_planes(tree, pts, s, e, k, float(radius), bandwidth, reweights)
+            continue
+        _, idx = tree.query(pts[s:e], k=k)
+        nb = pts[idx.reshape(e - s, k).astype(np.int64)]
+        centroids, normals = _weighted_planes(nb, None)
         if bandwidth > 0:
             anchor = pts[s:e]
             for _ in range(int(reweights)):
                 offset = np.einsum("nki,ni->nk", nb - anchor[:, None], normals)
-                weights = np.exp(-0.5 * (offset / bandwidth) ** 2)
-                centroids, normals = _weighted_planes(nb, weights if inside is None else weights * inside)
+                centroids, normals = _weighted_planes(nb, np.exp(-0.5 * (offset / bandwidth) ** 2))
                 # follow the point's projection, so the weights climb to its sheet's densest level (mean shift)
                 anchor = pts[s:e] - np.einsum("ni,ni->n", pts[s:e] - centroids, normals)[:, None] * normals
-        if inside is not None:
-            few = inside.sum(axis=1) < 4
-            centroids[few] = pts[s:e][few]
         yield s, e, centroids, normals
+
+
+#: Neighbours fetched past ``k`` so that a tie at the ``k``-th distance is broken the same way in every tile.
+TIE_EXTRA = 8
+
+
+def _bounded_planes(tree: KDTree, pts: np.ndarray, s: int, e: int, k: int, radius: float, bandwidth: float,
+                    reweights: int) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`plane_fits` of rows ``s:e`` with neighbours bounded by ``radius``, computed so that two tiles holding
+    the same points in frames shifted by exact offsets choose the same neighbours and fit the same plane.
+
+    The fit works on the neighbours' offsets from the point (the same numbers in every such frame) rather than on
+    their coordinates, and neighbours at equal distances are ordered by their offsets, not by the tree's visiting
+    order (quantised inputs such as LAS millimetres tie often)."""
+    n = len(pts)
+    kq = min(k + TIE_EXTRA, n)
+    dist, idx = tree.query(pts[s:e], k=kq, distance_upper_bound=radius)
+    idx = idx.reshape(e - s, kq).astype(np.int64)
+    found = idx < n  # pykdtree marks a missing neighbour with index n
+    # a missing neighbour stands in as the point itself (the first column) with weight 0
+    idx = np.where(found, idx, idx[:, :1])
+    off = pts[idx] - pts[s:e, None]
+    dist = np.where(found, dist.reshape(e - s, kq), np.inf)
+    order = np.lexsort((off[..., 2], off[..., 1], off[..., 0], dist), axis=-1)[:, :k]
+    off = np.take_along_axis(off, order[..., None], axis=1)
+    inside = np.take_along_axis(found, order, axis=1).astype(np.float64)
+    centroids, normals = _weighted_planes(off, inside)
+    if bandwidth > 0:
+        anchor = np.zeros((e - s, 3))
+        for _ in range(int(reweights)):
+            offset = np.einsum("nki,ni->nk", off - anchor[:, None], normals)
+            weights = np.exp(-0.5 * (offset / bandwidth) ** 2) * inside
+            centroids, normals = _weighted_planes(off, weights)
+            # the point's projection onto the current plane (the point is the origin of the offsets)
+            anchor = np.einsum("ni,ni->n", centroids, normals)[:, None] * normals
+    # fewer than 4 points in the ball fit no plane: the point is its own centroid, so it stays where it is
+    centroids[inside.sum(axis=1) < 4] = 0.0
+    return pts[s:e] + centroids, normals
 
 
 def _weighted_planes(nb: np.ndarray, weights: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:

@@ -1,7 +1,7 @@
 """The partition pass: stream the input's points into per-tile spill files, and read them back.
 
-Spill files hold each tile's points as float32 coordinates relative to the block's low corner (tile-local
-metres, where float32 keeps micrometres), plus the sensor origin of every point when it is known (record
+Spill files hold each tile's points as float64 coordinates relative to the block's low corner (tile-local
+metres; exact differences for georeferenced inputs, see :data:`tiled_gridpull.jobdir.SPILL_RECORD`), plus the sensor origin of every point when it is known (record
 layouts: :data:`tiled_gridpull.jobdir.SPILL_RECORD`, :data:`~tiled_gridpull.jobdir.SPILL_RECORD_SENSOR`).
 """
 
@@ -212,11 +212,11 @@ def read_occupancy(spec: TileSpec) -> np.ndarray:
 
 
 def read_tile_points(spec: TileSpec) -> tuple[np.ndarray, np.ndarray | None]:
-    """A tile's points and sensor origins as tile-local float32 metres (relative to ``spec.block.low_corner``).
+    """A tile's points and sensor origins as tile-local metres (relative to ``spec.block.low_corner``).
 
     Returns
     -------
-    xyz : (N, 3) float32
+    xyz : (N, 3) float64
     sensor : (N, 3) float32 or None
     """
     dtype = spill_record(spec.has_sensor)

@@ -51,7 +51,7 @@ from .tiling import TilingConfig
 __all__ = ["partition_key", "load_partition", "solve_key", "mesh_key", "solve_tile_resumable",
            "mesh_tile_resumable", "input_fingerprint"]
 
-SPILL_FORMAT = 3  # bump when the spill/occupancy layout or the order of a tile's points changes
+SPILL_FORMAT = 4  # bump when the spill/occupancy layout or the order of a tile's points changes
 
 
 def digest(obj) -> str:

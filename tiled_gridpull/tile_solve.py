@@ -54,10 +54,10 @@ def solve_tile(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig, field
     reset_peak_rss()
     summary: dict = {"tile": spec.name, "index": list(spec.index), "points": spec.n_points}
     try:
-        xyz32, sensor32 = read_tile_points(spec)
-        xyz = xyz32.astype(np.float64)
-        # the bytes of the float32 rows decide, as always: -0.0 and 0.0 stay apart
-        keep = np.flatnonzero(~duplicate_mask(xyz, signed_zeros=True))
+        xyz, sensor32 = read_tile_points(spec)
+        # points the solver's float32 frame cannot tell apart are duplicates, as always (the bytes of the float32
+        # rows decide: -0.0 and 0.0 stay apart)
+        keep = np.flatnonzero(~duplicate_mask(xyz.astype(np.float32).astype(np.float64), signed_zeros=True))
         if len(keep) < len(xyz):
             summary["duplicates_dropped"] = int(len(xyz) - len(keep))
             xyz = xyz[keep]
@@ -124,6 +124,7 @@ def _denoise(xyz: np.ndarray, spec: TileSpec, tiling: TilingConfig, solver: Solv
     lo = np.where(np.asarray(spec.mesh_lo) < np.asarray(spec.core_lo), -np.inf, -halo)
     hi = np.where(np.asarray(spec.mesh_hi) > np.asarray(spec.core_hi), np.inf, size + halo)
     noise = solver.noise
+    t0 = time.perf_counter()
     moved, keep = denoise_block(xyz, noise.denoise_neighbors, noise.denoise_passes, noise.denoise_radius * cell,
                                 lo, hi)
     # the halo's points only served the neighbourhoods: the solve takes the block's, every one of them when the
@@ -135,7 +136,8 @@ def _denoise(xyz: np.ndarray, spec: TileSpec, tiling: TilingConfig, solver: Solv
     summary["denoise"] = {"points": int(use.sum()), "halo_points": int((~in_block).sum()),
                           "dropped_near_faces": int((in_block & ~keep).sum()),
                           "moved_median_m": float(np.median(shift)) if len(shift) else 0.0,
-                          "moved_max_m": float(shift.max()) if len(shift) else 0.0}
+                          "moved_max_m": float(shift.max()) if len(shift) else 0.0,
+                          "time_s": time.perf_counter() - t0}
     return moved, use
 
 
