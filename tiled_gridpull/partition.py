@@ -1,8 +1,8 @@
 """The partition pass: stream the input's points into per-tile spill files, and read them back.
 
 Spill files hold each tile's points as float64 coordinates relative to the block's low corner (tile-local
-metres; exact differences for georeferenced inputs, see :data:`tiled_gridpull.jobdir.SPILL_RECORD`), plus the sensor origin of every point when it is known (record
-layouts: :data:`tiled_gridpull.jobdir.SPILL_RECORD`, :data:`~tiled_gridpull.jobdir.SPILL_RECORD_SENSOR`).
+metres; exact differences for georeferenced inputs), plus the sensor origin of every point when it is known
+(record layouts: :data:`tiled_gridpull.jobdir.SPILL_RECORD`, :data:`~tiled_gridpull.jobdir.SPILL_RECORD_SENSOR`).
 """
 
 from __future__ import annotations
