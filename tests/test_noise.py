@@ -160,6 +160,9 @@ def test_denoise_is_recorded_and_checked_and_tiled_mode_bounds_it():
     assert with_halo(tiling, SolverConfig()).halo == 0
     assert with_halo(tiling, SolverConfig(denoise=2)).halo == 8  # 2^2 x 2 cells
     assert with_halo(tiling, SolverConfig(denoise=3, denoise_radius=1.5)).halo == 14  # 13.5, whole cells
+    with pytest.raises(ConfigError, match=r"denoise 10 with denoise_radius 4 cells reaches 400 cells, more than a "
+                                          r"tile core \(256 cells\)"):
+        with_halo(tiling, SolverConfig(denoise=10, denoise_radius=4))
     # the partition a halo was read for is not the one without it
     assert partition_key([], with_halo(tiling, SolverConfig(denoise=2))) != partition_key([], tiling)
     for bad in (-1, 1.5, True):

@@ -137,3 +137,13 @@ def test_a_tiled_job_denoises_its_points_and_the_surface_gets_closer(tmp_path):
         assert record["halo_points"] > 0 and 0 < record["time_s"] < summary["time_s"]
         assert 0 < record["moved_median_m"] < 0.05 and record["moved_max_m"] <= 0.6 + 1e-9
     assert height_error(denoised) < 0.8 * height_error(plain)
+    # a notebook's view of a tile shows its block's points, and the halo's on request
+    from tiled_gridpull.jobview import JobView
+
+    view = JobView(tmp_path / "j1")
+    name = view.busiest_tile()
+    spec = view.specs[name]
+    block = view.tile_points(name)
+    around = view.tile_points(name, halo=True)
+    assert len(around) == spec.n_points > len(block)
+    assert np.all(block >= spec.block.low_corner - 1e-9) and np.all(block <= spec.block.high_corner + 1e-9)

@@ -80,11 +80,15 @@ class JobView:
         """Name of the tile with the most points."""
         return max(self.specs.values(), key=lambda s: s.n_points).name
 
-    def tile_points(self, name: str) -> np.ndarray:
-        """A tile's points (its whole block: core plus overlap), (N, 3) float64 world coordinates."""
+    def tile_points(self, name: str, *, halo: bool = False) -> np.ndarray:
+        """A tile's points (its whole block: core plus overlap), (N, 3) float64 world coordinates; with ``halo``
+        also the points a denoising job read around the block (``TilingConfig.halo``; none without denoising)."""
         s = self._spec(name)
         xyz, _ = read_tile_points(s)
-        return xyz.astype(np.float64) + s.block.low_corner
+        if not halo:
+            size = (np.asarray(s.block.shape, np.float64) - 1.0) * s.block.cell_size
+            xyz = xyz[np.all((xyz >= 0.0) & (xyz <= size), axis=1)]
+        return xyz + s.block.low_corner
 
     def neighbours(self, name: str, *, meshed: bool = True) -> list[str]:
         """Names of the (up to 26) tiles around ``name``; with ``meshed`` only those whose piece exists."""

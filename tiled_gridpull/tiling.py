@@ -307,7 +307,14 @@ def with_halo(tiling: TilingConfig, solver: SolverConfig) -> TilingConfig:
     <tiled_gridpull.noise.denoise_margin>` (``denoise^2 x denoise_radius``), 0 without denoising."""
     halo = 0
     if solver.noise.denoise_passes > 0:
-        halo = int(math.ceil(denoise_margin(solver.noise.denoise_passes, solver.noise.denoise_radius) - 1e-9))
+        reach = denoise_margin(solver.noise.denoise_passes, solver.noise.denoise_radius)
+        # past a whole core on every side a tile would read several of its neighbours' points for each of its own
+        if reach > tiling.tile_cells:
+            raise ConfigError(f"denoise {solver.noise.denoise_passes} with denoise_radius "
+                              f"{solver.noise.denoise_radius:g} cells reaches {reach:g} cells, more than a tile core "
+                              f"({tiling.tile_cells} cells): every tile would read that far around its block; use "
+                              "fewer passes or a smaller radius")
+        halo = int(math.ceil(reach - 1e-9))
     return tiling if tiling.halo == halo else replace(tiling, halo=halo)
 
 
