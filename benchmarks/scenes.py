@@ -89,14 +89,14 @@ def evaluate(mesh: Path, gt: Path, observed: Path) -> dict:
             "boundary_edges": res["boundary_edges"]}
 
 
-def scene_config(work: Path, overrides: dict) -> Path:
-    """configs/scene.yaml, or a copy of it with ``overrides`` appended (later keys win)."""
-    base = REPO / "configs" / "scene.yaml"
-    if not overrides:
-        return base
-    path = work / "scene_overrides.yaml"
-    path.write_text(base.read_text() + "".join(f"{k}: {json.dumps(v)}\n" for k, v in overrides.items()))
-    return path
+def scene_args(overrides: dict) -> list[str]:
+    """Command-line arguments for configs/scene.yaml with ``overrides`` (flat names) given as ``--set``, which win
+    over the file whatever its spelling of the same setting (a flat key appended to the file would clash with
+    its sectioned one)."""
+    args = ["--config", str(REPO / "configs" / "scene.yaml")]
+    for k, v in overrides.items():
+        args += ["--set", f"{k}={json.dumps(v)}"]
+    return args
 
 
 def street(n_points: int, workers: int, work: Path, overrides: dict | None = None) -> None:
@@ -106,7 +106,7 @@ def street(n_points: int, workers: int, work: Path, overrides: dict | None = Non
     sample = make_street_sample(work / f"street_{n_points}", n_points=n_points, origin=(500000.0, 4000000.0, 100.0))
     t_sample = time.perf_counter() - t0
     out = work / f"street_{n_points}" / "mesh.ply"
-    row = reconstruct(sample["laz"], out, workers, ["--config", str(scene_config(work, overrides or {}))])
+    row = reconstruct(sample["laz"], out, workers, scene_args(overrides or {}))
     row.update(evaluate(out, sample["gt_mesh"], sample["laz"]))
     row.update(scene="street (synthetic)", points=sample["n_points"], workers=workers, sample_s=t_sample,
                points_per_s=sample["n_points"] / row["wall_s"], cell_m=0.1, overrides=overrides or {})
@@ -187,7 +187,18 @@ def lidar(workers: int, work: Path) -> None:
 #: The scene schedule before issue 16 (fixed: 3 levels x 800 iterations x 50,000 queries), as overrides.
 TODAY = {"queries_per_point": 0, "iterations": 800, "coarse_iterations": 800, "middle_iterations": 0,
          "lr_step": 400, "refine_lr_step": 200, "m2": 25}
-VARIANTS = {"default": {}, "today": TODAY}
+#: Tiled denoising as measured on the noisy demo street (docs/solver.md, "Denoising tiles").
+DENOISE = {"denoise": 2, "denoise_neighbors": 32, "denoise_radius": 2.0}
+VARIANTS = {"default": {}, "today": TODAY, "denoise": DENOISE}
+
+
+def variant_settings(variant: str) -> str:
+    """How a variant's settings read in a table: the shipped config, the fixed schedule, or its overrides."""
+    if variant == "default":
+        return "configs/scene.yaml"
+    if variant == "today":
+        return "fixed 3 x 800 x 50k"
+    return "configs/scene.yaml + " + ", ".join(f"{k} {v:g}" for k, v in VARIANTS.get(variant, {}).items())
 
 
 def poisson_scene(src: Path, out: Path, depth: int = 11) -> dict:
@@ -216,7 +227,7 @@ def wide(n_points: int, workers: int, work: Path, variants: list[str], depth: in
     record(poisson_row(base, poisson, depth))
     for name in variants:
         out = work / f"grid_{n_points}" / f"gridpull_{name}.ply"
-        row = reconstruct(src, out, workers, ["--config", str(scene_config(work, VARIANTS[name]))])
+        row = reconstruct(src, out, workers, scene_args(VARIANTS[name]))
         row.update(evaluate(out, gt, src))
         record(gridpull_row(row, base, poisson, name, tile_costs=tile_costs(out)))
 
@@ -272,7 +283,7 @@ def holdout(workers: int, work: Path, variants: list[str], depth: int = 10, frac
         record(poisson_row(base, poisson, depth, **score(pout)))
         for v in variants:
             out = work / f"{src.stem}_{v}.ply"
-            row = reconstruct(train, out, workers, ["--config", str(scene_config(work, VARIANTS[v])),
+            row = reconstruct(train, out, workers, [*scene_args(VARIANTS[v]),
                                                     "--voxel-size", str(cell), "--tile-size", str(256 * cell),
                                                     "--overlap", str(32 * cell)])
             record(gridpull_row(row, base, poisson, v, **score(out)))
@@ -404,7 +415,7 @@ def render_wide(rows: list[dict]) -> str:
         table.append({**r, "what": "Poisson" if r["method"] == "poisson" else f"GridPull {r['variant']}",
                       "tiles_of": "-" if r.get("tiles") is None else f"{r['tiles']}/{r['tiles_planned']}",
                       "solve_task_s": st.get("solve_task_s"), "setting": r["variant"] if r["method"] == "poisson"
-                      else ("configs/scene.yaml" if r["variant"] == "default" else "fixed 3 x 800 x 50k")})
+                      else variant_settings(r["variant"])})
     return markdown_table(table, [("date", "date", ""), ("points", "points", ""), ("what", "method", ""),
                                   ("setting", "settings", ""), ("tiles_of", "tiles", ""), ("wall_s", "wall s", ".1f"),
                                   ("x_poisson_time", "x Poisson time (same run)", ".2f"),
@@ -421,8 +432,7 @@ def render_holdout(rows: list[dict]) -> str:
     if not runs:
         return ""
     table = [{**r, "what": "Poisson" if r["method"] == "poisson" else f"GridPull {r['variant']}",
-              "setting": r["variant"] if r["method"] == "poisson"
-              else ("configs/scene.yaml" if r["variant"] == "default" else "fixed 3 x 800 x 50k")} for r in runs]
+              "setting": r["variant"] if r["method"] == "poisson" else variant_settings(r["variant"])} for r in runs]
     return markdown_table(table, [("date", "date", ""), ("scene", "file", ""), ("cell", "cell", "g"),
                                   ("points", "points in", ""), ("held_out", "held out", ""), ("what", "method", ""),
                                   ("setting", "settings", ""), ("wall_s", "wall s", ".1f"),
