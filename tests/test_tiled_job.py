@@ -147,3 +147,9 @@ def test_a_tiled_job_denoises_its_points_and_the_surface_gets_closer(tmp_path):
     around = view.tile_points(name, halo=True)
     assert len(around) == spec.n_points > len(block)
     assert np.all(block >= spec.block.low_corner - 1e-9) and np.all(block <= spec.block.high_corner + 1e-9)
+    # the denoising job's point files hold exact float64 offsets; a job without denoising keeps float32
+    from pathlib import Path
+
+    assert spec.exact_offsets and Path(spec.points_path).stat().st_size == 24 * spec.n_points
+    plain_spec = JobView(tmp_path / "j0").specs[name]
+    assert not plain_spec.exact_offsets and Path(plain_spec.points_path).stat().st_size == 12 * plain_spec.n_points

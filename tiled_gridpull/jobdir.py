@@ -30,20 +30,26 @@ from .io.atomic import write_json
 from .lattice import Lattice
 from .tile_plan import TilePlan, TileSpec
 
-__all__ = ["JobPaths", "job_lock", "SPILL_RECORD", "SPILL_RECORD_SENSOR", "spill_record", "neighbors_of",
+__all__ = ["JobPaths", "job_lock", "SPILL_RECORD", "SPILL_RECORD_SENSOR", "SPILL_RECORD_EXACT",
+           "SPILL_RECORD_EXACT_SENSOR", "spill_record", "neighbors_of",
            "write_manifest", "read_manifest", "sample_job_points"]
 
-#: One point of a spill file: float64 coordinates in metres from the block's low corner (tile-local). float64,
-#: because the difference of a georeferenced coordinate and a corner near it is exact (Sterbenz): every tile then
-#: holds a shared point at the same offsets from its neighbours, which denoising needs to give it the same place
-#: in every tile (float32 rounding, different per corner, flipped neighbours tied at the radius by millimetres).
-SPILL_RECORD = np.dtype([("xyz", "<f8", (3,))])
-#: One point of a spill file with its sensor origin (tile-local float32 metres: a direction needs no more).
-SPILL_RECORD_SENSOR = np.dtype([("xyz", "<f8", (3,)), ("sensor", "<f4", (3,))])
+#: One point of a spill file: float32 coordinates in metres from the block's low corner (tile-local).
+SPILL_RECORD = np.dtype([("xyz", "<f4", (3,))])
+#: One point of a spill file with its sensor origin (tile-local float32 metres, like ``xyz``).
+SPILL_RECORD_SENSOR = np.dtype([("xyz", "<f4", (3,)), ("sensor", "<f4", (3,))])
+#: The layouts of a denoising job (``TilingConfig.halo``): float64 offsets, because the difference of a
+#: georeferenced coordinate and a corner near it is exact (Sterbenz), so every tile holds a shared point at the
+#: same offsets from its neighbours. Denoising needs that to give it the same place in every tile: float32
+#: rounding, different per corner, flipped neighbours tied at the radius by millimetres.
+SPILL_RECORD_EXACT = np.dtype([("xyz", "<f8", (3,))])
+SPILL_RECORD_EXACT_SENSOR = np.dtype([("xyz", "<f8", (3,)), ("sensor", "<f4", (3,))])
 
 
-def spill_record(has_sensor: bool) -> np.dtype:
-    """The record layout of a spill file with or without sensor origins."""
+def spill_record(has_sensor: bool, exact: bool = False) -> np.dtype:
+    """The record layout of a spill file with or without sensor origins, float32 or ``exact`` float64 offsets."""
+    if exact:
+        return SPILL_RECORD_EXACT_SENSOR if has_sensor else SPILL_RECORD_EXACT
     return SPILL_RECORD_SENSOR if has_sensor else SPILL_RECORD
 
 

@@ -1,8 +1,8 @@
 """The partition pass: stream the input's points into per-tile spill files, and read them back.
 
-Spill files hold each tile's points as float64 coordinates relative to the block's low corner (tile-local
-metres; exact differences for georeferenced inputs), plus the sensor origin of every point when it is known
-(record layouts: :data:`tiled_gridpull.jobdir.SPILL_RECORD`, :data:`~tiled_gridpull.jobdir.SPILL_RECORD_SENSOR`).
+Spill files hold each tile's points as float32 coordinates relative to the block's low corner (tile-local
+metres, where float32 keeps micrometres; float64 in a denoising job, whose tiles must agree exactly), plus the
+sensor origin of every point when it is known (record layouts: :func:`tiled_gridpull.jobdir.spill_record`).
 """
 
 from __future__ import annotations
@@ -55,7 +55,8 @@ def partition(chunks: Iterable, plan: TilePlan, out_dir: str | Path | None, has_
     out = Path(out_dir) if write else None
     if write:
         out.mkdir(parents=True, exist_ok=True)
-    dtype = spill_record(has_sensor)
+    exact = plan.config.halo > 0
+    dtype = spill_record(has_sensor, exact)
     counts: dict[tuple, int] = {}
     buffers: dict[tuple, list] = {}
     hashes: dict[tuple, hashlib._Hash] = {}
@@ -141,7 +142,7 @@ def partition(chunks: Iterable, plan: TilePlan, out_dir: str | Path | None, has_
                 np.save(fh, np.packbits(grid.ravel()))
         if occupancy is not None:
             occupancy[t] = grid
-        specs.append(plan.spec(t, n_points=counts[t], points_path=path, has_sensor=has_sensor,
+        specs.append(plan.spec(t, n_points=counts[t], points_path=path, has_sensor=has_sensor, exact_offsets=exact,
                                points_sha256=hashes[t].hexdigest(), occupied_bricks=int(grid.sum())))
     return specs
 
@@ -199,7 +200,8 @@ def merge_segments(parts: list[list[TileSpec]], plan: TilePlan, out_dir: str | P
                 Path(piece.occupancy_path).unlink(missing_ok=True)
         if occupancy is not None:
             occupancy[t] = grid
-        merged.append(plan.spec(t, n_points=n, points_path=path, has_sensor=has_sensor, points_sha256=digest,
+        merged.append(plan.spec(t, n_points=n, points_path=path, has_sensor=has_sensor,
+                                exact_offsets=plan.config.halo > 0, points_sha256=digest,
                                 occupied_bricks=int(grid.sum())))
     return merged
 
@@ -216,10 +218,10 @@ def read_tile_points(spec: TileSpec) -> tuple[np.ndarray, np.ndarray | None]:
 
     Returns
     -------
-    xyz : (N, 3) float64
+    xyz : (N, 3) float32, or float64 for a denoising job's tile (``spec.exact_offsets``)
     sensor : (N, 3) float32 or None
     """
-    dtype = spill_record(spec.has_sensor)
+    dtype = spill_record(spec.has_sensor, spec.exact_offsets)
     rec = np.fromfile(spec.points_path, dtype=dtype)
     xyz = np.ascontiguousarray(rec["xyz"])
     sensor = np.ascontiguousarray(rec["sensor"]) if spec.has_sensor else None

@@ -51,7 +51,7 @@ from .tiling import TilingConfig
 __all__ = ["partition_key", "load_partition", "solve_key", "mesh_key", "solve_tile_resumable",
            "mesh_tile_resumable", "input_fingerprint"]
 
-SPILL_FORMAT = 4  # bump when the spill/occupancy layout or the order of a tile's points changes
+SPILL_FORMAT = 3  # bump when the spill/occupancy layout or the order of a tile's points changes
 
 
 def digest(obj) -> str:
@@ -131,8 +131,9 @@ def partition_key(inputs: list, tiling: TilingConfig, frames=None, trajectory=No
         facts["trajectory"] = input_fingerprint([trajectory])
     if tiling.drop_outliers:  # only when set: keys of partitions made without it stay as they were
         facts["drop_outliers"] = True
-    if tiling.halo:  # likewise
+    if tiling.halo:  # likewise; such a partition stores exact (float64) offsets
         facts["halo"] = tiling.halo
+        facts["exact_offsets"] = True
     return digest(facts)
 
 
@@ -157,7 +158,7 @@ def load_partition(paths: JobPaths, key: str, tiling: TilingConfig):
         for d in data["tiles"]:
             spec = TileSpec.from_dict(d)
             spill = paths.points() / f"{spec.name}.points"
-            size = spill_record(spec.has_sensor).itemsize * spec.n_points
+            size = spill_record(spec.has_sensor, spec.exact_offsets).itemsize * spec.n_points
             spec = dataclasses.replace(spec, points_path=str(spill))
             if (not spec.points_sha256 or not spill.is_file() or spill.stat().st_size != size
                     or not Path(spec.occupancy_path).is_file()):

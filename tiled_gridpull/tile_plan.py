@@ -45,6 +45,8 @@ class TileSpec:
         SHA-256 of the spill file's content (what the tile's results are keyed on when a job is resumed).
     occupied_bricks : int
         Bricks (8^3 cells) of the block that hold at least one point (see :func:`read_occupancy`).
+    exact_offsets : bool
+        Whether the spill file holds float64 offsets (a denoising job: :func:`tiled_gridpull.jobdir.spill_record`).
     """
 
     index: tuple[int, int, int]
@@ -58,6 +60,7 @@ class TileSpec:
     mesh_hi: tuple[int, int, int] = (0, 0, 0)
     points_sha256: str = ""
     occupied_bricks: int = 0
+    exact_offsets: bool = False
 
     @property
     def name(self) -> str:
@@ -74,13 +77,16 @@ class TileSpec:
              "block": self.block.to_dict(), "n_points": self.n_points, "points_path": self.points_path,
              "has_sensor": self.has_sensor, "mesh_lo": list(self.mesh_lo), "mesh_hi": list(self.mesh_hi),
              "points_sha256": self.points_sha256, "occupied_bricks": self.occupied_bricks}
+        if self.exact_offsets:  # only when set: manifests of other jobs stay as they were
+            d["exact_offsets"] = True
         return d
 
     @classmethod
     def from_dict(cls, d: dict) -> TileSpec:
         return cls(tuple(d["index"]), tuple(d["core_lo"]), tuple(d["core_hi"]), Lattice.from_dict(d["block"]),
                    int(d["n_points"]), d["points_path"], bool(d["has_sensor"]), tuple(d["mesh_lo"]),
-                   tuple(d["mesh_hi"]), str(d.get("points_sha256", "")), int(d.get("occupied_bricks", 0)))
+                   tuple(d["mesh_hi"]), str(d.get("points_sha256", "")), int(d.get("occupied_bricks", 0)),
+                   bool(d.get("exact_offsets", False)))
 
     @property
     def occupancy_path(self) -> str:

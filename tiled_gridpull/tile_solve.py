@@ -54,10 +54,11 @@ def solve_tile(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig, field
     reset_peak_rss()
     summary: dict = {"tile": spec.name, "index": list(spec.index), "points": spec.n_points}
     try:
-        xyz, sensor32 = read_tile_points(spec)
+        stored, sensor32 = read_tile_points(spec)
+        xyz = stored.astype(np.float64)
         # points the solver's float32 frame cannot tell apart are duplicates, as always (the bytes of the float32
         # rows decide: -0.0 and 0.0 stay apart)
-        keep = np.flatnonzero(~duplicate_mask(xyz.astype(np.float32).astype(np.float64), signed_zeros=True))
+        keep = np.flatnonzero(~duplicate_mask(stored.astype(np.float32).astype(np.float64), signed_zeros=True))
         if len(keep) < len(xyz):
             summary["duplicates_dropped"] = int(len(xyz) - len(keep))
             xyz = xyz[keep]
