@@ -319,11 +319,9 @@ def main() -> None:
                   "(seeded): each method meshes the other 90 %, and the held-out points' distance to the mesh "
                   "(file units) scores it; Poisson (depth 10, same normals and trim as above) in the same run.", "",
                   holdout_table, "",
-                  "The runs of 2026-11-25 13:12 on are the first with float64 offsets in the tiles' point files "
-                  "(the default rows: AHN3 0.1337 -> 0.1319 m, Autzen 0.3687 -> 0.3689 ft). The denoise rows "
-                  "(`--set denoise=2`) show why denoising stays off for scans: trees and roofs do not lie on "
-                  "the planes it pulls points onto, so the airborne files got 26 % (AHN3) and 4 % (Autzen) "
-                  "farther from their held-out points (docs/solver.md, \"Denoising tiles\").", ""]
+                  "The denoise rows (`--set denoise=2`) show why denoising stays off for scans: the airborne "
+                  "files got 25 % (AHN3) and 4 % (Autzen) farther from their held-out points (docs/solver.md, "
+                  "\"Denoising tiles\").", ""]
     partition_rows = load("partition")
     if partition_rows:
         from benchmarks import partition as partition_bench
