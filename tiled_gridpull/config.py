@@ -195,7 +195,8 @@ class Sampling:
 @dataclass(frozen=True)
 class NoiseHandling:
     """What is done about noise before the solve. Tiled mode takes the denoising passes (with neighbourhoods bounded
-    by ``denoise_radius``) and refuses the rest.
+    by ``denoise_radius``), refuses ``noise_cells`` and ``denoise_bandwidth``, and does not choose a treatment
+    (``auto`` is one-shape mode's).
 
     Attributes
     ----------
