@@ -50,7 +50,9 @@ def plan_job(inputs: list[str], tiling: TilingConfig, solver: SolverConfig, work
         occupancy = {}
         specs = partition(chunks(), plan, None, scan["has_sensor"], occupancy=occupancy)
     est = estimate_tiles(specs, solver, tiling, occupancy)
-    counts = np.array([s.n_points for s in specs], dtype=np.int64)
+    # the points each tile solves; a denoising job's tiles also read a halo around their blocks (copies)
+    counts = np.array([s.block_points for s in specs], dtype=np.int64)
+    read = int(sum(s.n_points for s in specs))
     cores = os.cpu_count() or 1
     n_workers = workers or max(1, min(cores, len(specs)))
     cpu_s = float(sum(e["time_s"] for e in est))
@@ -65,12 +67,12 @@ def plan_job(inputs: list[str], tiling: TilingConfig, solver: SolverConfig, work
                     "tile_range": list(plan.tile_range),
                     "derived": list(tiling.derived), "units": tiling.units,
                     "levels": solver.levels_for(tiling.tile_cells + 2 * tiling.overlap_cells)},
-        "tiles": {"planned": int(np.prod(plan.tile_range)), "with_points": len(specs),
+        "tiles": {"planned": int(np.prod(plan.tile_range)), "with_points": int(np.sum(counts > 0)),
                   "below_min_points": int(np.sum(counts < tiling.min_points)),
                   "points_min": int(counts.min()) if len(counts) else 0,
                   "points_median": float(np.median(counts)) if len(counts) else 0.0,
                   "points_max": int(counts.max()) if len(counts) else 0,
-                  "overlap_points": int(counts.sum() - scan["points"]) if len(counts) else 0},
+                  "overlap_points": read - int(scan["points"]) if len(counts) else 0},
         "memory": {"peak_bytes": peak["peak"] if peak else 0.0, "peak_tile": peak["tile"] if peak else None,
                    "median_bytes": float(np.median([e["peak"] for e in est])) if est else 0.0},
         "time": {"cpu_seconds": cpu_s, "workers": n_workers, "cores": cores, "wall_seconds": wall_s},

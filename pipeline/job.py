@@ -481,7 +481,7 @@ def run_tiles(client, specs: list[TileSpec], solve_fn, solve_args, mesh_fn, mesh
                     raise result[1].with_traceback(result[2])
                 # the task took its worker down every time it ran (out of memory, a crash in native code):
                 # a failed tile, reported by name; the rest of the job goes on
-                result = {"tile": specs[i].name, "index": list(specs[i].index), "points": specs[i].n_points,
+                result = {"tile": specs[i].name, "index": list(specs[i].index), "points": specs[i].block_points,
                           "status": "failed", "faces": 0,
                           "reason": f"its {kind} killed the worker process on every attempt (out of memory?)"}
             if isinstance(result, BaseException):  # cancelled (e.g. the cluster went away)

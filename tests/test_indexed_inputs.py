@@ -81,13 +81,17 @@ def test_each_tile_read_from_the_index_is_the_streaming_partition_byte_for_byte(
     assert _files(specs) == _files(specs_s)
     # tiles over the empty gap are planned but hold nothing, in both
     assert len(specs) < np.prod(plan.tile_range)
-    # each spill holds exactly the points within its block and halo
+    # each spill holds exactly the points within its block and halo, and says how many are the halo's
     index = plan.lattice.to_index(_scene())
-    reach = plan.config.overlap_cells + halo
-    for spec in specs:
+    O, T = plan.config.overlap_cells, plan.config.tile_cells
+    for spec, streamed in zip(specs, specs_s):
         core = np.asarray(spec.core_lo) - np.asarray(plan.lattice.offset)
-        inside = np.all((index >= core - reach) & (index <= core + plan.config.tile_cells + reach), axis=1)
+        inside = np.all((index >= core - O - halo) & (index <= core + T + O + halo), axis=1)
+        block = np.all((index >= core - O) & (index <= core + T + O), axis=1)
         assert spec.n_points == inside.sum()
+        assert spec.halo_points == streamed.halo_points == (inside & ~block).sum()
+        assert (spec.halo_points > 0) == bool(halo)
+        assert spec.block_points == block.sum()
 
 
 def test_candidate_tiles_cover_every_tile_with_points(inputs, tmp_path, monkeypatch):

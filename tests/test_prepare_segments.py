@@ -1,6 +1,7 @@
 """The streaming partition run in segments (tiled_gridpull.prepare: plan_segments, scan_segment,
 partition_segment; partition.merge_segments): the same spill files, byte for byte, as one pass on the driver."""
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -63,24 +64,28 @@ def test_segments_cut_las_files_at_chunk_multiples_and_keep_other_inputs_whole(f
     assert segs[4] == Segment(files["npy"]) and [s.path for s in segs[5:]] == [files["las"]] * 2
 
 
-@pytest.mark.parametrize("trajectory", [False, True])
-def test_a_partition_in_segments_is_the_one_pass_byte_for_byte(files, tmp_path, trajectory):
+@pytest.mark.parametrize("trajectory,halo", [(False, 0), (True, 0), (True, 12)])
+def test_a_partition_in_segments_is_the_one_pass_byte_for_byte(files, tmp_path, trajectory, halo):
+    """Also for a denoising job's exact offsets and halo counts (sensor origins included)."""
     inputs = [files["laz"], files["las"]] if trajectory else [files["laz"], files["npy"], files["las"]]
     kw = {"trajectory": files["traj"]} if trajectory else {}
-    plan_a, one, scan_a = prepare_job(inputs, TILING, JobPaths(tmp_path / "one"), **kw)
+    tiling = dataclasses.replace(TILING, halo=halo)
+    plan_a, one, scan_a = prepare_job(inputs, tiling, JobPaths(tmp_path / "one"), **kw)
     calls = []
 
     def run_tasks(fn, args):
         calls.append(fn.__name__)
         return _serial_map(fn, args)
 
-    plan_b, seg, scan_b = prepare_job(inputs, TILING, JobPaths(tmp_path / "seg"), run_tasks=run_tasks,
+    plan_b, seg, scan_b = prepare_job(inputs, tiling, JobPaths(tmp_path / "seg"), run_tasks=run_tasks,
                                       chunk_size=2500, segment_points=5000, **kw)
     assert calls == ["scan_segment", "partition_segment"] and scan_b["segments"] >= 7
     assert plan_a.to_dict() == plan_b.to_dict() and scan_a["points"] == scan_b["points"]
     assert scan_a["has_sensor"] == scan_b["has_sensor"] == trajectory
     np.testing.assert_array_equal(scan_a["bounds"], scan_b["bounds"])
     assert len(one) >= 6 and _tiles(one) == _tiles(seg)
+    assert [s.halo_points for s in one] == [s.halo_points for s in seg]
+    assert all(s.exact_offsets == bool(halo) for s in one + seg) and (sum(s.halo_points for s in seg) > 0) == bool(halo)
     assert not (tmp_path / "seg" / "points" / ".segments").exists()
 
 

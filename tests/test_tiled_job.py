@@ -133,7 +133,8 @@ def test_a_tiled_job_denoises_its_points_and_the_surface_gets_closer(tmp_path):
     for summary in denoised.metadata["tile_summaries"]:
         record = summary["denoise"]
         # 2 passes of 0.3 m reach 1.2 m: the tile read a halo of points that wide, so it moved every one of its own
-        assert record["points"] == summary["points_used"] > 0 and record["dropped_near_faces"] == 0
+        assert record["points"] == summary["points_used"] == summary["points"] > 0
+        assert record["dropped_near_faces"] == 0
         assert record["halo_points"] > 0 and 0 < record["time_s"] < summary["time_s"]
         assert 0 < record["moved_median_m"] < 0.05 and record["moved_max_m"] <= 0.6 + 1e-9
     assert height_error(denoised) < 0.8 * height_error(plain)
@@ -145,7 +146,8 @@ def test_a_tiled_job_denoises_its_points_and_the_surface_gets_closer(tmp_path):
     spec = view.specs[name]
     block = view.tile_points(name)
     around = view.tile_points(name, halo=True)
-    assert len(around) == spec.n_points > len(block)
+    assert len(around) == spec.n_points > len(block) == spec.block_points
+    assert spec.halo_points == spec.n_points - spec.block_points > 0
     assert np.all(block >= spec.block.low_corner - 1e-9) and np.all(block <= spec.block.high_corner + 1e-9)
     # the denoising job's point files hold exact float64 offsets; a job without denoising keeps float32
     from pathlib import Path

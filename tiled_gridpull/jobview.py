@@ -78,7 +78,7 @@ class JobView:
 
     def busiest_tile(self) -> str:
         """Name of the tile with the most points."""
-        return max(self.specs.values(), key=lambda s: s.n_points).name
+        return max(self.specs.values(), key=lambda s: s.block_points).name
 
     def tile_points(self, name: str, *, halo: bool = False) -> np.ndarray:
         """A tile's points (its whole block: core plus overlap), (N, 3) float64 world coordinates; with ``halo``

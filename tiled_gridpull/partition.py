@@ -58,6 +58,7 @@ def partition(chunks: Iterable, plan: TilePlan, out_dir: str | Path | None, has_
     exact = plan.config.halo > 0
     dtype = spill_record(has_sensor, exact)
     counts: dict[tuple, int] = {}
+    halo_counts: dict[tuple, int] = {}
     buffers: dict[tuple, list] = {}
     hashes: dict[tuple, hashlib._Hash] = {}
     occ: dict[tuple, np.ndarray] = {}
@@ -123,6 +124,11 @@ def partition(chunks: Iterable, plan: TilePlan, out_dir: str | Path | None, has_
             if grid is None:
                 grid = occ[t] = np.zeros(bshape, bool)
             grid[cells[:, 0], cells[:, 1], cells[:, 2]] = True
+            if exact:
+                # the points read for the denoising halo only (what the solve crops them to: tile_solve._denoise)
+                local = rec["xyz"]
+                size = (np.asarray(spec.block.shape, np.float64) - 1.0) * spec.block.cell_size
+                halo_counts[t] = halo_counts.get(t, 0) + int((~np.all((local >= 0) & (local <= size), axis=1)).sum())
             buffers.setdefault(t, []).append(rec)
             counts[t] = counts.get(t, 0) + len(sel)
             buffered += len(sel)
@@ -143,7 +149,8 @@ def partition(chunks: Iterable, plan: TilePlan, out_dir: str | Path | None, has_
         if occupancy is not None:
             occupancy[t] = grid
         specs.append(plan.spec(t, n_points=counts[t], points_path=path, has_sensor=has_sensor, exact_offsets=exact,
-                               points_sha256=hashes[t].hexdigest(), occupied_bricks=int(grid.sum())))
+                               points_sha256=hashes[t].hexdigest(), occupied_bricks=int(grid.sum()),
+                               halo_points=halo_counts.get(t, 0)))
     return specs
 
 
@@ -202,7 +209,8 @@ def merge_segments(parts: list[list[TileSpec]], plan: TilePlan, out_dir: str | P
             occupancy[t] = grid
         merged.append(plan.spec(t, n_points=n, points_path=path, has_sensor=has_sensor,
                                 exact_offsets=plan.config.halo > 0, points_sha256=digest,
-                                occupied_bricks=int(grid.sum())))
+                                occupied_bricks=int(grid.sum()),
+                                halo_points=sum(piece.halo_points for _, piece in pieces)))
     return merged
 
 

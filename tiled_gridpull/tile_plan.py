@@ -47,6 +47,9 @@ class TileSpec:
         Bricks (8^3 cells) of the block that hold at least one point (see :func:`read_occupancy`).
     exact_offsets : bool
         Whether the spill file holds float64 offsets (a denoising job: :func:`tiled_gridpull.jobdir.spill_record`).
+    halo_points : int
+        Of ``n_points``, those outside the block, read for a denoising job's halo only (:attr:`block_points` are
+        the ones the tile solves).
     """
 
     index: tuple[int, int, int]
@@ -61,6 +64,12 @@ class TileSpec:
     points_sha256: str = ""
     occupied_bricks: int = 0
     exact_offsets: bool = False
+    halo_points: int = 0
+
+    @property
+    def block_points(self) -> int:
+        """Points of the block itself: what the tile solves (``n_points`` less the halo's)."""
+        return self.n_points - self.halo_points
 
     @property
     def name(self) -> str:
@@ -79,6 +88,7 @@ class TileSpec:
              "points_sha256": self.points_sha256, "occupied_bricks": self.occupied_bricks}
         if self.exact_offsets:  # only when set: manifests of other jobs stay as they were
             d["exact_offsets"] = True
+            d["halo_points"] = self.halo_points
         return d
 
     @classmethod
@@ -86,7 +96,7 @@ class TileSpec:
         return cls(tuple(d["index"]), tuple(d["core_lo"]), tuple(d["core_hi"]), Lattice.from_dict(d["block"]),
                    int(d["n_points"]), d["points_path"], bool(d["has_sensor"]), tuple(d["mesh_lo"]),
                    tuple(d["mesh_hi"]), str(d.get("points_sha256", "")), int(d.get("occupied_bricks", 0)),
-                   bool(d.get("exact_offsets", False)))
+                   bool(d.get("exact_offsets", False)), int(d.get("halo_points", 0)))
 
     @property
     def occupancy_path(self) -> str:

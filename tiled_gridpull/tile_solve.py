@@ -52,7 +52,7 @@ def solve_tile(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig, field
     """
     t0 = time.perf_counter()
     reset_peak_rss()
-    summary: dict = {"tile": spec.name, "index": list(spec.index), "points": spec.n_points}
+    summary: dict = {"tile": spec.name, "index": list(spec.index), "points": spec.block_points}
     try:
         stored, sensor32 = read_tile_points(spec)
         xyz = stored.astype(np.float64)

@@ -392,7 +392,7 @@ def finish_job(pieces: Iterable[Path], metadata: dict, *, float32: bool = False,
 
 def check_some_tile_solvable(specs: list[TileSpec], tiling: TilingConfig) -> None:
     """Refuse, before any solve, a job none of whose tiles holds ``min_points`` points."""
-    largest = max((s.n_points for s in specs), default=0)
+    largest = max((s.block_points for s in specs), default=0)
     if largest < tiling.min_points:
         raise InputError(f"no tile holds min_points ({tiling.min_points}) points, the largest holds {largest}: "
                          "lower min_points or raise tile_size")
