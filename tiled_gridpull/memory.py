@@ -92,6 +92,10 @@ RATE_MESH_BRICK_S = 4e-4
 JOB_SETUP_S = 4.0  # local cluster start, imports and numba's cached kernels loaded in each worker
 RATE_PARTITION_POINT_S = 2.5e-6  # reading, scanning and partitioning, per input point
 RATE_MERGE_BRICK_S = 3e-5  # welding the pieces and writing the mesh, per finest band brick of the job
+# Denoising (a tiled job with denoise > 0), per point read (halo included), pass and neighbour fetched
+# (denoise_neighbors + normals.TIE_EXTRA): 13 us per point and pass with 32 neighbours, measured over the 8 tiles
+# of the demo street with 5 cm of range noise on a 2-core AMD EPYC, 2026-11-25 (19-26 us per point for 2 passes).
+RATE_DENOISE_NEIGHBOUR_S = 3.2e-7
 
 _SIZE = re.compile(r"^\s*(\d+(?:\.\d*)?|\.\d+)\s*(?:([kmgt])(?:i?b)?|b)?\s*$", re.IGNORECASE)
 
@@ -203,7 +207,8 @@ def level_points(spec: TileSpec, level: int, levels: int) -> int:
     """
     from .solver import COARSE_POINTS_PER_CELL
 
-    n = int(spec.n_points)
+    # a denoising job's tile solves its block's points, not the halo's it read
+    n = int(spec.n_points) - int(getattr(spec, "halo_points", 0) or 0)
     f = 2 ** (levels - 1 - level)
     if f == 1:
         return n
@@ -215,9 +220,14 @@ def level_points(spec: TileSpec, level: int, levels: int) -> int:
 def tile_time(spec: TileSpec, bricks: list[int], solver: SolverConfig) -> float:
     """Rough seconds (one thread of a 2-worker job) to solve one tile: per level, iterations x (queries + band
     slots) with the queries the level's points give (``queries_per_point``), plus the nearest-point searches
-    (the query pool's batches once, or every iteration's), and the points' set-up."""
+    (the query pool's batches once, or every iteration's), the points' set-up and their denoising passes."""
+    from .normals import TIE_EXTRA
+
     levels = len(bricks)
     t = TILE_SETUP_S + spec.n_points * RATE_POINT_S
+    noise = solver.noise
+    if noise.denoise_passes > 0:
+        t += noise.denoise_passes * spec.n_points * (noise.denoise_neighbors + TIE_EXTRA) * RATE_DENOISE_NEIGHBOUR_S
     for level, b in enumerate(bricks):
         st = solver.level_settings(level, levels, level_points(spec, level, levels))
         it, nq = st.iterations, st.queries
