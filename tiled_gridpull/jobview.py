@@ -86,8 +86,7 @@ class JobView:
         s = self._spec(name)
         xyz, _ = read_tile_points(s)
         if not halo:
-            size = (np.asarray(s.block.shape, np.float64) - 1.0) * s.block.cell_size
-            xyz = xyz[np.all((xyz >= 0.0) & (xyz <= size), axis=1)]
+            xyz = xyz[s.in_block(xyz)]
         return xyz + s.block.low_corner
 
     def neighbours(self, name: str, *, meshed: bool = True) -> list[str]:

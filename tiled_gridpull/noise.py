@@ -216,8 +216,8 @@ def denoise_block(points: np.ndarray, k: int, passes: int, radius: float, lo: np
     Every point of the block takes part in the ``passes`` radius-bounded projections
     (:func:`project_to_local_planes`), but only the points farther than :func:`denoise_margin` from a face
     beyond which the block misses points are kept: their neighbourhoods, pass after pass, lie inside the block,
-    so any block holding them gives them the same positions (to the rounding of their stored coordinates). The
-    points dropped near a face lie in a neighbouring tile's core and keep their place there.
+    so any block holding them at the same offsets from each other gives them the same positions. A tiled job
+    reads a halo as wide as the margin around each block, so every point of the block itself is kept.
 
     Parameters
     ----------

@@ -126,9 +126,7 @@ def partition(chunks: Iterable, plan: TilePlan, out_dir: str | Path | None, has_
             grid[cells[:, 0], cells[:, 1], cells[:, 2]] = True
             if exact:
                 # the points read for the denoising halo only (what the solve crops them to: tile_solve._denoise)
-                local = rec["xyz"]
-                size = (np.asarray(spec.block.shape, np.float64) - 1.0) * spec.block.cell_size
-                halo_counts[t] = halo_counts.get(t, 0) + int((~np.all((local >= 0) & (local <= size), axis=1)).sum())
+                halo_counts[t] = halo_counts.get(t, 0) + int((~spec.in_block(rec["xyz"])).sum())
             buffers.setdefault(t, []).append(rec)
             counts[t] = counts.get(t, 0) + len(sel)
             buffered += len(sel)

@@ -71,6 +71,12 @@ class TileSpec:
         """Points of the block itself: what the tile solves (``n_points`` less the halo's)."""
         return self.n_points - self.halo_points
 
+    def in_block(self, local: np.ndarray) -> np.ndarray:
+        """(N,) bool: which of ``local`` (N, 3; metres from the block's low corner, as spill files hold them) lie
+        in the block, not in the halo a denoising job reads around it."""
+        size = (np.asarray(self.block.shape, np.float64) - 1.0) * self.block.cell_size
+        return np.all((local >= 0.0) & (local <= size), axis=1)
+
     @property
     def name(self) -> str:
         """A stable name, e.g. ``tile_3_-1_0``."""

@@ -130,7 +130,7 @@ def _denoise(xyz: np.ndarray, spec: TileSpec, tiling: TilingConfig, solver: Solv
                                 lo, hi)
     # the halo's points only served the neighbourhoods: the solve takes the block's, every one of them when the
     # halo covers the denoising's reach (as with_halo sets it); any other would be dropped, never left unmoved
-    in_block = np.all((xyz >= 0.0) & (xyz <= size), axis=1)
+    in_block = spec.in_block(xyz)
     use = in_block & keep
     moved = moved[use[keep]]
     shift = np.linalg.norm(moved - xyz[use], axis=1)
