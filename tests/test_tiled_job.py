@@ -155,3 +155,14 @@ def test_a_tiled_job_denoises_its_points_and_the_surface_gets_closer(tmp_path):
     assert spec.exact_offsets and Path(spec.points_path).stat().st_size == 24 * spec.n_points
     plain_spec = JobView(tmp_path / "j0").specs[name]
     assert not plain_spec.exact_offsets and Path(plain_spec.points_path).stat().st_size == 12 * plain_spec.n_points
+    # the job report's sample reads either kind of file (it read float64 offsets as float32 pairs once)
+    from pykdtree.kdtree import KDTree
+
+    from tiled_gridpull.jobdir import sample_job_points
+
+    noisy = np.load(tmp_path / "g.npy")
+    for job in ("j0", "j1"):
+        sample = sample_job_points(tmp_path / job, max_points=10 * len(noisy))  # all: each point once
+        assert len(sample) == len(noisy)
+        dist, _ = KDTree(noisy).query(sample)
+        assert dist.max() < 1e-5  # float32 offsets from a tile's corner: micrometres

@@ -186,7 +186,7 @@ def sample_job_points(job_dir: str | Path, max_points: int = 50_000) -> np.ndarr
         p = Path(spec.points_path)
         if spec.n_points == 0 or not p.is_file() or p.stat().st_size == 0:
             continue
-        rec = np.memmap(p, dtype=spill_record(spec.has_sensor), mode="r")
+        rec = np.memmap(p, dtype=spill_record(spec.has_sensor, spec.exact_offsets), mode="r")
         xyz = np.asarray(rec["xyz"][::step], dtype=np.float64) + spec.block.low_corner
         lo = origin + np.asarray(spec.core_lo) * lattice.cell_size
         hi = origin + np.asarray(spec.core_hi) * lattice.cell_size
