@@ -26,12 +26,13 @@ def plan_job(inputs: list[str], tiling: TilingConfig, solver: SolverConfig, work
     from tiled_gridpull.jobdir import JobPaths
     from tiled_gridpull.memory import estimate_tiles
     from tiled_gridpull.partition import partition
-    from tiled_gridpull.prepare import check_registered, plan_inputs, resolve_units
+    from tiled_gridpull.prepare import check_registered, plan_inputs, resolve_units, scan_noise_treatment
     from tiled_gridpull.resume import load_partition, partition_key
     from tiled_gridpull.tiling import check_compatible, with_halo
 
     check_registered(inputs)
     tiling = resolve_units(inputs, tiling, frames)
+    solver, noise = scan_noise_treatment(inputs, tiling, solver, frames)
     check_compatible(tiling, solver)
     tiling = with_halo(tiling, solver)
     paths = JobPaths(work_dir)
@@ -76,7 +77,7 @@ def plan_job(inputs: list[str], tiling: TilingConfig, solver: SolverConfig, work
         "memory": {"peak_bytes": peak["peak"] if peak else 0.0, "peak_tile": peak["tile"] if peak else None,
                    "median_bytes": float(np.median([e["peak"] for e in est])) if est else 0.0},
         "time": {"cpu_seconds": cpu_s, "workers": n_workers, "cores": cores, "wall_seconds": wall_s},
-        "estimates": est,
+        "estimates": est, "noise_treatment": noise,
     }
 
 
@@ -130,6 +131,10 @@ def format_plan(info: dict, max_memory: int | None = None) -> str:
         f"({_duration(tm['cpu_seconds'])} of solving on one core), at rates measured on a 2-core Intel Xeon "
         f"(2026-11-24) with nothing else running: a loaded or slower machine takes longer",
     ]
+    noise = info.get("noise_treatment")
+    if noise and noise.get("auto"):
+        lines.insert(-3, f"noise:    {'denoising, ' if noise['chosen'] else 'no treatment, '}{noise['reason']} "
+                         "(noise_auto)")
     if max_memory is not None:
         over = [e for e in info["estimates"] if e["peak"] > max_memory]
         lines.append(f"--max-memory {format_size(max_memory)}: "

@@ -10,7 +10,7 @@ import pytest
 from tiled_gridpull import reconstruct
 from tiled_gridpull.config import NOISE_PRESETS, SolverConfig, load_config_file
 from tiled_gridpull.errors import ConfigError
-from tiled_gridpull.noise import estimate_noise, project_to_local_planes, select_treatment
+from tiled_gridpull.noise import estimate_noise, project_to_local_planes, scan_noise, select_treatment
 from tiled_gridpull.synthetic import sample_shape, sphere
 
 from conftest import REPO
@@ -316,3 +316,33 @@ def test_noise_estimate_and_denoising_at_float_extremes(scale):
     assert est.sigma == pytest.approx(ref.sigma * scale, rel=1e-9)
     assert est.spacing == pytest.approx(ref.spacing * scale, rel=1e-9)
     np.testing.assert_allclose(moved / scale, project_to_local_planes(pts, iterations=1), atol=1e-9)
+
+
+@pytest.mark.parametrize("sigma", [0.0, 0.01, 0.03])
+def test_scan_noise_reads_the_scatter_across_planes_in_cells(sigma):
+    """Ground and a wall sampled densely (2 cm), with Gaussian noise: the scatter is read in cells of the job,
+    its median near sigma and its 25th percentile below it, the same far from the origin."""
+    pts = _noisy_ground(200_000, sigma, seed=1)
+    est = scan_noise(pts, cell=0.1)
+    assert est["sampled"] == 20_000 and est["planar"] > 0.9 * est["sampled"]
+    assert est["radius_cells"] == 2.0
+    if sigma == 0.0:
+        assert est["q25_cells"] < 0.01  # the ground's waves, not noise
+    else:
+        assert 0.85 * sigma / 0.1 < est["median_cells"] < 1.15 * sigma / 0.1
+        assert 0.6 * sigma / 0.1 < est["q25_cells"] < est["median_cells"]
+    near = scan_noise(pts - [500000.0, 4000000.0, 50.0], cell=0.1)
+    assert near["q25_cells"] == pytest.approx(est["q25_cells"], rel=1e-6)
+
+
+def test_scan_noise_does_not_count_scan_rings():
+    """Points along lines farther apart than the radius (the rings of a scan far from the sensor) have no plane
+    to scatter from: any plane through a line fits it, so the line's own scatter would read as a plane's
+    thickness of zero. Nothing is measured."""
+    rng = np.random.default_rng(0)
+    x = rng.uniform(0.0, 50.0, 100_000)
+    ring = rng.integers(0, 20, len(x)) * 0.5  # rings 0.5 m apart, radius 2 x 0.1 m
+    pts = np.column_stack([x, ring, rng.normal(scale=0.01, size=len(x))])
+    est = scan_noise(pts, cell=0.1)
+    assert est["planar"] < 100 and est["q25_cells"] is None and est["median_cells"] is None
+    assert scan_noise(pts[:5], cell=0.1)["q25_cells"] is None

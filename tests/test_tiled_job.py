@@ -123,9 +123,12 @@ def test_a_tiled_job_denoises_its_points_and_the_surface_gets_closer(tmp_path):
         truth = 0.4 * np.sin(v[inner, 0] / 2.0) * np.cos(v[inner, 1] / 3.0)
         return float(np.abs(v[inner, 2] - truth).mean())
 
-    plain = reconstruct_scene([str(tmp_path / "g.npy")], tmp_path / "plain.ply", tiling, SOLVER, tmp_path / "j0")
+    plain = reconstruct_scene([str(tmp_path / "g.npy")], tmp_path / "plain.ply", tiling,
+                              SOLVER.replace(noise_auto=False), tmp_path / "j0")
     denoised = reconstruct_scene([str(tmp_path / "g.npy")], tmp_path / "denoised.ply", tiling, solver,
                                  tmp_path / "j1")
+    assert plain.metadata["noise_treatment"] == {"auto": False, "chosen": None, "reason": "noise_auto is off"}
+    assert denoised.metadata["noise_treatment"]["reason"] == "given: denoise 2"
     assert denoised.metadata["config"]["noise"]["denoise_passes"] == 2
     assert denoised.metadata["config"]["noise"]["denoise_radius"] == 1.5
     assert denoised.metadata["tiling"]["halo"] == 6 and plain.metadata["tiling"]["halo"] == 0
@@ -166,3 +169,35 @@ def test_a_tiled_job_denoises_its_points_and_the_surface_gets_closer(tmp_path):
         assert len(sample) == len(noisy)
         dist, _ = KDTree(noisy).query(sample)
         assert dist.max() < 1e-5  # float32 offsets from a tile's corner: micrometres
+
+
+def test_noise_auto_denoises_a_noisy_scan_and_leaves_a_clean_one(tmp_path, serial_job):
+    """With the defaults (``noise_auto``), the noisy ground of the test above gets the denoising passes, measured
+    once on the scan's first points, so the mesh is the one the explicit setting gives; the clean terrain of the
+    serial job is measured and left alone. The sidecar says what was measured and chosen, and the dry run shows it."""
+    from pipeline.dryrun import format_plan, plan_job
+    from tiled_gridpull.noise import SCAN_NOISY_CELLS
+
+    _, clean, _ = serial_job
+    record = clean.metadata["noise_treatment"]
+    assert record["auto"] and record["chosen"] is None and record["settings"] == {}
+    assert record["estimate"]["q25_cells"] < 0.2 * SCAN_NOISY_CELLS
+    assert clean.metadata["tiling"]["halo"] == 0
+
+    rng = np.random.default_rng(5)
+    ground = terrain(12.8, 40, seed=5)
+    np.save(tmp_path / "g.npy", ground + rng.normal(scale=0.05, size=ground.shape))
+    tiling = TilingConfig(voxel_size=0.2, tile_size=6.4, overlap=3.2, trim_distance=2.0)
+    params = SOLVER.replace(denoise_neighbors=32, denoise_radius=1.5)  # the passes' parameters, as scene.yaml's
+    auto = reconstruct_scene([str(tmp_path / "g.npy")], tmp_path / "auto.ply", tiling, params, tmp_path / "j0")
+    given = reconstruct_scene([str(tmp_path / "g.npy")], tmp_path / "given.ply", tiling,
+                              params.replace(denoise=2), tmp_path / "j1")
+    record = auto.metadata["noise_treatment"]
+    assert record["chosen"] == "denoise" and record["settings"] == {"denoise": 2}
+    assert record["estimate"]["q25_cells"] > SCAN_NOISY_CELLS
+    assert record["estimate"]["points"] == len(ground) and record["estimate"]["radius_cells"] == 1.5
+    assert auto.metadata["config"]["noise"]["denoise_passes"] == 2 and auto.metadata["tiling"]["halo"] == 6
+    assert np.array_equal(auto.vertices, given.vertices) and np.array_equal(auto.faces, given.faces)
+    shown = format_plan(plan_job([str(tmp_path / "g.npy")], tiling, params, tmp_path / "dry"))
+    assert "noise:    denoising, scatter across planes (25th percentile)" in shown
+    assert "a halo of 6 cells read for denoising" in shown

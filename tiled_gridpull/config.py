@@ -195,8 +195,8 @@ class Sampling:
 @dataclass(frozen=True)
 class NoiseHandling:
     """What is done about noise before the solve. Tiled mode takes the denoising passes (with neighbourhoods bounded
-    by ``denoise_radius``), refuses ``noise_cells`` and ``denoise_bandwidth``, and does not choose a treatment
-    (``auto`` is one-shape mode's).
+    by ``denoise_radius``), refuses ``noise_cells`` and ``denoise_bandwidth``, and chooses with a rule of its own
+    (``auto``).
 
     Attributes
     ----------
@@ -225,6 +225,9 @@ class NoiseHandling:
         One-shape mode: when the cloud looks noisy (:attr:`tiled_gridpull.noise.NoiseEstimate.ratio`) and none
         of the noise settings above nor ``beta`` was changed from its default, apply the treatment of
         :data:`NOISE_PRESETS` that the estimate selects (the sidecar's ``noise_treatment`` records it).
+        Tiled mode: when ``denoise_passes`` was not changed, apply :data:`tiled_gridpull.noise.SCAN_TREATMENT`
+        if the scan's scatter (:func:`tiled_gridpull.noise.scan_noise`, measured once for the job) exceeds
+        :data:`tiled_gridpull.noise.SCAN_NOISY_CELLS` (:func:`tiled_gridpull.prepare.scan_noise_treatment`).
         Default true; false keeps the settings as given. Flat name ``noise_auto``.
     """
 

@@ -15,7 +15,8 @@ from pykdtree.kdtree import KDTree
 from .normals import plane_fits
 
 __all__ = ["estimate_noise", "NoiseEstimate", "project_to_local_planes", "denoise_margin", "denoise_block",
-           "select_treatment", "NOISY_RATIO", "VERY_NOISY_RATIO", "LOCAL_NOISY_RATIO"]
+           "select_treatment", "NOISY_RATIO", "VERY_NOISY_RATIO", "LOCAL_NOISY_RATIO", "scan_noise",
+           "SCAN_NOISY_CELLS", "SCAN_TREATMENT"]
 
 #: ``sigma / spacing`` (64 neighbours) above which a cloud may be noisy (0.5 % noise: 1.22-1.53)
 NOISY_RATIO = 1.2
@@ -27,6 +28,20 @@ VERY_NOISY_RATIO = 1.7
 LOCAL_NOISY_RATIO = 0.8
 #: neighbours of the local estimate
 LOCAL_NEIGHBORS = 16
+
+#: tiled mode: the 25th percentile of the scatter across planar neighbourhoods (:func:`scan_noise`), in cells,
+#: above which the denoising passes are applied. Measured at 0.1 m cells on the demo street with 0 / 2 / 3 / 4 / 5 cm
+#: of range noise: 0.003 / 0.057 / 0.086 / 0.114 / 0.143; denoising paid in CD-L1, NC and F-score only at 5 cm
+#: (mixed at 3-4 cm, worse below). The shared real scans read 0.031-0.072 (AHN3 at 0.5 m, Autzen at 2 ft, Autzen's
+#: EPT levels, a KITTI frame), and denoising made AHN3 and Autzen worse: docs/solver.md, "Denoising tiles".
+SCAN_NOISY_CELLS = 0.125
+#: what tiled mode's noise_auto applies when :func:`scan_noise` finds the scan noisy (the scene configs give the
+#: passes' neighbours and radius)
+SCAN_TREATMENT = {"denoise": 2}
+#: neighbours a planar neighbourhood must hold to count in :func:`scan_noise`
+SCAN_MIN_NEIGHBORS = 10
+#: ... and its middle eigenvalue against the largest: scan rings are lines, whose "plane" is any plane through them
+SCAN_PLANARITY = 0.1
 
 
 @dataclass(frozen=True)
@@ -70,6 +85,62 @@ def select_treatment(points: np.ndarray) -> tuple[str | None, NoiseEstimate, dic
     if wide.ratio > NOISY_RATIO and local.ratio > LOCAL_NOISY_RATIO:
         pick = "very_noisy" if wide.ratio > VERY_NOISY_RATIO else "noisy"
     return pick, wide, {**wide.to_dict(), "local_ratio": local.ratio}
+
+
+def scan_noise(points: np.ndarray, cell: float, radius_cells: float = 2.0, sample: int = 20_000,
+               seed: int = 0, k: int = 64) -> dict:
+    """How far a scan's points scatter across its surfaces, in cells: what tiled mode's ``noise_auto`` decides on.
+
+    At ``sample`` seeded random points, a plane is fitted to the (at most ``k``) points within ``radius_cells``
+    cells (the neighbourhoods of the denoising passes); neighbourhoods with fewer than ``SCAN_MIN_NEIGHBORS``
+    points, or whose points lie along a line (middle eigenvalue below ``SCAN_PLANARITY`` x the largest: a scan
+    ring), do not count. Their scatter ``sqrt(smallest eigenvalue x n / (n - 3))`` is summarised by its 25th
+    percentile: vegetation, edges and curbs scatter whatever the sensor's noise, and are a minority of the
+    neighbourhoods of a street or a survey; the flat ground and walls below that percentile show the noise.
+
+    Parameters
+    ----------
+    points : (N, 3) float
+        A dense part of the scan (world units; georeferenced values are fine: offsets are taken from each point).
+    cell : float
+        The job's cell size, world units.
+
+    Returns
+    -------
+    dict
+        ``q25_cells`` and ``median_cells`` (None without enough planar neighbourhoods), ``planar`` (how many
+        counted), ``sampled``, ``radius_cells``.
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    n = len(pts)
+    out = {"q25_cells": None, "median_cells": None, "planar": 0, "sampled": 0, "radius_cells": float(radius_cells)}
+    if n < SCAN_MIN_NEIGHBORS:
+        return out
+    origin = pts[0].copy()  # keeps georeferenced coordinates' precision in the tree
+    local = pts - origin
+    rng = np.random.default_rng(seed)
+    at = np.sort(rng.choice(n, size=min(sample, n), replace=False))
+    dist, idx = KDTree(local).query(local[at], k=min(k, n), distance_upper_bound=radius_cells * cell)
+    dist = dist.reshape(len(at), -1)
+    idx = idx.reshape(len(at), -1).astype(np.int64)
+    valid = np.isfinite(dist)
+    count = valid.sum(axis=1)
+    off = local[np.where(valid, idx, 0)] - local[at][:, None, :]
+    off[~valid] = 0.0
+    n_nb = np.maximum(count, 1)
+    mean = off.sum(axis=1) / n_nb[:, None]
+    cov = np.einsum("mki,mkj->mij", off, off) / n_nb[:, None, None] - mean[:, :, None] * mean[:, None, :]
+    ev = np.linalg.eigvalsh(cov)
+    keep = (count >= SCAN_MIN_NEIGHBORS) & (ev[:, 1] > SCAN_PLANARITY * ev[:, 2])
+    out["sampled"] = int(len(at))
+    out["planar"] = int(keep.sum())
+    if out["planar"] < 100:
+        return out
+    m = count[keep]
+    sigma = np.sqrt(np.maximum(ev[keep, 0], 0.0) * m / (m - 3)) / cell
+    out["q25_cells"] = float(np.quantile(sigma, 0.25))
+    out["median_cells"] = float(np.median(sigma))
+    return out
 
 
 def estimate_noise(points: np.ndarray, k: int = 64, sample: int = 10_000, seed: int = 0,

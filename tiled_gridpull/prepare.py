@@ -7,6 +7,7 @@ are described in :mod:`tiled_gridpull.jobdir`.
 
 from __future__ import annotations
 
+import logging
 import shutil
 import warnings
 from collections.abc import Callable, Iterator
@@ -16,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from ._version import __version__
+from .config import SolverConfig
 from .crs import check_same_crs, crs_name
 from .errors import ConfigError, InputError
 from .cloud import PointCloud
@@ -31,8 +33,10 @@ from .tile_plan import LatticeSpanError, TilePlan, TileSpec, plan_tiles
 from .tiling import AUTO, TilingConfig, auto_cell_size
 from .trajectory import Trajectory, read_trajectory
 
-__all__ = ["check_registered", "resolve_units", "scan_inputs", "plan_inputs", "prepare_job", "Segment",
-           "plan_segments", "scan_segment", "partition_segment", "SEGMENT_POINTS"]
+log = logging.getLogger("tiled_gridpull")
+
+__all__ = ["check_registered", "resolve_units", "head_points", "scan_noise_treatment", "scan_inputs", "plan_inputs",
+           "prepare_job", "Segment", "plan_segments", "scan_segment", "partition_segment", "SEGMENT_POINTS"]
 
 
 def check_registered(inputs: list[str]) -> None:
@@ -111,13 +115,38 @@ def resolve_units(inputs: list[str], tiling: TilingConfig, frames=None,
         return tiling.in_data_units(unit)
     from .spacing import point_spacing
 
-    # the first points of each input, so a sliver of a first file neither decides the cell nor is "too few"
-    per_input = max(chunk_size // len(inputs), AUTO_MIN_PER_INPUT)
+    head, parts = head_points(inputs, frames, chunk_size)
+    if len(head) < 16:
+        raise InputError(f"voxel_size auto: too few points in {', '.join(map(shown, inputs))} to measure their "
+                         "spacing; give voxel_size")
+    sp = point_spacing(head)
+    cell = auto_cell_size(sp)
+    where = f"of {parts} inputs" if parts > 1 else "points"
+    note = (f"auto: sample spacing {sp.median:.3g} by point, {sp.area_median:.3g} by area, over "
+            f"{sp.measured:,} of the first {sp.points:,} {where}")
+    return tiling.with_cell_size(cell, note)
+
+
+def head_points(inputs: list[str], frames=None, budget: int = 2_000_000) -> tuple[np.ndarray, int]:
+    """A dense sample of the inputs, the same whatever the tiling: what ``voxel_size: auto`` and tiled mode's
+    ``noise_auto`` measure.
+
+    The first points of each input in turn (at least ``AUTO_MIN_PER_INPUT`` of each, ``budget`` in all), so a
+    sliver of a first file neither decides alone nor is "too few": a scan's points come in acquisition order,
+    one region of it at full density, and its density and noise repeat along it. An indexed input's first points
+    are its coarsest level of detail (spread thin over the whole survey), so a region of it at full density is
+    read instead.
+
+    Returns
+    -------
+    points : (M, 3) float64
+    inputs_read : int
+        How many inputs the sample came from.
+    """
+    per_input = max(budget // len(inputs), AUTO_MIN_PER_INPUT)
     parts, read = [], 0
     for path in inputs:
         if all_indexed([path]):
-            # an indexed input's first points are its coarsest level of detail (spread thin over the whole
-            # survey): measure a region at full density instead
             from .indexed_inputs import dense_region
 
             head = dense_region(path, per_input)
@@ -126,17 +155,45 @@ def resolve_units(inputs: list[str], tiling: TilingConfig, frames=None,
         if head is not None and len(head):
             parts.append(head.xyz[:per_input])
             read += len(parts[-1])
-        if read >= chunk_size:
+        if read >= budget:
             break
-    if read < 16:
-        raise InputError(f"voxel_size auto: too few points in {', '.join(map(shown, inputs))} to measure their "
-                         "spacing; give voxel_size")
-    sp = point_spacing(np.concatenate(parts))
-    cell = auto_cell_size(sp)
-    where = f"of {len(parts)} inputs" if len(parts) > 1 else "points"
-    note = (f"auto: sample spacing {sp.median:.3g} by point, {sp.area_median:.3g} by area, over "
-            f"{sp.measured:,} of the first {sp.points:,} {where}")
-    return tiling.with_cell_size(cell, note)
+    return (np.concatenate(parts) if parts else np.zeros((0, 3))), len(parts)
+
+
+def scan_noise_treatment(inputs: list[str], tiling: TilingConfig, solver: SolverConfig,
+                         frames=None) -> tuple[SolverConfig, dict]:
+    """``solver`` with the denoising passes when ``noise.auto`` finds the scan noisy, and what was decided (the
+    sidecar's ``noise_treatment``).
+
+    The scatter is measured once for the whole job, on :func:`head_points` (:func:`tiled_gridpull.noise.scan_noise`
+    in the job's cells), so every tile gets the same treatment whatever the tiling. The user's choice wins: with
+    ``denoise`` given (or ``noise_auto: false``) nothing is measured. ``denoise_neighbors`` and ``denoise_radius``
+    are the passes' parameters, not a choice of treatment: the scene configs set them.
+    """
+    from .noise import SCAN_NOISY_CELLS, SCAN_TREATMENT, scan_noise
+
+    if not solver.noise.auto:
+        return solver, {"auto": False, "chosen": None, "reason": "noise_auto is off"}
+    if solver.get("denoise") != SolverConfig().get("denoise"):
+        return solver, {"auto": True, "chosen": None, "reason": f"given: denoise {solver.get('denoise')}"}
+    head, _ = head_points(inputs, frames, NOISE_SAMPLE_POINTS)
+    est = scan_noise(head, tiling.voxel_size, solver.noise.denoise_radius)
+    q25 = est["q25_cells"]
+    noisy = q25 is not None and q25 > SCAN_NOISY_CELLS
+    record = {"auto": True, "chosen": "denoise" if noisy else None, "estimate": {**est, "points": int(len(head))},
+              "settings": dict(SCAN_TREATMENT) if noisy else {},
+              "reason": ("too few planar neighbourhoods to measure the scatter" if q25 is None else
+                         f"scatter across planes (25th percentile) {q25:.3f} cells "
+                         f"{'>' if noisy else '<='} {SCAN_NOISY_CELLS}")}
+    if noisy:
+        log.info("the scan looks noisy (scatter across planes %.3f cells, above %.3g): denoising it "
+                 "(noise_auto; set noise_auto: false to keep the settings as given)", q25, SCAN_NOISY_CELLS)
+        solver = solver.replace(**SCAN_TREATMENT)
+    return solver, record
+
+
+#: points read from the start of the inputs to measure a scan's noise
+NOISE_SAMPLE_POINTS = 1_000_000
 
 
 def _pyproj_hint() -> str:

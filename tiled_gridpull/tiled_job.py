@@ -31,7 +31,7 @@ from .io import write_mesh, write_mesh_and_sidecar
 from .jobdir import JobPaths, job_lock, neighbors_of
 from .memory import check_memory, peak_rss_mb
 from .mesh import Mesh
-from .prepare import check_registered, prepare_job, resolve_units
+from .prepare import check_registered, prepare_job, resolve_units, scan_noise_treatment
 from .report import write_report
 from .resume import mesh_tile_resumable, solve_tile_resumable
 from .stitch import load_piece, mesh_tile, weld_pieces
@@ -250,6 +250,7 @@ def run_tiled_job(inputs: list[str], output: str | Path | None, tiling: TilingCo
     """
     check_registered(inputs)  # before a KITTI scan's points are read to measure them
     tiling = resolve_units(inputs, tiling, frames)  # auto, or a cell size in metres on data in feet
+    solver, noise = scan_noise_treatment(inputs, tiling, solver, frames)  # before the halo it may need
     check_compatible(tiling, solver)
     tiling = with_halo(tiling, solver)  # a denoising tile reads the points its margin needs
     executor.check()  # before the partition, not after it
@@ -257,7 +258,7 @@ def run_tiled_job(inputs: list[str], output: str | Path | None, tiling: TilingCo
     with job_lock(work_dir):
         try:
             return _run(inputs, output, tiling, solver, JobPaths(work_dir), executor, frames=frames,
-                        trajectory=trajectory, float32=float32,
+                        trajectory=trajectory, float32=float32, noise=noise,
                         tile_meshes=tile_meshes, fail_fast=fail_fast, max_memory=max_memory, progress=progress)
         finally:
             close = getattr(executor, "close", None)  # executors written before close() existed have none
@@ -266,7 +267,7 @@ def run_tiled_job(inputs: list[str], output: str | Path | None, tiling: TilingCo
 
 
 def _run(inputs, output, tiling: TilingConfig, solver: SolverConfig, paths: JobPaths, executor: TileExecutor, *,
-         frames, trajectory, float32, tile_meshes, fail_fast, max_memory, progress) -> Mesh:
+         frames, trajectory, float32, tile_meshes, fail_fast, max_memory, progress, noise=None) -> Mesh:
     t0 = time.perf_counter()
     check = None
     if max_memory is not None:
@@ -308,6 +309,8 @@ def _run(inputs, output, tiling: TilingConfig, solver: SolverConfig, paths: JobP
     meta = job_metadata(plan, tiling, solver, scan, solve_summaries, mesh_summaries,
                         {"partition": t_part - t0, "solve_and_mesh": t_mesh - t_part})
     meta["engine"] = dict(executor.engine)
+    if noise is not None:
+        meta["noise_treatment"] = noise
     # a mesh task that failed (it killed its worker) leaves its tile out of the mesh: report it like a solve
     meta["tiles"]["not_solved"] += [{"tile": m["tile"], "status": "failed", "reason": m.get("reason")}
                                     for m in mesh_summaries if m.get("status") == "failed"]
