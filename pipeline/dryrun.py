@@ -133,8 +133,9 @@ def format_plan(info: dict, max_memory: int | None = None) -> str:
     ]
     noise = info.get("noise_treatment")
     if noise and noise.get("auto"):
-        lines.insert(-3, f"noise:    {'denoising, ' if noise['chosen'] else 'no treatment, '}{noise['reason']} "
-                         "(noise_auto)")
+        given = noise["reason"].startswith("given")
+        what = "" if given else "denoising, " if noise["chosen"] else "no treatment, "
+        lines.insert(-3, f"noise:    {what}{noise['reason']}{'' if given else ' (noise_auto)'}")
     if max_memory is not None:
         over = [e for e in info["estimates"] if e["peak"] > max_memory]
         lines.append(f"--max-memory {format_size(max_memory)}: "

@@ -206,3 +206,27 @@ def test_a_section_object_replaces_its_section_and_sidecars_record_sections():
     assert record["refine"]["m2"] == 6 and record["sampling"]["m1"] == 3 and "refine_m2" not in record
     # a sidecar of this version and a flat one of an earlier version read back the same settings
     assert recorded_settings(record) == cfg.to_flat() == recorded_settings(cfg.to_flat())
+
+
+def test_a_noise_setting_named_on_the_command_line_is_the_users_choice(tmp_path):
+    """`--set denoise=0` keeps a scan's points as they are, although 0 is the default: naming the passes turns
+    the automatic choice off, unless the same source names noise_auto; the scene config names both."""
+    from tiled_gridpull.config import load_config_file
+    from tiled_gridpull.pipeline.cli import build_parser, resolve_settings
+
+    from conftest import REPO
+
+    scene = str(REPO / "configs" / "scene.yaml")
+
+    def solver(*argv):
+        return resolve_settings(build_parser().parse_args(["reconstruct", "x.laz", "-o", "y.ply", *argv]))[0]
+
+    assert load_config_file(REPO / "configs" / "scene.yaml")["noise"]["auto"] is True
+    assert solver("--config", scene).noise.auto is True
+    assert solver("--config", scene, "--set", "denoise=0").noise.auto is False
+    assert solver("--config", scene, "--set", "denoise=2").noise.denoise_passes == 2
+    assert solver("--config", scene, "--set", "denoise=0", "--set", "noise_auto=true").noise.auto is True
+    # the passes' parameters are not a choice of treatment in tiled mode; in one-shape mode every noise setting is
+    assert solver("--config", scene, "--set", "denoise_radius=1.5").noise.auto is True
+    assert solver("--set", "beta=1.0").noise.auto is False
+    assert solver("--set", "alpha=2.0").noise.auto is True

@@ -592,6 +592,25 @@ def test_kitti_chunks_frame_by_frame(tmp_path):
     assert max(len(c) for c in chunks) <= 7
 
 
+def test_a_sample_of_a_sequence_reads_its_first_frames_only(tmp_path, monkeypatch):
+    """What voxel_size auto and noise_auto measure of a KITTI sequence: its first frames, read frame by frame (a
+    long sequence is not read whole for a sample), in the job's frame range."""
+    from tiled_gridpull.io import kitti
+    from tiled_gridpull.prepare import head_points
+
+    frames, poses, tr = make_sequence(tmp_path / "seq")
+    seen = []
+    load = kitti._load_kitti_scan
+    monkeypatch.setattr(kitti, "_load_kitti_scan", lambda p: seen.append(p.stem) or load(p))
+    head, n = head_points([str(tmp_path / "seq")], None, budget=len(frames[0]))
+    assert n == 1 and len(seen) == 1
+    np.testing.assert_array_equal(head, expected_world(frames, poses, tr, [0])[0])
+    seen.clear()
+    head, _ = head_points([str(tmp_path / "seq")], (1, 3), budget=len(frames[1]) + 1)
+    np.testing.assert_array_equal(head, expected_world(frames, poses, tr, [1, 2])[0])
+    assert len(seen) == 2
+
+
 def test_kitti_missing_frame(tmp_path):
     make_sequence(tmp_path / "seq", n_frames=4, skip=(1,))
     with pytest.raises(InputError, match=r"seq: missing frame 000001\.bin"):

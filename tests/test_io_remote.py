@@ -250,6 +250,12 @@ def test_urls_that_would_need_streaming_are_refused(served, tmp_path):
     url = served["COPC"][0]
     with pytest.raises(InputError, match="only COPC files and EPTs are read from a URL"):
         prepare_job([f"{served['base']}/a.laz"], TILING, JobPaths(tmp_path / "a"))
+    # a job refuses it before anything (the cell size, the noise measurement) reads the URL
+    from tiled_gridpull.config import SolverConfig
+    from tiled_gridpull.tiled_job import reconstruct_scene
+
+    with pytest.raises(InputError, match="only COPC files and EPTs are read from a URL"):
+        reconstruct_scene([f"{served['base']}/a.laz"], None, TILING, SolverConfig(), tmp_path / "j")
     with pytest.raises(InputError, match="--trajectory"):
         prepare_job([url], TILING, JobPaths(tmp_path / "b"), trajectory=__file__)
     with pytest.raises(InputError, match="given with it, is not a COPC"):

@@ -346,3 +346,18 @@ def test_scan_noise_does_not_count_scan_rings():
     est = scan_noise(pts, cell=0.1)
     assert est["planar"] < 100 and est["q25_cells"] is None and est["median_cells"] is None
     assert scan_noise(pts[:5], cell=0.1)["q25_cells"] is None
+
+
+def test_scan_noise_needs_planar_neighbourhoods_and_ignores_a_stray_point():
+    """A stray first point far away (1e17) changes nothing: offsets are taken from the median; a cloud where few
+    neighbourhoods hold a plane within the radius (too sparse for this cell) gives no figure."""
+    pts = _noisy_ground(100_000, 0.03, seed=2)
+    est = scan_noise(pts, cell=0.1)
+    assert est["q25_cells"] > 0.1
+    stray = scan_noise(np.vstack([[1e17, 1e17, 1e17], pts]), cell=0.1)
+    assert stray["q25_cells"] == pytest.approx(est["q25_cells"], rel=0.02)
+    # the same ground with 7 % of it kept at random: fewer than 1 in 4 neighbourhoods holds 10 points in 2 cells
+    from tiled_gridpull.noise import SCAN_MIN_PLANAR_SHARE
+
+    sparse = scan_noise(pts[np.random.default_rng(0).random(len(pts)) < 0.07], cell=0.1)
+    assert 0 < sparse["planar"] < SCAN_MIN_PLANAR_SHARE * sparse["sampled"] and sparse["q25_cells"] is None

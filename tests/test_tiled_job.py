@@ -201,3 +201,5 @@ def test_noise_auto_denoises_a_noisy_scan_and_leaves_a_clean_one(tmp_path, seria
     shown = format_plan(plan_job([str(tmp_path / "g.npy")], tiling, params, tmp_path / "dry"))
     assert "noise:    denoising, scatter across planes (25th percentile)" in shown
     assert "a halo of 6 cells read for denoising" in shown
+    shown = format_plan(plan_job([str(tmp_path / "g.npy")], tiling, params.replace(denoise=1), tmp_path / "dry"))
+    assert "noise:    given: denoise 1\n" in shown and "a halo of 2 cells read for denoising" in shown

@@ -42,6 +42,10 @@ SCAN_TREATMENT = {"denoise": 2}
 SCAN_MIN_NEIGHBORS = 10
 #: ... and its middle eigenvalue against the largest: scan rings are lines, whose "plane" is any plane through them
 SCAN_PLANARITY = 0.1
+#: the share of sampled neighbourhoods that must count for a figure at all: below it the scan is too sparse at
+#: this cell for planes of ``denoise_radius`` cells (Autzen's EPT levels 0-2 at 2 ft: 8-12 %, and a reading that
+#: swings from 0.07 to 0.19 with the sample), which is also where the passes would find too few neighbours
+SCAN_MIN_PLANAR_SHARE = 0.25
 
 
 @dataclass(frozen=True)
@@ -91,10 +95,10 @@ def scan_noise(points: np.ndarray, cell: float, radius_cells: float = 2.0, sampl
                seed: int = 0, k: int = 64) -> dict:
     """How far a scan's points scatter across its surfaces, in cells: what tiled mode's ``noise_auto`` decides on.
 
-    At ``sample`` seeded random points, a plane is fitted to the (at most ``k``) points within ``radius_cells``
-    cells (the neighbourhoods of the denoising passes); neighbourhoods with fewer than ``SCAN_MIN_NEIGHBORS``
-    points, or whose points lie along a line (middle eigenvalue below ``SCAN_PLANARITY`` x the largest: a scan
-    ring), do not count. Their scatter ``sqrt(smallest eigenvalue x n / (n - 3))`` is summarised by its 25th
+    At ``sample`` seeded random points, a plane is fitted to the ``k`` nearest points within ``radius_cells``
+    cells (the radius of the denoising passes); neighbourhoods with fewer than ``SCAN_MIN_NEIGHBORS`` points, or
+    whose points lie along a line (middle eigenvalue below ``SCAN_PLANARITY`` x the largest: a scan ring), do
+    not count, and unless ``SCAN_MIN_PLANAR_SHARE`` of them count there is no figure. Their scatter ``sqrt(smallest eigenvalue x n / (n - 3))`` is summarised by its 25th
     percentile: vegetation, edges and curbs scatter whatever the sensor's noise, and are a minority of the
     neighbourhoods of a street or a survey; the flat ground and walls below that percentile show the noise.
 
@@ -109,14 +113,17 @@ def scan_noise(points: np.ndarray, cell: float, radius_cells: float = 2.0, sampl
     -------
     dict
         ``q25_cells`` and ``median_cells`` (None without enough planar neighbourhoods), ``planar`` (how many
-        counted), ``sampled``, ``radius_cells``.
+        counted), ``sampled``, ``radius_cells``, ``neighbors``.
     """
     pts = np.asarray(points, dtype=np.float64)
+    pts = pts[np.all(np.isfinite(pts), axis=1)]
     n = len(pts)
-    out = {"q25_cells": None, "median_cells": None, "planar": 0, "sampled": 0, "radius_cells": float(radius_cells)}
+    out = {"q25_cells": None, "median_cells": None, "planar": 0, "sampled": 0, "radius_cells": float(radius_cells),
+           "neighbors": int(k)}
     if n < SCAN_MIN_NEIGHBORS:
         return out
-    origin = pts[0].copy()  # keeps georeferenced coordinates' precision in the tree
+    # offsets from the median keep georeferenced coordinates' precision, and a stray point cannot be the origin
+    origin = np.median(pts, axis=0)
     local = pts - origin
     rng = np.random.default_rng(seed)
     at = np.sort(rng.choice(n, size=min(sample, n), replace=False))
@@ -134,7 +141,7 @@ def scan_noise(points: np.ndarray, cell: float, radius_cells: float = 2.0, sampl
     keep = (count >= SCAN_MIN_NEIGHBORS) & (ev[:, 1] > SCAN_PLANARITY * ev[:, 2])
     out["sampled"] = int(len(at))
     out["planar"] = int(keep.sum())
-    if out["planar"] < 100:
+    if out["planar"] < max(100, SCAN_MIN_PLANAR_SHARE * len(at)):
         return out
     m = count[keep]
     sigma = np.sqrt(np.maximum(ev[keep, 0], 0.0) * m / (m - 3)) / cell

@@ -30,7 +30,7 @@ from .indexed_inputs import all_indexed, candidate_tiles, indexed_sources, plan_
 from .partition import merge_segments, partition
 from .resume import load_partition, partition_key, scan_record
 from .tile_plan import LatticeSpanError, TilePlan, TileSpec, plan_tiles
-from .tiling import AUTO, TilingConfig, auto_cell_size
+from .tiling import AUTO, TilingConfig, auto_cell_size, with_halo
 from .trajectory import Trajectory, read_trajectory
 
 log = logging.getLogger("tiled_gridpull")
@@ -150,6 +150,8 @@ def head_points(inputs: list[str], frames=None, budget: int = 2_000_000) -> tupl
             from .indexed_inputs import dense_region
 
             head = dense_region(path, per_input)
+        elif Path(path).is_dir():
+            head = _first_frames(Path(path), frames, per_input)
         else:
             head = next(_chunks([path], per_input, frames), None)
         if head is not None and len(head):
@@ -158,6 +160,20 @@ def head_points(inputs: list[str], frames=None, budget: int = 2_000_000) -> tupl
         if read >= budget:
             break
     return (np.concatenate(parts) if parts else np.zeros((0, 3))), len(parts)
+
+
+def _first_frames(root: Path, frames, points: int) -> PointCloud:
+    """The first frames of a KITTI sequence holding ``points`` points (frame by frame: a long sequence is not
+    read whole for a sample)."""
+    from .io.kitti import kitti_chunks
+
+    parts, n = [], 0
+    for chunk in kitti_chunks(root, frames, points):
+        parts.append(chunk.xyz)
+        n += len(chunk.xyz)
+        if n >= points:
+            break
+    return PointCloud(np.concatenate(parts) if parts else np.zeros((0, 3)))
 
 
 def scan_noise_treatment(inputs: list[str], tiling: TilingConfig, solver: SolverConfig,
@@ -182,14 +198,21 @@ def scan_noise_treatment(inputs: list[str], tiling: TilingConfig, solver: Solver
     noisy = q25 is not None and q25 > SCAN_NOISY_CELLS
     record = {"auto": True, "chosen": "denoise" if noisy else None, "estimate": {**est, "points": int(len(head))},
               "settings": dict(SCAN_TREATMENT) if noisy else {},
-              "reason": ("too few planar neighbourhoods to measure the scatter" if q25 is None else
+              "reason": (f"too few planar neighbourhoods within {est['radius_cells']:g} cells to measure the "
+                         f"scatter ({est['planar']:,} of {est['sampled']:,})" if q25 is None else
                          f"scatter across planes (25th percentile) {q25:.3f} cells "
                          f"{'>' if noisy else '<='} {SCAN_NOISY_CELLS}")}
-    if noisy:
-        log.info("the scan looks noisy (scatter across planes %.3f cells, above %.3g): denoising it "
-                 "(noise_auto; set noise_auto: false to keep the settings as given)", q25, SCAN_NOISY_CELLS)
-        solver = solver.replace(**SCAN_TREATMENT)
-    return solver, record
+    if not noisy:
+        return solver, record
+    log.info("the scan looks noisy (scatter across planes %.3f cells, above %.3g): denoising it "
+             "(noise_auto; set noise_auto: false to keep the settings as given)", q25, SCAN_NOISY_CELLS)
+    chosen = solver.replace(**SCAN_TREATMENT)
+    try:
+        with_halo(tiling, chosen)
+    except ConfigError as err:
+        raise ConfigError(f"{err} (noise_auto chose denoising for a scatter of {q25:.3f} cells; set noise_auto: "
+                          "false to leave the points as they are)") from None
+    return chosen, record
 
 
 #: points read from the start of the inputs to measure a scan's noise

@@ -83,7 +83,7 @@ def build_report(metadata: dict, *, job_dir: str | Path | None = None, output: s
     Returns
     -------
     dict
-        ``format``, ``version``, ``job_dir``, ``output``, ``config`` (solver), ``tiling``, ``lattice``,
+        ``format``, ``version``, ``job_dir``, ``output``, ``config`` (solver), ``noise_treatment``, ``tiling``, ``lattice``,
         ``input``, ``crs``, ``engine``, ``mesh`` (topology), ``timings_s`` (wall clock per phase, s),
         ``tiles`` (one row per tile with points: ``tile``, ``index``, ``status``, ``reason``, ``points``,
         ``points_used``, ``core_bounds`` (world), ``solve_time_s``, ``mesh_time_s``, ``peak_rss_mb`` (MB, of
@@ -151,6 +151,7 @@ def build_report(metadata: dict, *, job_dir: str | Path | None = None, output: s
         "output": str(Path(output).resolve()) if output is not None else None,
         "picture": picture,
         "config": metadata.get("config"),
+        "noise_treatment": metadata.get("noise_treatment"),
         "tiling": tiling,
         "lattice": lattice,
         "input": metadata.get("input"),

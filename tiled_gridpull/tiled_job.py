@@ -31,7 +31,7 @@ from .io import write_mesh, write_mesh_and_sidecar
 from .jobdir import JobPaths, job_lock, neighbors_of
 from .memory import check_memory, peak_rss_mb
 from .mesh import Mesh
-from .prepare import check_registered, prepare_job, resolve_units, scan_noise_treatment
+from .prepare import check_registered, check_remote, prepare_job, resolve_units, scan_noise_treatment
 from .report import write_report
 from .resume import mesh_tile_resumable, solve_tile_resumable
 from .stitch import load_piece, mesh_tile, weld_pieces
@@ -249,6 +249,7 @@ def run_tiled_job(inputs: list[str], output: str | Path | None, tiling: TilingCo
         Show a progress bar with an ETA.
     """
     check_registered(inputs)  # before a KITTI scan's points are read to measure them
+    check_remote(inputs, trajectory, tiling)  # before the cell size or the noise reads a URL
     tiling = resolve_units(inputs, tiling, frames)  # auto, or a cell size in metres on data in feet
     solver, noise = scan_noise_treatment(inputs, tiling, solver, frames)  # before the halo it may need
     check_compatible(tiling, solver)
