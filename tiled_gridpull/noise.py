@@ -98,9 +98,10 @@ def scan_noise(points: np.ndarray, cell: float, radius_cells: float = 2.0, sampl
     At ``sample`` seeded random points, a plane is fitted to the ``k`` nearest points within ``radius_cells``
     cells (the radius of the denoising passes); neighbourhoods with fewer than ``SCAN_MIN_NEIGHBORS`` points, or
     whose points lie along a line (middle eigenvalue below ``SCAN_PLANARITY`` x the largest: a scan ring), do
-    not count, and unless ``SCAN_MIN_PLANAR_SHARE`` of them count there is no figure. Their scatter ``sqrt(smallest eigenvalue x n / (n - 3))`` is summarised by its 25th
-    percentile: vegetation, edges and curbs scatter whatever the sensor's noise, and are a minority of the
-    neighbourhoods of a street or a survey; the flat ground and walls below that percentile show the noise.
+    not count, and unless ``SCAN_MIN_PLANAR_SHARE`` of them count there is no figure. Their scatter
+    ``sqrt(smallest eigenvalue x n / (n - 3))`` is summarised by its 25th percentile: vegetation, edges and
+    curbs scatter whatever the sensor's noise, and are a minority of the neighbourhoods of a street or a survey;
+    the flat ground and walls below that percentile show the noise.
 
     Parameters
     ----------

@@ -83,8 +83,8 @@ def build_report(metadata: dict, *, job_dir: str | Path | None = None, output: s
     Returns
     -------
     dict
-        ``format``, ``version``, ``job_dir``, ``output``, ``config`` (solver), ``noise_treatment``, ``tiling``, ``lattice``,
-        ``input``, ``crs``, ``engine``, ``mesh`` (topology), ``timings_s`` (wall clock per phase, s),
+        ``format``, ``version``, ``job_dir``, ``output``, ``config`` (solver), ``noise_treatment``, ``tiling``,
+        ``lattice``, ``input``, ``crs``, ``engine``, ``mesh`` (topology), ``timings_s`` (wall clock per phase, s),
         ``tiles`` (one row per tile with points: ``tile``, ``index``, ``status``, ``reason``, ``points``,
         ``points_used``, ``core_bounds`` (world), ``solve_time_s``, ``mesh_time_s``, ``peak_rss_mb`` (MB, of
         the solve or the mesh step, whichever is higher), ``worker``, ``loss_first`` / ``loss_last``
