@@ -250,6 +250,7 @@ SETTINGS: dict[str, tuple[str | None, str]] = {
     "margin": (None, "margin"),
     "mode": (None, "mode"),
     "init_radius": (None, "init_radius"),
+    "relax": (None, "relax"),
     "levels": ("schedule", "levels"),
     "coarse_iterations": ("schedule", "coarse_iterations"),
     "middle_iterations": ("schedule", "middle_iterations"),
@@ -305,7 +306,7 @@ _POSITIVE = ("resolution", "iterations", "queries", "min_queries", "lr", "lr_ste
 _NONNEGATIVE = ("margin", "m1", "m2", "alpha", "beta", "gamma", "query_sigma", "init_radius", "normal_weight",
                 "seed", "refine_m2", "refine_gamma", "noise_cells", "udf_beta", "udf_polish", "query_pool",
                 "denoise", "denoise_bandwidth", "queries_per_point", "refine_queries_per_point",
-                "middle_iterations")
+                "middle_iterations", "relax")
 
 
 @dataclass(frozen=True, init=False)
@@ -334,6 +335,11 @@ class SolverConfig:
         An SDF solve starts from a sphere of this radius in cells at the lattice centre (paper: one or two
         cells; right for shapes that are star-shaped around their bounding-box centre). Tiled scenes start from
         oriented normals instead (see ``TilingConfig.orientation``).
+    relax : int
+        One-shape SDF mode: iterations of :func:`tiled_gridpull.isosurface.relax_on_field` on the marching-cubes
+        mesh (Taubin steps, each followed by a projection back onto the field's zero level), which even out its
+        slivers; 0 keeps the marching-cubes vertices (the paper). Default 3 (docs/solver.md, "Relaxing the mesh
+        on the field"). Tiled mode does not relax (a tile's border vertices must stay where its neighbour's are).
     schedule : Schedule
         Levels and iterations.
     coarse, refine : LevelConfig
@@ -351,6 +357,7 @@ class SolverConfig:
     margin: int = setting(4, solve=False)
     mode: str = setting("sdf")
     init_radius: float = setting(2.0, sphere_only=True)
+    relax: int = setting(3, solve=False)
     schedule: Schedule = field(default_factory=Schedule)
     coarse: LevelConfig = field(default_factory=LevelConfig)
     refine: LevelConfig = field(default_factory=lambda: REFINE_DEFAULTS)

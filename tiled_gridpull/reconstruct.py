@@ -19,7 +19,7 @@ from ._version import __version__
 from .cloud import PointCloud, as_points, clean_points
 from .config import NOISE_PRESETS, NOISE_SETTINGS, NORMALS_WEIGHT, SolverConfig, split_settings
 from .errors import ConfigError, InputError
-from .isosurface import extract_mesh
+from .isosurface import extract_mesh, relax_on_field
 from .kernels.graph import vertex_components
 from .lattice import Lattice
 from .mesh import Mesh
@@ -218,6 +218,9 @@ def reconstruct(points: Any, *, config: SolverConfig | None = None, normals: np.
     fld = solve(xyz, lattice, cfg, normals=nrm, progress=progress)
     t_solve = time.perf_counter()
     mesh = extract_mesh(fld)
+    if cfg.mode == "sdf":
+        # before the band holes are closed: a fan's centre lies off the band, where there is no field to project on
+        mesh = relax_on_field(mesh, fld, cfg.relax)
     sheet: dict = {}
     if cfg.mode == "udf" and mesh.n_faces:
         mesh, sheet = _end_sheet_at_data(mesh, xyz, max(UDF_TRIM_CELLS * lattice.cell_size,
@@ -251,6 +254,7 @@ def reconstruct(points: Any, *, config: SolverConfig | None = None, normals: np.
         **({"udf_trim": sheet} if sheet else {}),
         "orientation_flipped": flipped,
         "band_edge_holes_closed": int(closed),
+        "relaxed": int(cfg.relax) if cfg.mode == "sdf" else 0,
         "timings_s": {"prepare": t_prep - t0, "solve": t_solve - t_prep, "mesh": t_mesh - t_solve,
                       "total": t_mesh - t0},
     })
