@@ -68,19 +68,73 @@ def test_relaxing_evens_the_triangles_and_keeps_them_on_the_surface(sphere):
     # 3 h^2 / (8 R) (marching cubes' vertices sit on cell edges, where it is closer)
     radial = np.abs(np.linalg.norm(relaxed.vertices - CENTRE, axis=1) - RADIUS)
     assert radial.max() < 3 * CELL ** 2 / (8 * RADIUS)
-    # without the projection the Taubin steps alone leave the zero level
     from tiled_gridpull import isosurface
 
-    class NoField:
-        lattice = fld.lattice
-
-        @staticmethod
-        def sample(v):
-            return np.full(len(v), np.nan), np.zeros((len(v), 3))
-
-    drifted, _ = fld.sample(relax_on_field(mesh, NoField, 3).vertices)
-    assert np.max(np.abs(drifted)) > 10 * np.max(np.abs(value))
     assert isosurface.TAUBIN_MU < -isosurface.TAUBIN_LAMBDA < 0
+
+
+class _Field:
+    """A stand-in field: ``sample`` answers (value, gradient) from a function of the points."""
+
+    def __init__(self, lattice, sample):
+        self.lattice, self.sample = lattice, sample
+
+
+def test_a_vertex_that_cannot_be_projected_stays(sphere):
+    """No value (outside the band), a weak gradient or a long step: the vertex keeps its place rather than drift
+    off the surface with the Taubin steps alone."""
+    fld, mesh = sphere
+    nothing = _Field(fld.lattice, lambda v: (np.full(len(v), np.nan), np.zeros((len(v), 3))))
+    assert np.array_equal(relax_on_field(mesh, nothing, 3).vertices, mesh.vertices)
+
+    def weak(v):
+        value, grad = fld.sample(v)
+        return value, 0.3 * grad  # |grad| 0.3 < MIN_GRADIENT
+
+    assert np.array_equal(relax_on_field(mesh, _Field(fld.lattice, weak), 3).vertices, mesh.vertices)
+
+    def far(v):
+        value, grad = fld.sample(v)
+        return value + CELL, grad  # every step a whole cell
+
+    assert np.array_equal(relax_on_field(mesh, _Field(fld.lattice, far), 3).vertices, mesh.vertices)
+
+
+def test_relaxing_never_turns_a_face_over(sphere):
+    """A field that pushes each vertex 0.45 cells one way or the other along x (its 'gradient') folds the small
+    faces that stand across x; their vertices are put back, and no face ends up facing the other way."""
+    fld, mesh = sphere
+    sign = np.sign(np.random.default_rng(0).normal(size=mesh.n_vertices))
+
+    def shaky(v):
+        return 0.45 * CELL * sign[:len(v)], np.tile([1.0, 0.0, 0.0], (len(v), 1))
+
+    def normals(x):
+        f = mesh.faces
+        return np.cross(x[f[:, 1]] - x[f[:, 0]], x[f[:, 2]] - x[f[:, 0]])
+
+    moved = relax_on_field(mesh, _Field(fld.lattice, shaky), 3)
+    assert not np.array_equal(moved.vertices, mesh.vertices)
+    assert np.all(np.einsum("ij,ij->i", normals(moved.vertices), normals(mesh.vertices)) > 0)
+
+
+def test_reconstruct_relaxes_signed_meshes_only():
+    """One-shape sdf mode relaxes and says so; relax 0 is the marching-cubes mesh; tiled mode refuses the setting
+    (its meshes are not relaxed) unless it is the default."""
+    from tiled_gridpull import reconstruct
+    from tiled_gridpull.synthetic import sample_shape, sphere as sphere_shape
+    from tiled_gridpull.tiling import TilingConfig, check_compatible
+
+    pts, _ = sample_shape(sphere_shape(), 4000, seed=0)
+    small = dict(resolution=40, levels=1, iterations=60, queries=4000, min_component_cells=0)
+    plain = reconstruct(pts, relax=0, **small)
+    relaxed = reconstruct(pts, relax=3, **small)
+    assert plain.metadata["relaxed"] == 0 and relaxed.metadata["relaxed"] == 3
+    assert np.array_equal(plain.faces, relaxed.faces) and not np.array_equal(plain.vertices, relaxed.vertices)
+    assert relaxed.metadata["config"]["relax"] == 3
+    check_compatible(TilingConfig(voxel_size=0.1), SolverConfig())
+    with pytest.raises(ConfigError, match="relax applies to one-shape mode"):
+        check_compatible(TilingConfig(voxel_size=0.1), SolverConfig(relax=0))
 
 
 def test_zero_iterations_and_boundaries_stay(sphere):
@@ -105,3 +159,5 @@ def test_relax_setting():
         SolverConfig(relax=-1)
     with pytest.raises(ConfigError, match="relax"):
         SolverConfig(relax=1.5)
+    with pytest.raises(ConfigError, match="relax must be at most 100"):
+        SolverConfig(relax=10 ** 9)

@@ -289,6 +289,9 @@ SETTINGS: dict[str, tuple[str | None, str]] = {
     "noise_auto": ("noise", "auto"),
 }
 
+#: the most relaxation iterations a config may ask for (three are the default; past a few the mesh stops gaining)
+MAX_RELAX = 100
+
 #: The noise treatments, as settings (flat names): what ``configs/noisy.yaml`` and ``configs/very_noisy.yaml``
 #: set, and what ``noise_auto`` applies when the estimate selects one (tests check the files agree).
 NOISE_PRESETS: dict[str, dict[str, Any]] = {
@@ -392,6 +395,9 @@ class SolverConfig:
         if self.noise.denoise_neighbors < 4:
             raise ConfigError(f"denoise_neighbors must be at least 4 (a plane fit), got "
                               f"{self.noise.denoise_neighbors!r}")
+        if self.relax > MAX_RELAX:
+            raise ConfigError(f"relax must be at most {MAX_RELAX} (iterations of the mesh's relaxation), got "
+                              f"{self.relax}")
         if not 0 < self.schedule.lr_decay <= 1:
             raise ConfigError(f"lr_decay must be in (0, 1], got {self.schedule.lr_decay!r}")
         m1 = self.sampling.m1

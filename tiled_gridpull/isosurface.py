@@ -14,6 +14,10 @@ T_CLAMP = 1e-3  # keep crossings off the lattice vertices so no triangle collaps
 #: Taubin's smoothing and inflating steps (lambda | mu | slightly above lambda keeps the volume: Taubin 1995)
 TAUBIN_LAMBDA = 0.5
 TAUBIN_MU = -0.53
+#: relaxation: a vertex is projected back onto the zero level only where the field's gradient is at least this
+#: long (a distance field's is about 1) and the Newton step at most ``MAX_PROJECTION`` cells; elsewhere it stays
+MIN_GRADIENT = 0.5
+MAX_PROJECTION = 0.5
 
 
 def extract_mesh(fld: Field, iso: float = 0.0, cell_lo: np.ndarray | None = None,
@@ -77,9 +81,10 @@ def relax_on_field(mesh: Mesh, fld: Field, iterations: int) -> Mesh:
     fans whose flat faces tilt against the surface they stand for. Each iteration moves every vertex by a
     Taubin step (``TAUBIN_LAMBDA`` toward the mean of its neighbours, then ``TAUBIN_MU`` away from it: smoothing
     without shrinking) and then back onto the zero level of ``fld`` along its gradient (one Newton step of the
-    trilinear field). Vertices on a boundary edge stay where they are, and so do vertices whose cell is
-    outside the field's band (no value to project with). Measured on the shared meshes: docs/solver.md,
-    "Relaxing the mesh on the field".
+    trilinear field). Vertices on a boundary edge stay where they are, and so does a vertex that cannot be
+    projected (its cell outside the band, a gradient shorter than ``MIN_GRADIENT``, a step longer than
+    ``MAX_PROJECTION`` cells) and every vertex of a face that the move would turn over. Measured on the shared
+    meshes: docs/solver.md, "Relaxing the mesh on the field".
 
     Parameters
     ----------
@@ -109,7 +114,10 @@ def relax_on_field(mesh: Mesh, fld: Field, iterations: int) -> Mesh:
     pinned |= degree == 0
     free = ~pinned
     v = mesh.vertices.astype(np.float64, copy=True)
+    cell = fld.lattice.cell_size
+    facing = _normals(v, faces)  # every face must keep facing the way it did in the extracted mesh
     for _ in range(int(iterations)):
+        old = v.copy()
         for weight in (TAUBIN_LAMBDA, TAUBIN_MU):
             total = np.zeros_like(v)
             for axis in range(3):
@@ -119,9 +127,33 @@ def relax_on_field(mesh: Mesh, fld: Field, iterations: int) -> Mesh:
             v[free] += weight * step
         value, grad = fld.sample(v[free])
         norm2 = np.einsum("ij,ij->i", grad, grad)
-        ok = np.isfinite(value) & (norm2 > 1e-12)
+        # a distance field's gradient is near unit length; where it is weak (a fold of the field, the band's
+        # edge) the Newton step is long and unreliable, and the vertex keeps its place instead
+        ok = np.isfinite(value) & (norm2 >= MIN_GRADIENT ** 2)
+        newton = np.zeros_like(grad)
+        newton[ok] = (value[ok] / norm2[ok])[:, None] * grad[ok]  # world units: the gradient is unitless
+        ok &= np.linalg.norm(newton, axis=1) <= MAX_PROJECTION * cell
         moved = v[free]
-        # the value is in world units and the gradient unitless (cells per cell): a step in world units
-        moved[ok] -= (value[ok] / norm2[ok])[:, None] * grad[ok]
+        moved[ok] -= newton[ok]
+        moved[~ok] = old[free][~ok]
         v[free] = moved
+        _undo_folds(v, old, faces, facing)
     return Mesh(v, faces, mesh.metadata)
+
+
+def _normals(v: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    return np.cross(v[faces[:, 1]] - v[faces[:, 0]], v[faces[:, 2]] - v[faces[:, 0]])
+
+
+def _undo_folds(v: np.ndarray, old: np.ndarray, faces: np.ndarray, facing: np.ndarray) -> None:
+    """Put back (in place) the vertices of faces that would face against ``facing`` (their normals in the extracted
+    mesh), until none does; ``old`` (the positions before this move) has none. Relaxing evens out triangles, it
+    must not fold them."""
+    valid = np.einsum("ij,ij->i", facing, facing) > 0.0  # a face degenerate from the start cannot turn over
+    for _ in range(8):
+        flipped = valid & (np.einsum("ij,ij->i", _normals(v, faces), facing) <= 0.0)
+        if not flipped.any():
+            return
+        back = np.unique(faces[flipped])
+        v[back] = old[back]
+    v[:] = old  # pragma: no cover - each pass puts back more vertices; eight passes have always sufficed

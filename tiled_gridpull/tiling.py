@@ -293,6 +293,9 @@ def check_compatible(tiling: TilingConfig, solver: SolverConfig) -> None:
                           "whole cloud; tiles fit plain planes within denoise_radius): set denoise_bandwidth: 0")
     if solver.losses.normal_weight > 0:
         raise ConfigError("normal_weight applies to one-shape mode (tiles orient estimated normals instead)")
+    if solver.relax != SolverConfig().relax:
+        raise ConfigError(f"relax applies to one-shape mode (a tile's border vertices must stay where its "
+                          f"neighbour's are for the weld: tiled meshes are not relaxed); got relax {solver.relax}")
     if not tiling.resolved:
         return  # checked again once the data gives the cell size (prepare.resolve_units)
     m2 = solver.finest_m2()
