@@ -242,7 +242,8 @@ def main() -> None:
                   "(AMD machine) after the mesh began to be relaxed on the field (`relax: 3`, docs/solver.md, "
                   "\"Relaxing the mesh on the field\"); the Poisson rows are earlier runs on the same clouds "
                   "(100k: 2026-11-22, AMD; 10k and noisy: 2026-11-23, Intel, slower). The other tables (the "
-                  "paper's evaluation, speed, grid) were measured before relaxing, with `relax` 0. The "
+                  "paper's evaluation, speed, grid) were measured before relaxing, with `relax` 0, except the "
+                  "'ours' rows beside the paper's recipe, which take this table's newest rows. The "
                   "times in this table were taken while other jobs shared the machine; the speed table below was "
                   "measured on a quiet machine.", "",
                   shapes_accuracy(shapes), ""]
