@@ -212,8 +212,8 @@ def resolve_settings(args) -> tuple:
 
     Every key is checked before any data is read: unknown keys and bad values are refused with one line.
     """
-    from tiled_gridpull.config import (NOISE_SETTINGS, NORMALS_WEIGHT, SolverConfig, drop_removed_settings,
-                                       load_config_file, parse_overrides, split_settings)
+    from tiled_gridpull.config import (NOISE_SETTINGS, NORMALS_WEIGHT, SCAN_NOISE_SETTINGS, SolverConfig,
+                                       drop_removed_settings, load_config_file, parse_overrides, split_settings)
     from tiled_gridpull.errors import ConfigError
     from tiled_gridpull.tiling import TilingConfig
 
@@ -231,9 +231,8 @@ def resolve_settings(args) -> tuple:
         settings.update(rest)
         named.append(set(mine))
     # a noise treatment named by a source that does not also name noise_auto is the user's choice, and wins even
-    # where it is the default's value (`--set denoise=0` keeps a scan's points as they are); tiled mode's choice
-    # is the passes alone (their neighbours and radius are parameters the scene configs set)
-    choices = {"denoise"} if "voxel_size" in settings else set(NOISE_SETTINGS)
+    # where it is the default's value (`--set denoise=0` keeps a scan's points as they are)
+    choices = set(SCAN_NOISE_SETTINGS if "voxel_size" in settings else NOISE_SETTINGS)
     for names in reversed(named):
         if "noise_auto" in names:
             break

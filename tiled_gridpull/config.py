@@ -34,7 +34,7 @@ from .errors import ConfigError
 __all__ = ["SolverConfig", "Schedule", "LevelConfig", "LossWeights", "Sampling", "NoiseHandling", "LevelSchedule",
            "SECTIONS", "SETTINGS", "REFINE_DEFAULTS", "split_settings", "recorded_settings", "NORMALS_WEIGHT",
            "REMOVED_SETTINGS", "drop_removed_settings", "load_config_file", "parse_overrides", "NOISE_PRESETS",
-           "NOISE_SETTINGS"]
+           "NOISE_SETTINGS", "SCAN_NOISE_SETTINGS"]
 
 MIN_COARSE_CELLS = 32
 #: ``normal_weight`` that given normals switch on when no weight is set (``reconstruct(normals=...)``,
@@ -300,6 +300,9 @@ NOISE_PRESETS: dict[str, dict[str, Any]] = {
 }
 #: The settings a noise treatment changes: ``noise_auto`` stays away when the user changed any of them.
 NOISE_SETTINGS = ("beta", "noise_cells", "denoise", "denoise_neighbors", "denoise_bandwidth")
+#: The same in tiled mode, where the only treatment is the denoising passes (their neighbours and radius are
+#: parameters the scene configs set, not a choice of treatment).
+SCAN_NOISE_SETTINGS = ("denoise",)
 _FLAT_OF = {path: name for name, path in SETTINGS.items()}
 _DOTTED = {f"{section}.{name}": (section, name) for section, name in SETTINGS.values() if section}
 

@@ -55,7 +55,7 @@ def partition(chunks: Iterable, plan: TilePlan, out_dir: str | Path | None, has_
     out = Path(out_dir) if write else None
     if write:
         out.mkdir(parents=True, exist_ok=True)
-    exact = plan.config.halo > 0
+    exact = plan.exact_offsets
     dtype = spill_record(has_sensor, exact)
     counts: dict[tuple, int] = {}
     halo_counts: dict[tuple, int] = {}
@@ -146,7 +146,7 @@ def partition(chunks: Iterable, plan: TilePlan, out_dir: str | Path | None, has_
                 np.save(fh, np.packbits(grid.ravel()))
         if occupancy is not None:
             occupancy[t] = grid
-        specs.append(plan.spec(t, n_points=counts[t], points_path=path, has_sensor=has_sensor, exact_offsets=exact,
+        specs.append(plan.spec(t, n_points=counts[t], points_path=path, has_sensor=has_sensor,
                                points_sha256=hashes[t].hexdigest(), occupied_bricks=int(grid.sum()),
                                halo_points=halo_counts.get(t, 0)))
     return specs
@@ -205,8 +205,7 @@ def merge_segments(parts: list[list[TileSpec]], plan: TilePlan, out_dir: str | P
                 Path(piece.occupancy_path).unlink(missing_ok=True)
         if occupancy is not None:
             occupancy[t] = grid
-        merged.append(plan.spec(t, n_points=n, points_path=path, has_sensor=has_sensor,
-                                exact_offsets=plan.config.halo > 0, points_sha256=digest,
+        merged.append(plan.spec(t, n_points=n, points_path=path, has_sensor=has_sensor, points_sha256=digest,
                                 occupied_bricks=int(grid.sum()),
                                 halo_points=sum(piece.halo_points for _, piece in pieces)))
     return merged

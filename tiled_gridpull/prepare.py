@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from ._version import __version__
-from .config import SolverConfig
+from .config import SCAN_NOISE_SETTINGS, SolverConfig
 from .crs import check_same_crs, crs_name
 from .errors import ConfigError, InputError
 from .cloud import PointCloud
@@ -183,15 +183,18 @@ def scan_noise_treatment(inputs: list[str], tiling: TilingConfig, solver: Solver
 
     The scatter is measured once for the whole job, on :func:`head_points` (:func:`tiled_gridpull.noise.scan_noise`
     in the job's cells), so every tile gets the same treatment whatever the tiling. The user's choice wins: with
-    ``denoise`` given (or ``noise_auto: false``) nothing is measured. ``denoise_neighbors`` and ``denoise_radius``
-    are the passes' parameters, not a choice of treatment: the scene configs set them.
+    one of :data:`~tiled_gridpull.config.SCAN_NOISE_SETTINGS` given (or ``noise_auto: false``) nothing is
+    measured.
     """
     from .noise import SCAN_NOISY_CELLS, SCAN_TREATMENT, scan_noise
 
     if not solver.noise.auto:
         return solver, {"auto": False, "chosen": None, "reason": "noise_auto is off"}
-    if solver.get("denoise") != SolverConfig().get("denoise"):
-        return solver, {"auto": True, "chosen": None, "reason": f"given: denoise {solver.get('denoise')}"}
+    default = SolverConfig()
+    given = [name for name in SCAN_NOISE_SETTINGS if solver.get(name) != default.get(name)]
+    if given:
+        return solver, {"auto": True, "chosen": None,
+                        "reason": "given: " + ", ".join(f"{name} {solver.get(name)}" for name in given)}
     head, _ = head_points(inputs, frames, NOISE_SAMPLE_POINTS)
     est = scan_noise(head, tiling.voxel_size, solver.noise.denoise_radius)
     q25 = est["q25_cells"]

@@ -145,8 +145,15 @@ class TilePlan:
         idx = np.asarray(index)
         mesh_lo = np.where(idx == 0, core_lo - O, core_lo)
         mesh_hi = np.where(idx == np.asarray(self.tile_range) - 1, core_hi + O, core_hi)
+        kw.setdefault("exact_offsets", self.exact_offsets)
         return TileSpec(tuple(int(v) for v in index), tuple(int(v) for v in core_lo), tuple(int(v) for v in core_hi),
                         block, mesh_lo=tuple(int(v) for v in mesh_lo), mesh_hi=tuple(int(v) for v in mesh_hi), **kw)
+
+    @property
+    def exact_offsets(self) -> bool:
+        """Whether the tiles' spill files hold float64 offsets: a denoising job's, which reads a halo
+        (:func:`tiled_gridpull.jobdir.spill_record`)."""
+        return self.config.halo > 0
 
     @property
     def reach_cells(self) -> int:
