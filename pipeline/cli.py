@@ -82,6 +82,10 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--normals", action="store_true",
                    help="supervise the field's gradient with the input's normals (PLY nx ny nz, LAS extra bytes, "
                         "XYZ/NPY columns 4-6): normal_weight 1 unless the config sets it; one-shape mode")
+    r.add_argument("--band-edges", choices=("trim", "close", "keep"),
+                   help="one-shape signed mode: a surface that runs past the data to the solved band's edge (a cap "
+                        "over a bore, a scan's unseen side) is cut back to the data (trim, default), sealed with a "
+                        "fan of triangles so the mesh is watertight (close), or kept as extracted (keep)")
     r.add_argument("--float32", action="store_true",
                    help="store vertices as float32 relative to an offset recorded in the header (half the size)")
     t = r.add_argument_group("tiled mode (scenes; enabled by --voxel-size or a config that sets voxel_size)")
@@ -270,6 +274,9 @@ def cmd_reconstruct(args) -> int:
     if out.suffix.lower() not in (".ply", ".obj"):
         raise ConfigError(f"output {out}: use a .ply or .obj file name")
     cfg, tiling = resolve_settings(args)  # validated before any file is read
+    if tiling is not None and getattr(args, "band_edges", None) is not None:
+        raise ConfigError("--band-edges applies to one-shape mode (tiled mode removes every face farther than "
+                          "trim_distance from the points)")
     if tiling is not None:
         # the trajectory is read as much as the points are: never an output
         reads = [*args.inputs, *([args.trajectory] if getattr(args, "trajectory", None) else [])]
@@ -282,6 +289,8 @@ def cmd_reconstruct(args) -> int:
     for opt in ("workers", "scheduler", "work_dir", "frames", "max_memory", "trajectory"):
         if getattr(args, opt, None) is not None:
             raise ConfigError(f"--{opt.replace('_', '-')} applies to tiled mode: give --voxel-size too")
+    if getattr(args, "band_edges", None) is not None and cfg.mode != "sdf":
+        raise ConfigError("--band-edges applies to signed mode (udf mode ends its sheets at the data already)")
     if getattr(args, "dry_run", False):
         raise ConfigError("--dry-run applies to tiled mode: give --voxel-size too")
     if len(args.inputs) != 1:
@@ -290,7 +299,8 @@ def cmd_reconstruct(args) -> int:
     log.info("read %s: %d points", args.inputs[0], len(cloud))
     bar = _progress_bar(cfg.total_iterations(cfg.resolution), args)
     try:
-        mesh = reconstruct(cloud, config=cfg, progress=bar.update if bar else None)
+        mesh = reconstruct(cloud, config=cfg, progress=bar.update if bar else None,
+                           band_edges=getattr(args, "band_edges", None) or "trim")
     finally:
         if bar:
             bar.close()

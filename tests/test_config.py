@@ -46,6 +46,8 @@ TILED = ["--voxel-size", "0.1"]
     (["--tile-size", "12.8"], "need voxel_size"),
     (["--dry-run"], "--dry-run applies to tiled mode"),
     (["--max-memory", "2GB"], "--max-memory applies to tiled mode"),
+    ([*TILED, "--band-edges", "close"], "--band-edges applies to one-shape mode"),
+    (["--mode", "udf", "--band-edges", "trim"], "--band-edges applies to signed mode"),
     (["--resolution", "-3"], "resolution must be positive"),
     (["--iterations", "0"], "iterations must be positive"),
 ])

@@ -8,7 +8,8 @@ import pytest
 from tiled_gridpull.mesh import Mesh
 from tiled_gridpull.mesh_repair import boundary_loops, close_holes
 from tiled_gridpull.metrics import sample_surface
-from tiled_gridpull.reconstruct import _close_band_edge_holes
+from tiled_gridpull.nearest import distances_to_cloud
+from tiled_gridpull.reconstruct import _band_edge_loops, _trim_band_edge_sheets
 
 # unit cube, outward-oriented, two triangles per side: -x, +x, -y, +y, -z, +z
 CUBE_V = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], dtype=np.float64)
@@ -64,8 +65,53 @@ def test_only_holes_away_from_the_data_are_closed():
     pts, _ = sample_surface(Mesh(CUBE_V, CUBE_F), 5000, seed=0)
     shift = np.array([500000.0, 4000000.0, 100.0])  # georeferenced: distances must stay exact
     moved = Mesh(both.vertices + shift, both.faces)
-    out, n = _close_band_edge_holes(moved, pts + shift, min_distance=0.5)
-    assert n == 1
+    loops = _band_edge_loops(moved, pts + shift, min_distance=0.5)
+    assert len(loops) == 1
+    out = close_holes(moved, loops)
     assert out.topology.boundary_edges == 4      # the hole next to the data stays open
     far_part = out.submesh(out.components() == out.components()[-1])
     assert far_part.topology.watertight
+
+
+def tube(length=10.0, radius=1.0, n_theta=64, n_z=100) -> Mesh:
+    """An open cylinder along z from 0 to ``length`` (both ends open)."""
+    t = np.linspace(0, 2 * np.pi, n_theta, endpoint=False)
+    z = np.linspace(0, length, n_z + 1)
+    T, Z = np.meshgrid(t, z, indexing="ij")
+    verts = np.stack([radius * np.cos(T), radius * np.sin(T), Z], axis=-1).reshape(-1, 3)
+    i, j = np.meshgrid(np.arange(n_theta), np.arange(n_z), indexing="ij")
+    a = i * (n_z + 1) + j
+    b = ((i + 1) % n_theta) * (n_z + 1) + j
+    faces = np.concatenate([np.stack([a, b, b + 1], -1).reshape(-1, 3), np.stack([a, b + 1, a + 1], -1).reshape(-1, 3)])
+    return Mesh(verts, faces)
+
+
+def test_sheets_that_end_at_the_band_edge_are_cut_back_to_the_data():
+    """A sheet that leaves the data and stops at the band's edge (a cap over a bore) is cut back to ``reach``;
+    a far patch enclosed by supported faces (a gap in the samples) and the rim next to the data stay."""
+    mesh = tube()
+    pts, _ = sample_surface(mesh, 40_000, seed=0)
+    angle = np.arctan2(pts[:, 1], pts[:, 0])
+    gap = (pts[:, 2] > 2.0) & (pts[:, 2] < 3.5) & (np.abs(angle) < 0.8)  # a patch without samples
+    pts = pts[(pts[:, 2] <= 6.0) & ~gap]
+    shift = np.array([500000.0, 4000000.0, 100.0])
+    reach = 0.3
+    moved = Mesh(mesh.vertices + shift, mesh.faces)
+    loops = _band_edge_loops(moved, pts + shift, reach)
+    assert len(loops) == 1  # the far end; the near rim at z = 0 is the data's edge
+    out, n = _trim_band_edge_sheets(moved, pts + shift, reach, loops)
+    v = out.vertices - shift
+    centres = v[out.faces].mean(axis=1)
+    assert n > 0
+    assert 6.0 + reach - 0.1 <= v[:, 2].max() <= 6.0 + reach + 0.1  # the far end went, back to the reach
+    assert v[:, 2].min() == 0.0                                      # the rim next to the data stays
+
+    def in_gap(c):
+        return (c[:, 2] > 2.6) & (c[:, 2] < 2.9) & (np.abs(np.arctan2(c[:, 1], c[:, 0])) < 0.2)
+
+    before = mesh.vertices[mesh.faces].mean(axis=1)
+    assert distances_to_cloud(before[in_gap(before)], pts).min() > reach  # far from the data, yet enclosed
+    assert in_gap(centres).sum() == in_gap(before).sum() > 0
+    assert len(boundary_loops(out)) == 2
+    # samples over the whole tube: no loop ends away from the data
+    assert _band_edge_loops(moved, sample_surface(mesh, 40_000, seed=1)[0] + shift, reach) == []

@@ -233,3 +233,20 @@ def test_separate_kitti_scans_are_refused_not_merged_unregistered(tmp_path, caps
     assert not out.exists() and not out.with_suffix(".job").exists()
     code, _, err = run(["reconstruct", *map(str, scans), "-o", str(out), *tiled, "--dry-run"], capsys)
     assert code == 3 and "own sensor frame" in err
+
+
+def test_band_edges_option_reaches_the_solve_and_the_sidecar(tmp_path, capsys):
+    """A tube's wall without its ends: the sheets past the data are cut back by default, sealed with --band-edges
+    close; the sidecar says which."""
+    rng = np.random.default_rng(0)
+    t = rng.uniform(0, 2 * np.pi, 8000)
+    src = tmp_path / "tube.xyz"
+    np.savetxt(src, np.stack([0.2 * np.cos(t), 0.2 * np.sin(t), rng.uniform(-0.5, 0.5, len(t))], axis=1))
+    for rule in ("trim", "close"):
+        out = tmp_path / f"{rule}.ply"
+        code, _, err = run(["reconstruct", str(src), "-o", str(out), "-q", "--resolution", "48",
+                            *(["--band-edges", rule] if rule != "trim" else [])], capsys)
+        assert code == 0, err
+        rec = json.loads(out.with_suffix(".json").read_text())["band_edges"]
+        assert rec["rule"] == rule
+        assert (rec["faces_trimmed"] > 0, rec["loops_closed"] > 0) == (rule == "trim", rule == "close"), rec

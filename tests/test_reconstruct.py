@@ -122,3 +122,38 @@ def test_passing_normals_turns_the_normal_loss_on_unless_a_weight_is_given():
     assert run(normals=normals, normal_weight=0.0) == (0.0, 0.0)  # an explicit 0 keeps the loss off
     assert run(normals=normals, config=SolverConfig(normal_weight=0.5))[0] == 0.5
     assert run() == (0.0, 0.0)  # no normals: nothing changes
+
+
+@pytest.fixture(scope="module")
+def open_tube():
+    """Samples of a tube's wall only (no ends): past the data the signed field's zero level runs on to the band's
+    edge, as over the mouths of a thin-walled bore."""
+    rng = np.random.default_rng(0)
+    t = rng.uniform(0, 2 * np.pi, 20_000)
+    return np.stack([0.2 * np.cos(t), 0.2 * np.sin(t), rng.uniform(-0.5, 0.5, len(t))], axis=1)
+
+
+def test_sheets_past_the_data_are_cut_back_to_the_pull_band(open_tube):
+    from tiled_gridpull.nearest import distances_to_cloud
+
+    mesh = reconstruct(open_tube, resolution=64)
+    cell = mesh.metadata["lattice"]["cell_size"]
+    rec = mesh.metadata["band_edges"]
+    assert rec["rule"] == "trim" and rec["faces_trimmed"] > 0 and rec["loops_closed"] == 0
+    d = distances_to_cloud(mesh.vertices[mesh.faces].mean(axis=1), open_tube)
+    assert d.max() <= 3 * cell + 1e-9                  # m1 = 3 cells: nothing past the pull band is left
+    assert mesh.topology.components == 1 and not mesh.topology.watertight  # open at both ends, as the data
+    # judged on the sealed mesh, the orientation stays outward (an open tube's signed volume means nothing)
+    normals, _ = mesh.face_normals()
+    radial = mesh.vertices[mesh.faces].mean(axis=1)[:, :2]
+    assert np.mean(np.einsum("ij,ij->i", normals[:, :2], radial) > 0) > 0.99
+    closed = reconstruct(open_tube, resolution=64, band_edges="close")
+    assert closed.topology.watertight and closed.metadata["band_edges"]["loops_closed"] == 2
+    assert distances_to_cloud(closed.vertices[closed.faces].mean(axis=1), open_tube).max() > 6 * cell
+
+
+def test_bad_band_edges_rule_is_one_line():
+    from tiled_gridpull.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="band_edges must be one of trim, close, keep"):
+        reconstruct(np.random.default_rng(0).random((100, 3)), band_edges="fan")

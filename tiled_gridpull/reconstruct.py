@@ -51,6 +51,13 @@ UDF_TRIM_SPACINGS = 2.0
 #: 100k points); deeper regions are holes in the data and open (the bunny's scanned base: five holes of 21-73
 #: cells, whose centres lie 10-36 cells from the samples).
 UDF_GAP_REACHES = 4.0
+#: what :func:`reconstruct` may do with sheets that end at the band's edge (``band_edges``)
+BAND_EDGES = ("trim", "close", "keep")
+#: ``band_edges="trim"`` cuts such a sheet back to M1 cells from the data, or this many median sample spacings
+#: where the samples are sparser: random samples leave gaps that wide (see :func:`~.stitch.trim_faces`), and a
+#: cut nearer the data would run on through them into the surface the samples support (abc_00011084 at 10k
+#: points, 1.5 cells apart: 37 % of the faces lay farther than 3 cells from every sample)
+BAND_EDGE_SPACINGS = 5.0
 #: UDF mode drops pieces that are the nearest surface of fewer input points than a plane fit uses: the signs
 #: come from local planes, and a lone stray point (one in the merged bunny scans, 0.5 from the surface)
 #: otherwise came back as a closed bubble 4 cells across.
@@ -144,7 +151,7 @@ def _noise_treatment(cfg: SolverConfig, xyz: np.ndarray):
 
 def reconstruct(points: Any, *, config: SolverConfig | None = None, normals: np.ndarray | None = None,
                 lattice: Lattice | None = None, progress: ProgressFn | None = None,
-                min_component_cells: float = 2.0, close_band_holes: bool = True, **options: Any) -> Mesh:
+                min_component_cells: float = 2.0, band_edges: str = "trim", **options: Any) -> Mesh:
     """Reconstruct a triangle mesh from a point cloud with GridPull.
 
     Parameters
@@ -169,13 +176,16 @@ def reconstruct(points: Any, *, config: SolverConfig | None = None, normals: np.
         Closed pieces whose bounding box is smaller than this many cells on every side are dropped: they are
         below the lattice's resolution (sign-flip bubbles of one or two cells), not structures it can resolve.
         0 keeps everything.
-    close_band_holes : bool
-        Signed mode only: close (with a fan of triangles) every boundary loop that lies entirely farther than
-        the pull band from the points. Such a loop is where a sheet left the data and ran into the band's
-        edge, which a closed surface cannot have: a thin-walled tube whose bore takes the sign of its wall
-        grows caps over the bore's mouths that stop at the band edge. Closing them keeps the mesh
-        watertight; holes next to the data (real gaps in the scan) are left open.
-
+    band_edges : {"trim", "close", "keep"}
+        Signed mode: what becomes of a sheet that left the data and ran into the band's edge (a boundary loop
+        every vertex of which lies beyond the pull band, M1 cells, from the points). A thin-walled tube whose
+        bore takes the sign of its wall grows such sheets: caps over the bore's mouths that stop at the band
+        edge. ``trim`` (default) cuts every such sheet back to the data: its faces farther than M1 cells (or
+        ``BAND_EDGE_SPACINGS`` median sample spacings, where the samples are sparser) from the points go, the
+        faces the data supports stay, and the mesh is open where the data is silent.
+        ``close`` closes each such loop with a fan of triangles (watertight, but the caps stay and cost
+        accuracy: docs/solver.md, "Thin-walled tubes"); ``keep`` leaves the sheets as extracted. Holes next to
+        the data (real gaps in a scan) are never touched.
     Returns
     -------
     Mesh
@@ -192,6 +202,8 @@ def reconstruct(points: Any, *, config: SolverConfig | None = None, normals: np.
         cfg = cfg.replace(normal_weight=NORMALS_WEIGHT)
     if min_component_cells < 0:
         raise ConfigError(f"min_component_cells must be >= 0, got {min_component_cells!r}")
+    if band_edges not in BAND_EDGES:
+        raise ConfigError(f"band_edges must be one of {', '.join(BAND_EDGES)}, got {band_edges!r}")
     points, own_normals = as_points(points)
     xyz, nrm, report = prepare_points(points, own_normals if normals is None else normals)
     if cfg.losses.normal_weight > 0 and nrm is None:
@@ -225,16 +237,26 @@ def reconstruct(points: Any, *, config: SolverConfig | None = None, normals: np.
     if cfg.mode == "udf" and mesh.n_faces:
         mesh, sheet = _end_sheet_at_data(mesh, xyz, max(UDF_TRIM_CELLS * lattice.cell_size,
                                                         UDF_TRIM_SPACINGS * noise.spacing))
-    closed = 0
-    if cfg.mode == "sdf" and close_band_holes and mesh.n_faces:
-        mesh, closed = _close_band_edge_holes(mesh, xyz, cfg.sampling.m1 * lattice.cell_size)
-    # The losses are unchanged by f -> -f, so the sign comes only from the initialisation: a sphere at the lattice
-    # centre lies in the hole of a torus or a mug's handle and ends up *outside*. A closed surface whose enclosed
-    # volume comes out negative is therefore inside out; flip it (nested shells keep their relative orientation).
+    closed = trimmed = 0
     flipped = False
-    if cfg.mode == "sdf" and mesh.n_faces and mesh.signed_volume(normalized=True) < 0:
-        mesh = Mesh(mesh.vertices, mesh.faces[:, ::-1].copy(), mesh.metadata)
-        flipped = True
+    if cfg.mode == "sdf" and mesh.n_faces:
+        reach = cfg.sampling.m1 * lattice.cell_size
+        # the orientation is judged on the mesh with its band-edge loops closed, whichever rule applies: an open
+        # sheet's signed volume says nothing
+        loops = _band_edge_loops(mesh, xyz, reach)
+        sealed = close_holes(mesh, loops) if loops else mesh
+        # The losses are unchanged by f -> -f, so the sign comes only from the initialisation: a sphere at the
+        # lattice centre lies in the hole of a torus or a mug's handle and ends up *outside*. A closed surface
+        # whose enclosed volume comes out negative is therefore inside out; flip it (nested shells keep their
+        # relative orientation).
+        flipped = bool(sealed.signed_volume(normalized=True) < 0)
+        if band_edges == "close":
+            mesh, closed = sealed, len(loops)
+        elif band_edges == "trim" and loops:
+            cut = max(reach, BAND_EDGE_SPACINGS * noise.spacing)
+            mesh, trimmed = _trim_band_edge_sheets(mesh, xyz, cut, loops)
+        if flipped:
+            mesh = Mesh(mesh.vertices, mesh.faces[:, ::-1].copy(), mesh.metadata)
     removed = 0
     if min_component_cells > 0 and mesh.n_faces:
         mesh, removed = remove_small_components(mesh, min_component_cells * lattice.cell_size)
@@ -253,7 +275,8 @@ def reconstruct(points: Any, *, config: SolverConfig | None = None, normals: np.
         "small_components_removed": int(removed),
         **({"udf_trim": sheet} if sheet else {}),
         "orientation_flipped": flipped,
-        "band_edge_holes_closed": int(closed),
+        "band_edges": {"rule": band_edges if cfg.mode == "sdf" else "keep", "loops_closed": int(closed),
+                       "faces_trimmed": int(trimmed)},
         "relaxed": int(cfg.relax) if cfg.mode == "sdf" else 0,
         "timings_s": {"prepare": t_prep - t0, "solve": t_solve - t_prep, "mesh": t_mesh - t_solve,
                       "total": t_mesh - t0},
@@ -261,15 +284,34 @@ def reconstruct(points: Any, *, config: SolverConfig | None = None, normals: np.
     return mesh
 
 
-def _close_band_edge_holes(mesh: Mesh, points: np.ndarray, min_distance: float) -> tuple[Mesh, int]:
-    """Close the boundary loops whose every vertex is at least ``min_distance`` (world units) from the points."""
+def _band_edge_loops(mesh: Mesh, points: np.ndarray, min_distance: float) -> list[np.ndarray]:
+    """The boundary loops whose every vertex is at least ``min_distance`` (world units) from the points."""
     loops = boundary_loops(mesh)
     if not loops:
-        return mesh, 0
+        return []
     d = distances_to_cloud(mesh.vertices[np.concatenate(loops)], points)
     nearest = np.minimum.reduceat(d, np.cumsum([0] + [len(loop) for loop in loops[:-1]]))
-    far = [loop for loop, dmin in zip(loops, nearest) if dmin >= min_distance]
-    return close_holes(mesh, far), len(far)
+    return [loop for loop, dmin in zip(loops, nearest) if dmin >= min_distance]
+
+
+def _trim_band_edge_sheets(mesh: Mesh, points: np.ndarray, reach: float,
+                           loops: list[np.ndarray]) -> tuple[Mesh, int]:
+    """Cut the sheets that end at the band-edge ``loops`` (:func:`_band_edge_loops` at ``reach``) back to
+    ``reach`` (world units) from ``points``.
+
+    The faces farther than ``reach`` from the points form connected regions; those that hold a vertex of a
+    band-edge loop go. Far regions elsewhere (a surface bridging a gap between samples, enclosed by supported
+    faces) stay. Returns the mesh and the number of faces removed."""
+    if not loops:
+        return mesh, 0
+    d = distances_to_cloud(mesh.vertices[mesh.faces].mean(axis=1), points, reach)
+    far = ~(np.isfinite(d) & (d <= reach))
+    labels, count = vertex_components(mesh.n_vertices, mesh.faces[far])
+    drop = np.zeros(count, bool)
+    drop[labels[np.concatenate(loops)]] = True
+    # a loop vertex whose faces are all near the data labels a region of its own, with no far face in it
+    far[far] = drop[labels[mesh.faces[far][:, 0]]]
+    return mesh.submesh(~far), int(far.sum())
 
 
 def _end_sheet_at_data(mesh: Mesh, points: np.ndarray, reach: float) -> tuple[Mesh, dict]:
