@@ -239,10 +239,14 @@ def main() -> None:
                   "Open3D. Ratio = GridPull / Poisson (below 1: GridPull more accurate). The noisy rows use the "
                   "defaults, which detect the noise and apply the treatment the estimate selects "
                   "(`noise_auto`; here `configs/noisy.yaml`'s). Every GridPull row was re-run on 2026-11-25 "
-                  "(AMD machine) after the mesh began to be relaxed on the field (`relax: 3`, docs/solver.md, "
-                  "\"Relaxing the mesh on the field\"); the Poisson rows are earlier runs on the same clouds "
+                  "(AMD machine) with the mesh relaxed on the field (`relax: 3`, docs/solver.md, \"Relaxing the "
+                  "mesh on the field\") and the sheets that end at the band's edge cut back to the data "
+                  "(`band_edges=\"trim\"`, \"Thin-walled tubes\"; only the bunny and abc_00011084 have such "
+                  "sheets, so only their rows changed with it: they are no longer closed over the bunny's open "
+                  "base and the bushing's bore); the Poisson rows are earlier runs on the same clouds "
                   "(100k: 2026-11-22, AMD; 10k and noisy: 2026-11-23, Intel, slower). The other tables (the "
-                  "paper's evaluation, speed, grid) were measured before relaxing, with `relax` 0, except the "
+                  "paper's evaluation, speed, grid) were measured before relaxing, with `relax` 0 and band-edge "
+                  "loops closed by fans, except the "
                   "'ours' rows beside the paper's recipe, which take this table's newest rows. The "
                   "times in this table were taken while other jobs shared the machine; the speed table below was "
                   "measured on a quiet machine.", "",
@@ -359,7 +363,10 @@ def main() -> None:
                   "re-run on 2026-11-23 on the Intel machine (`python -m benchmarks.paper_eval all`), after "
                   "one-shape lattices were padded (2026-11-22) and UDF mode got its per-vertex signs, polish and "
                   "trim (docs/solver.md, Variants); the open table and the scans table's `udf` row once more after "
-                  "the trim learned to open holes in the data. Compare times within a table.", "",
+                  "the trim learned to open holes in the data. These signed rows were measured before the mesh was "
+                  "relaxed on the field and while a sheet that ran into the band's edge was closed with a fan "
+                  "(`band_edges=\"close\"`): the bunny's rows (its open base) would now come out open there, as "
+                  "in the shape table above. Compare times within a table.", "",
                   machine_section([r for r in load("paper_eval") if r.get("suite") == "machine"][-1:]), "",
                   paper_tables, ""]
     (REPO / "BENCHMARKS.md").write_text("\n".join(parts).rstrip() + "\n")
