@@ -117,6 +117,22 @@ def test_a_cell_size_in_metres_follows_the_data_unit():
         TilingConfig(voxel_size="0.1 furlong")
 
 
+def test_resolving_the_cell_size_keeps_every_other_setting():
+    """``with_cell_size`` (a length with a unit, or auto) builds a new config: every setting it does not resolve
+    must come across, including any added later (it once listed them by hand)."""
+    from dataclasses import fields
+
+    from tiled_gridpull.tiling import _RESOLVED
+
+    given = {"trim_distance": 5.0, "min_points": 7, "orientation": "up", "normal_neighbors": 9,
+             "drop_outliers": True, "halo": 3}
+    assert set(given) | set(_RESOLVED) == {f.name for f in fields(TilingConfig)}, "a new setting needs a value here"
+    for t in (TilingConfig(voxel_size="0.1 m", **given), TilingConfig(voxel_size="auto", **given)):
+        out = t.with_cell_size(0.25, "test")
+        assert {k: getattr(out, k) for k in given} == given
+        assert out.voxel_size == 0.25 and out.tile_cells == DEFAULT_TILE_CELLS
+
+
 def test_scene_config_on_a_survey_in_feet_plans_ten_centimetre_cells(tmp_path, capsys):
     """The issue's Autzen case: configs/scene.yaml on data in feet used 0.1 ft cells (8,979 tiles)."""
     from test_crs import FEET_WKT1

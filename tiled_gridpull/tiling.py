@@ -10,7 +10,7 @@ global brick grid and overlapping tiles store the very same vertices in the very
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field, fields, replace
 
 from .config import SolverConfig, finite_number
 from .crs import LENGTH_UNITS, LinearUnit, parse_length
@@ -35,6 +35,8 @@ DEFAULT_OVERLAP_CELLS = 32
 
 #: the settings a config can record as derived (not given, following the cell size or converted)
 DERIVABLE = ("voxel_size", "tile_size", "overlap")
+#: what resolving the cell size sets (:meth:`TilingConfig.with_cell_size`); every other setting is carried over
+_RESOLVED = ("voxel_size", "voxel_unit", "units", "derived", "tile_size", "overlap")
 
 #: no survey needs cells larger than this (in any unit: a million kilometres); beyond it float32 fields overflow
 MAX_VOXEL = 1e9
@@ -257,8 +259,7 @@ class TilingConfig:
         return TilingConfig(voxel_size=float(voxel), voxel_unit=None, units=note, derived=tuple(derived),
                             tile_size=None if "tile_size" in derived else self.tile_size,
                             overlap=None if "overlap" in derived else self.overlap,
-                            **{k: getattr(self, k) for k in ("min_points", "trim_distance", "orientation",
-                                                             "normal_neighbors", "drop_outliers", "halo")})
+                            **{f.name: getattr(self, f.name) for f in fields(self) if f.name not in _RESOLVED})
 
     def _need_cell_size(self, what: str) -> None:
         if self.voxel_unit is not None:
