@@ -9,7 +9,7 @@ from tiled_gridpull.mesh import Mesh
 from tiled_gridpull.mesh_repair import boundary_loops, close_holes
 from tiled_gridpull.metrics import sample_surface
 from tiled_gridpull.nearest import distances_to_cloud
-from tiled_gridpull.reconstruct import _band_edge_loops, _trim_band_edge_sheets
+from tiled_gridpull.reconstruct import _band_edge_loops, _end_signed_mesh, _trim_band_edge_sheets
 
 # unit cube, outward-oriented, two triangles per side: -x, +x, -y, +y, -z, +z
 CUBE_V = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], dtype=np.float64)
@@ -99,7 +99,9 @@ def test_sheets_that_end_at_the_band_edge_are_cut_back_to_the_data():
     moved = Mesh(mesh.vertices + shift, mesh.faces)
     loops = _band_edge_loops(moved, pts + shift, reach)
     assert len(loops) == 1  # the far end; the near rim at z = 0 is the data's edge
-    out, n = _trim_band_edge_sheets(moved, pts + shift, reach, loops)
+    out, on_cut = _trim_band_edge_sheets(moved, pts + shift, reach, loops)
+    n = mesh.n_faces - out.n_faces
+    assert np.abs(out.vertices[on_cut, 2] - shift[2] - 6.0 - reach).max() < 0.15  # the cut's edge
     v = out.vertices - shift
     centres = v[out.faces].mean(axis=1)
     assert n > 0
@@ -115,3 +117,63 @@ def test_sheets_that_end_at_the_band_edge_are_cut_back_to_the_data():
     assert len(boundary_loops(out)) == 2
     # samples over the whole tube: no loop ends away from the data
     assert _band_edge_loops(moved, sample_surface(mesh, 40_000, seed=1)[0] + shift, reach) == []
+
+
+def grid_sheet(n: int, size: float = 1.0) -> Mesh:
+    """A flat square sheet in z = 0 from (0, 0) to (size, size), n x n squares, normals +z."""
+    g = np.linspace(0.0, size, n + 1)
+    X, Y = np.meshgrid(g, g, indexing="ij")
+    verts = np.stack([X, Y, np.zeros_like(X)], axis=-1).reshape(-1, 3)
+    i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    a = (i * (n + 1) + j).ravel()
+    faces = np.concatenate([np.stack([a, a + n + 1, a + n + 2], 1), np.stack([a, a + n + 2, a + 1], 1)])
+    return Mesh(verts, faces)
+
+
+def open_box(n: int = 20) -> Mesh:
+    """A unit cube without its bottom, faces inward (inside out), each side an n x n grid."""
+    sheet = grid_sheet(n)
+    v, f = sheet.vertices, sheet.faces
+    u, w = v[:, 0], v[:, 1]
+    zero, one = np.zeros_like(u), np.ones_like(u)
+    # each side mapped so that (d/du x d/dw) is its outward normal
+    sides = [np.stack([u, w, one], 1),                            # top, +z
+             np.stack([u, zero, w], 1), np.stack([w, one, u], 1),  # -y, +y
+             np.stack([zero, w, u], 1), np.stack([one, u, w], 1)]  # -x, +x
+    verts = np.concatenate(sides)
+    faces = np.concatenate([f + k * len(v) for k in range(len(sides))])
+    uniq, inverse = np.unique(np.round(verts, 9), axis=0, return_inverse=True)
+    return Mesh(uniq, inverse.reshape(-1)[faces][:, ::-1].copy())  # welded, then turned inside out
+
+
+def test_orientation_is_judged_on_the_sealed_mesh():
+    """An inside-out box open at the bottom, sampled only in the middle of its top: cut back, only a flat patch is
+    left, whose own signed volume is 0 and says nothing; sealed, the box is closed and inside out, so the patch
+    must come out facing up."""
+    box = open_box()
+    assert box.topology.boundary_edges > 0 and box.signed_volume() < 0
+    rng = np.random.default_rng(0)
+    pts = np.column_stack([rng.uniform(0.3, 0.7, (3000, 2)), np.ones(3000)])
+    out, flipped, rec = _end_signed_mesh(box, pts, 0.1, 0.1, "trim")
+    assert flipped and rec["loops"] == 1 and rec["faces_trimmed"] > 0
+    normals, _ = out.face_normals()
+    assert abs(out.signed_volume()) < 1e-12                 # flat: its own volume cannot tell
+    assert np.all(normals[:, 2] > 0.99)                     # facing up, as the sealed box says
+    kept, flipped_kept, rec_kept = _end_signed_mesh(box, pts, 0.1, 0.1, "keep")
+    assert flipped_kept and rec_kept["faces_trimmed"] == 0 and kept.n_faces == box.n_faces
+
+
+def test_islands_the_cut_leaves_around_stray_samples_go():
+    """A sheet sampled densely in its middle and at three stray points near its corners: cut back, it leaves
+    discs around the strays, which go; a piece the cut never touched stays, however few points it has."""
+    sheet = grid_sheet(100, 10.0)
+    cube = Mesh(CUBE_V * 0.5 + [2.0, 2.0, 5.0], CUBE_F)  # closed, no sample near it
+    mesh = Mesh(np.vstack([sheet.vertices, cube.vertices]), np.vstack([sheet.faces, cube.faces + sheet.n_vertices]))
+    rng = np.random.default_rng(0)
+    dense = np.column_stack([rng.uniform(4.0, 6.0, (5000, 2)), np.zeros(5000)])
+    strays = np.array([[1.0, 1.0, 0.0], [9.0, 9.0, 0.0], [1.0, 9.0, 0.0]])
+    pts = np.vstack([dense, strays])
+    out, _, rec = _end_signed_mesh(mesh, pts, 0.3, 0.3, "trim")
+    assert rec["unsupported_pieces_removed"] == 3
+    assert out.topology.components == 2                     # the middle patch and the untouched cube
+    assert np.isclose(out.vertices[:, 2].max(), 5.5)

@@ -244,9 +244,9 @@ def test_band_edges_option_reaches_the_solve_and_the_sidecar(tmp_path, capsys):
     np.savetxt(src, np.stack([0.2 * np.cos(t), 0.2 * np.sin(t), rng.uniform(-0.5, 0.5, len(t))], axis=1))
     for rule in ("trim", "close"):
         out = tmp_path / f"{rule}.ply"
-        code, _, err = run(["reconstruct", str(src), "-o", str(out), "-q", "--resolution", "48",
+        code, _, err = run(["reconstruct", str(src), "-o", str(out), "-q", "--resolution", "64",
                             *(["--band-edges", rule] if rule != "trim" else [])], capsys)
         assert code == 0, err
         rec = json.loads(out.with_suffix(".json").read_text())["band_edges"]
-        assert rec["rule"] == rule
-        assert (rec["faces_trimmed"] > 0, rec["loops_closed"] > 0) == (rule == "trim", rule == "close"), rec
+        assert rec["rule"] == rule and rec["loops"] == 2, rec  # one at each end of the tube
+        assert (rec["faces_trimmed"] > 0, rec["loops_closed"]) == (rule == "trim", 2 if rule == "close" else 0), rec

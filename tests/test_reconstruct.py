@@ -155,5 +155,17 @@ def test_sheets_past_the_data_are_cut_back_to_the_pull_band(open_tube):
 def test_bad_band_edges_rule_is_one_line():
     from tiled_gridpull.errors import ConfigError
 
-    with pytest.raises(ConfigError, match="band_edges must be one of trim, close, keep"):
-        reconstruct(np.random.default_rng(0).random((100, 3)), band_edges="fan")
+    cloud = np.random.default_rng(0).random((100, 3))
+    with pytest.raises(ConfigError, match="band_edges must be one of trim, close, keep") as err:
+        reconstruct(cloud, band_edges="fan")
+    assert "\n" not in str(err.value)
+    with pytest.raises(ConfigError, match="applies to signed mode"):
+        reconstruct(cloud, band_edges="close", mode="udf")
+
+
+def test_the_keyword_of_earlier_versions_still_chooses_the_rule(open_tube):
+    """``close_band_holes`` (True: fans, False: as extracted) maps onto ``band_edges`` with a warning."""
+    for old, rule in ((True, "close"), (False, "keep")):
+        with pytest.warns(DeprecationWarning, match="band_edges"):
+            mesh = reconstruct(open_tube[::20], resolution=32, iterations=50, close_band_holes=old)
+        assert mesh.metadata["band_edges"]["rule"] == rule

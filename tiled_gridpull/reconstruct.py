@@ -182,10 +182,15 @@ def reconstruct(points: Any, *, config: SolverConfig | None = None, normals: np.
         bore takes the sign of its wall grows such sheets: caps over the bore's mouths that stop at the band
         edge. ``trim`` (default) cuts every such sheet back to the data: its faces farther than M1 cells (or
         ``BAND_EDGE_SPACINGS`` median sample spacings, where the samples are sparser) from the points go, the
-        faces the data supports stay, and the mesh is open where the data is silent.
+        faces the data supports stay, and the mesh is open where the data is silent; islands the cut leaves
+        around a few stray samples go too (pieces that are the nearest surface of fewer than 16 points).
         ``close`` closes each such loop with a fan of triangles (watertight, but the caps stay and cost
         accuracy: docs/solver.md, "Thin-walled tubes"); ``keep`` leaves the sheets as extracted. Holes next to
-        the data (real gaps in a scan) are never touched.
+        the data (real gaps in a scan) are never touched. The metadata's ``band_edges`` records the rule and
+        what it did (before the small closed pieces of ``min_component_cells`` are dropped). Replaces the
+        ``close_band_holes`` keyword of earlier versions (True: ``close``, False: ``keep``; still accepted,
+        with a ``DeprecationWarning``).
+
     Returns
     -------
     Mesh
@@ -194,6 +199,12 @@ def reconstruct(points: Any, *, config: SolverConfig | None = None, normals: np.
     """
     t0 = time.perf_counter()
     cfg = config or SolverConfig()
+    if "close_band_holes" in options:
+        # the keyword of earlier versions: True closed the band-edge loops with fans, False left them
+        old = options.pop("close_band_holes")
+        warnings.warn("close_band_holes is replaced by band_edges ('close' for True, 'keep' for False)",
+                      DeprecationWarning, stacklevel=2)
+        band_edges = "close" if old else "keep"
     if options:
         cfg = cfg.replace(**options)
     # only normals the caller hands over switch the loss on: an object's own normals (often estimated and
@@ -204,6 +215,9 @@ def reconstruct(points: Any, *, config: SolverConfig | None = None, normals: np.
         raise ConfigError(f"min_component_cells must be >= 0, got {min_component_cells!r}")
     if band_edges not in BAND_EDGES:
         raise ConfigError(f"band_edges must be one of {', '.join(BAND_EDGES)}, got {band_edges!r}")
+    if cfg.mode == "udf" and band_edges != "trim":
+        raise ConfigError(f"band_edges {band_edges!r} applies to signed mode (udf mode ends its sheets at the data "
+                          "already)")
     points, own_normals = as_points(points)
     xyz, nrm, report = prepare_points(points, own_normals if normals is None else normals)
     if cfg.losses.normal_weight > 0 and nrm is None:
@@ -237,26 +251,12 @@ def reconstruct(points: Any, *, config: SolverConfig | None = None, normals: np.
     if cfg.mode == "udf" and mesh.n_faces:
         mesh, sheet = _end_sheet_at_data(mesh, xyz, max(UDF_TRIM_CELLS * lattice.cell_size,
                                                         UDF_TRIM_SPACINGS * noise.spacing))
-    closed = trimmed = 0
+    edges: dict = {"rule": None}
     flipped = False
     if cfg.mode == "sdf" and mesh.n_faces:
         reach = cfg.sampling.m1 * lattice.cell_size
-        # the orientation is judged on the mesh with its band-edge loops closed, whichever rule applies: an open
-        # sheet's signed volume says nothing
-        loops = _band_edge_loops(mesh, xyz, reach)
-        sealed = close_holes(mesh, loops) if loops else mesh
-        # The losses are unchanged by f -> -f, so the sign comes only from the initialisation: a sphere at the
-        # lattice centre lies in the hole of a torus or a mug's handle and ends up *outside*. A closed surface
-        # whose enclosed volume comes out negative is therefore inside out; flip it (nested shells keep their
-        # relative orientation).
-        flipped = bool(sealed.signed_volume(normalized=True) < 0)
-        if band_edges == "close":
-            mesh, closed = sealed, len(loops)
-        elif band_edges == "trim" and loops:
-            cut = max(reach, BAND_EDGE_SPACINGS * noise.spacing)
-            mesh, trimmed = _trim_band_edge_sheets(mesh, xyz, cut, loops)
-        if flipped:
-            mesh = Mesh(mesh.vertices, mesh.faces[:, ::-1].copy(), mesh.metadata)
+        mesh, flipped, edges = _end_signed_mesh(mesh, xyz, reach, max(reach, BAND_EDGE_SPACINGS * noise.spacing),
+                                                band_edges)
     removed = 0
     if min_component_cells > 0 and mesh.n_faces:
         mesh, removed = remove_small_components(mesh, min_component_cells * lattice.cell_size)
@@ -275,8 +275,7 @@ def reconstruct(points: Any, *, config: SolverConfig | None = None, normals: np.
         "small_components_removed": int(removed),
         **({"udf_trim": sheet} if sheet else {}),
         "orientation_flipped": flipped,
-        "band_edges": {"rule": band_edges if cfg.mode == "sdf" else "keep", "loops_closed": int(closed),
-                       "faces_trimmed": int(trimmed)},
+        "band_edges": edges,
         "relaxed": int(cfg.relax) if cfg.mode == "sdf" else 0,
         "timings_s": {"prepare": t_prep - t0, "solve": t_solve - t_prep, "mesh": t_mesh - t_solve,
                       "total": t_mesh - t0},
@@ -294,16 +293,67 @@ def _band_edge_loops(mesh: Mesh, points: np.ndarray, min_distance: float) -> lis
     return [loop for loop, dmin in zip(loops, nearest) if dmin >= min_distance]
 
 
+def _end_signed_mesh(mesh: Mesh, points: np.ndarray, reach: float, cut: float,
+                     rule: str) -> tuple[Mesh, bool, dict]:
+    """Orient a signed mesh outward and apply the ``band_edges`` rule to the sheets that end at the band's edge.
+
+    Parameters
+    ----------
+    mesh : Mesh
+        As extracted (and relaxed), world units.
+    points : (N, 3) float64
+        The input points.
+    reach : float
+        A boundary loop every vertex of which lies this far from the points ends at the band's edge (M1 cells).
+    cut : float
+        ``trim``: how far from the points such a sheet is cut back (at least ``reach``).
+    rule : {"trim", "close", "keep"}
+
+    Returns
+    -------
+    mesh : Mesh
+    flipped : bool
+        Whether the faces were turned over.
+    record : dict
+        ``rule``, ``loops`` (band-edge loops found), ``loops_closed``, ``faces_trimmed``,
+        ``unsupported_pieces_removed`` (counted here, before the small closed pieces are dropped).
+    """
+    loops = _band_edge_loops(mesh, points, reach)
+    sealed = close_holes(mesh, loops) if loops else mesh
+    # The losses are unchanged by f -> -f, so the sign comes only from the initialisation: a sphere at the lattice
+    # centre lies in the hole of a torus or a mug's handle and ends up *outside*. A closed surface whose enclosed
+    # volume comes out negative is therefore inside out; flip it (nested shells keep their relative orientation).
+    # It is judged with the band-edge loops closed, whatever the rule: what is left of an open sheet once it is
+    # cut back can be nearly flat, and its signed volume then says nothing.
+    flipped = bool(sealed.signed_volume(normalized=True) < 0)
+    record = {"rule": rule, "loops": len(loops), "loops_closed": 0, "faces_trimmed": 0,
+              "unsupported_pieces_removed": 0}
+    if rule == "close":
+        mesh = sealed
+        record["loops_closed"] = len(loops)
+    elif rule == "trim" and loops:
+        n = mesh.n_faces
+        mesh, cut_vertices = _trim_band_edge_sheets(mesh, points, cut, loops)
+        record["faces_trimmed"] = n - mesh.n_faces
+        # a sheet that passed near a few stray samples leaves islands around them once cut: among the pieces the
+        # cut touched, those that are the nearest surface of too few points go (never the best-supported piece)
+        mesh, record["unsupported_pieces_removed"] = _drop_unsupported_pieces(mesh, points, UDF_MIN_SUPPORT,
+                                                                              among=cut_vertices)
+    if flipped:
+        mesh = Mesh(mesh.vertices, mesh.faces[:, ::-1].copy(), mesh.metadata)
+    return mesh, flipped, record
+
+
 def _trim_band_edge_sheets(mesh: Mesh, points: np.ndarray, reach: float,
-                           loops: list[np.ndarray]) -> tuple[Mesh, int]:
+                           loops: list[np.ndarray]) -> tuple[Mesh, np.ndarray]:
     """Cut the sheets that end at the band-edge ``loops`` (:func:`_band_edge_loops` at ``reach``) back to
     ``reach`` (world units) from ``points``.
 
     The faces farther than ``reach`` from the points form connected regions; those that hold a vertex of a
     band-edge loop go. Far regions elsewhere (a surface bridging a gap between samples, enclosed by supported
-    faces) stay. Returns the mesh and the number of faces removed."""
+    faces) stay. Returns the mesh and its vertices that lay on a removed face (the cut's edge)."""
     if not loops:
-        return mesh, 0
+        return mesh, np.zeros(0, np.int64)
     d = distances_to_cloud(mesh.vertices[mesh.faces].mean(axis=1), points, reach)
     far = ~(np.isfinite(d) & (d <= reach))
     labels, count = vertex_components(mesh.n_vertices, mesh.faces[far])
@@ -311,7 +361,11 @@ def _trim_band_edge_sheets(mesh: Mesh, points: np.ndarray, reach: float,
     drop[labels[np.concatenate(loops)]] = True
     # a loop vertex whose faces are all near the data labels a region of its own, with no far face in it
     far[far] = drop[labels[mesh.faces[far][:, 0]]]
-    return mesh.submesh(~far), int(far.sum())
+    used, inverse = np.unique(mesh.faces[~far], return_inverse=True)
+    out = Mesh(mesh.vertices[used], inverse.reshape(-1, 3), dict(mesh.metadata))
+    on_cut = np.zeros(mesh.n_vertices, bool)
+    on_cut[mesh.faces[far].reshape(-1)] = True
+    return out, np.flatnonzero(on_cut[used])
 
 
 def _end_sheet_at_data(mesh: Mesh, points: np.ndarray, reach: float) -> tuple[Mesh, dict]:
@@ -327,10 +381,12 @@ def _end_sheet_at_data(mesh: Mesh, points: np.ndarray, reach: float) -> tuple[Me
     return mesh, {"reach": reach, "pinched_faces_removed": pinched, "unsupported_pieces_removed": unsupported}
 
 
-def _drop_unsupported_pieces(mesh: Mesh, points: np.ndarray, min_points: int) -> tuple[Mesh, int]:
+def _drop_unsupported_pieces(mesh: Mesh, points: np.ndarray, min_points: int,
+                             among: np.ndarray | None = None) -> tuple[Mesh, int]:
     """Drop the connected pieces that are the nearest piece of fewer than ``min_points`` points (never the
-    best-supported piece: a sparse cloud keeps its surface)."""
-    if mesh.n_faces == 0:
+    best-supported piece: a sparse cloud keeps its surface); with ``among`` (vertex indices), only the pieces
+    that hold one of those vertices may go."""
+    if mesh.n_faces == 0 or (among is not None and len(among) == 0):
         return mesh, 0
     labels, count = vertex_components(mesh.n_vertices, mesh.faces)
     if count == 1:
@@ -338,6 +394,10 @@ def _drop_unsupported_pieces(mesh: Mesh, points: np.ndarray, min_points: int) ->
     _, nearest = nearest_in_cloud(points, mesh.vertices)
     support = np.bincount(labels[nearest], minlength=count)
     support[support.argmax()] = max(support.max(), min_points)
+    if among is not None:
+        spared = np.ones(count, bool)
+        spared[labels[among]] = False
+        support[spared] = np.maximum(support[spared], min_points)
     keep = support[labels[mesh.faces[:, 0]]] >= min_points
     used = np.unique(labels[mesh.faces[:, 0]])
     dropped = int(np.count_nonzero(support[used] < min_points))
