@@ -245,7 +245,8 @@ def reconstruct(points: Any, *, config: SolverConfig | None = None, normals: np.
     t_solve = time.perf_counter()
     mesh = extract_mesh(fld)
     if cfg.mode == "sdf":
-        # before the band holes are closed: a fan's centre lies off the band, where there is no field to project on
+        # before the band's edges are dealt with: a fan's centre lies off the band, where there is no field to
+        # project on
         mesh = relax_on_field(mesh, fld, cfg.relax)
     sheet: dict = {}
     if cfg.mode == "udf" and mesh.n_faces:
@@ -350,22 +351,16 @@ def _trim_band_edge_sheets(mesh: Mesh, points: np.ndarray, reach: float,
     ``reach`` (world units) from ``points``.
 
     The faces farther than ``reach`` from the points form connected regions; those that hold a vertex of a
-    band-edge loop go. Far regions elsewhere (a surface bridging a gap between samples, enclosed by supported
-    faces) stay. Returns the mesh and its vertices that lay on a removed face (the cut's edge)."""
+    band-edge loop go (:func:`~tiled_gridpull.stitch.trim_faces` with those loops as the mesh's ends). Far
+    regions elsewhere (a surface bridging a gap between samples, enclosed by supported faces) stay. Returns the
+    mesh and its vertices that lay on a removed face (the cut's edge)."""
     if not loops:
         return mesh, np.zeros(0, np.int64)
-    d = distances_to_cloud(mesh.vertices[mesh.faces].mean(axis=1), points, reach)
-    far = ~(np.isfinite(d) & (d <= reach))
-    labels, count = vertex_components(mesh.n_vertices, mesh.faces[far])
-    drop = np.zeros(count, bool)
-    drop[labels[np.concatenate(loops)]] = True
-    # a loop vertex whose faces are all near the data labels a region of its own, with no far face in it
-    far[far] = drop[labels[mesh.faces[far][:, 0]]]
-    used, inverse = np.unique(mesh.faces[~far], return_inverse=True)
-    out = Mesh(mesh.vertices[used], inverse.reshape(-1, 3), dict(mesh.metadata))
-    on_cut = np.zeros(mesh.n_vertices, bool)
-    on_cut[mesh.faces[far].reshape(-1)] = True
-    return out, np.flatnonzero(on_cut[used])
+    out, kept = trim_faces(mesh, np.arange(mesh.n_vertices), points, reach, keep_gaps=np.inf,
+                           ends=np.concatenate(loops))
+    # a kept vertex with fewer faces than before lost one to the cut
+    before = np.bincount(mesh.faces.ravel(), minlength=mesh.n_vertices)[kept]
+    return out, np.flatnonzero(np.bincount(out.faces.ravel(), minlength=out.n_vertices) < before)
 
 
 def _end_sheet_at_data(mesh: Mesh, points: np.ndarray, reach: float) -> tuple[Mesh, dict]:

@@ -53,29 +53,33 @@ class MeshPiece:
 
 
 def trim_faces(mesh: Mesh, keys: np.ndarray | None, points: np.ndarray, max_distance: float,
-               keep_gaps: float = 0.0) -> tuple[Mesh, np.ndarray | None]:
+               keep_gaps: float = 0.0, ends: np.ndarray | None = None) -> tuple[Mesh, np.ndarray | None]:
     """Drop faces whose centroid is farther than ``max_distance`` from every point (same units).
 
     With ``keep_gaps > 0``, a connected region of far faces stays when it is enclosed by kept faces and none of
-    its faces is farther than ``keep_gaps`` from the points: a gap between samples, not a hole in the data.
-    Random samples leave such gaps (on 100k area-uniform samples of a half-sphere, points of the true surface
-    lay up to 4.8 median sample spacings from the nearest sample). Far regions that reach the mesh's own
-    boundary (a surface running on past the data's edge to where the field's band ends) or go deeper (a hole
-    in the scan) are dropped.
+    its faces is farther than ``keep_gaps`` from the points (``inf``: however deep): a gap between samples, not
+    a hole in the data. Random samples leave such gaps (on 100k area-uniform samples of a half-sphere, points
+    of the true surface lay up to 4.8 median sample spacings from the nearest sample). Far regions that reach
+    the mesh's own boundary (a surface running on past the data's edge to where the field's band ends) or go
+    deeper (a hole in the scan) are dropped. ``ends`` (vertex indices) narrows "the mesh's own boundary" to
+    those vertices (default: every vertex of a boundary edge).
 
     Returns the trimmed mesh (unreferenced vertices removed) and the keys of its vertices (None when ``keys``
     is None: a mesh that is not welded to others has none).
     """
     if mesh.n_faces == 0 or max_distance <= 0:
         return mesh, keys
-    d = distances_to_cloud(mesh.vertices[mesh.faces].mean(axis=1), points, max(max_distance, keep_gaps))
+    deep = np.isfinite(keep_gaps)
+    d = distances_to_cloud(mesh.vertices[mesh.faces].mean(axis=1), points,
+                           max(max_distance, keep_gaps) if deep else max_distance)
     far = ~(np.isfinite(d) & (d <= max_distance))
     if keep_gaps > 0 and far.any():
         labels, count = vertex_components(mesh.n_vertices, mesh.faces[far])
         drop = np.zeros(count, bool)
-        drop[labels[boundary_edges(mesh).reshape(-1)]] = True
+        drop[labels[boundary_edges(mesh).reshape(-1) if ends is None else ends]] = True
         region = labels[mesh.faces[far][:, 0]]
-        drop[region[~(np.isfinite(d[far]) & (d[far] <= keep_gaps))]] = True
+        if deep:
+            drop[region[~(np.isfinite(d[far]) & (d[far] <= keep_gaps))]] = True
         far[far] = drop[region]
     faces = mesh.faces[~far]
     used, inverse = np.unique(faces, return_inverse=True)
