@@ -592,6 +592,28 @@ def test_kitti_chunks_frame_by_frame(tmp_path):
     assert max(len(c) for c in chunks) <= 7
 
 
+def test_the_partition_reads_a_sequence_frame_by_frame(tmp_path, monkeypatch):
+    """The job's read of a KITTI sequence (prepare._chunks) streams it: no frame is loaded before the chunks of
+    the frames before it are handed on, the sequence is never read whole, and the points, sensor origins and frame
+    range are those of read_kitti_sequence."""
+    from tiled_gridpull import prepare
+    from tiled_gridpull.io import kitti
+
+    frames, poses, tr = make_sequence(tmp_path / "seq", n_frames=4)
+    monkeypatch.setattr(kitti, "read_kitti_sequence", lambda *a, **k: pytest.fail("the sequence was read whole"))
+    loaded = []
+    load = kitti._load_kitti_scan
+    monkeypatch.setattr(kitti, "_load_kitti_scan", lambda p: loaded.append(p.stem) or load(p))
+    chunks = prepare._chunks([str(tmp_path / "seq")], 5, (1, 4))
+    first = next(chunks)
+    assert len(loaded) == 1 and len(first) <= 5
+    rest = list(chunks)
+    assert len(loaded) == 3
+    xyz, origins, _ = expected_world(frames, poses, tr, range(1, 4))
+    np.testing.assert_array_equal(np.concatenate([c.xyz for c in [first, *rest]]), xyz)
+    np.testing.assert_array_equal(np.concatenate([c.sensor for c in [first, *rest]]), origins)
+
+
 def test_a_sample_of_a_sequence_reads_its_first_frames_only(tmp_path, monkeypatch):
     """What voxel_size auto and noise_auto measure of a KITTI sequence: its first frames, read frame by frame (a
     long sequence is not read whole for a sample), in the job's frame range."""

@@ -21,7 +21,8 @@ from .config import SCAN_NOISE_SETTINGS, SolverConfig
 from .crs import check_same_crs, crs_name
 from .errors import ConfigError, InputError
 from .cloud import PointCloud
-from .io import iter_point_chunks, iter_row_chunks, read_kitti_sequence
+from .io import iter_point_chunks, iter_row_chunks
+from .io.kitti import kitti_chunks
 from .io.indexed import indexed_kind
 from .io.remote import is_url, recorded, shown
 from .jobdir import JobPaths, write_manifest
@@ -165,8 +166,6 @@ def head_points(inputs: list[str], frames=None, budget: int = 2_000_000) -> tupl
 def _first_frames(root: Path, frames, points: int) -> PointCloud:
     """The first frames of a KITTI sequence holding ``points`` points (frame by frame: a long sequence is not
     read whole for a sample)."""
-    from .io.kitti import kitti_chunks
-
     parts, n = [], 0
     for chunk in kitti_chunks(root, frames, points):
         parts.append(chunk.xyz)
@@ -312,10 +311,9 @@ def _chunks(inputs, chunk_size, frames, trajectory: Trajectory | None = None):
     for path in inputs:
         p = Path(path)
         if p.is_dir():
-            cloud = read_kitti_sequence(p, frames)
-            for s in range(0, len(cloud), chunk_size):
-                yield PointCloud(cloud.xyz[s:s + chunk_size], sensor=cloud.sensor[s:s + chunk_size],
-                                 source=cloud.source, crs=cloud.crs)
+            # frame by frame: a sequence of thousands of scans is never held whole
+            for chunk in kitti_chunks(p, frames, chunk_size):
+                yield PointCloud(chunk.xyz, sensor=chunk.sensor, source=str(p))
         else:
             yield from iter_point_chunks([p], chunk_size)
 
