@@ -14,6 +14,7 @@ Usage::
     python -m benchmarks.scenes lidar                              # ../shared/data/lidar files
     python -m benchmarks.scenes tiles --points 4000000 --copies 1 2 4 8   # time vs tile count, fixed density
     python -m benchmarks.scenes wide --points 1000000 14000000 [--variants today default]
+    python -m benchmarks.scenes classes --points 300000   # per kind of object (poles, cars...), beside Poisson
         # a 200 m x 200 m grid of streets beside Open3D screened Poisson (depth 11) in the same run
 
 ``wide`` runs, per cloud, Poisson once (:mod:`benchmarks.poisson_scene`: its normal estimation included, file in
@@ -232,6 +233,35 @@ def wide(n_points: int, workers: int, work: Path, variants: list[str], depth: in
         record(gridpull_row(row, base, poisson, name, tile_costs=tile_costs(out)))
 
 
+def classes(n_points: int, workers: int, work: Path, variants: list[str], depth: int = 11) -> None:
+    """The demo street scored per class of ground-truth faces (terrain, buildings, poles, trees, cars), Poisson and
+    each GridPull variant in the same run: thin objects hold too little of the area to show in the scene-wide
+    Chamfer distance."""
+    from tiled_gridpull.io import read_mesh, read_points
+    from tiled_gridpull.metrics import class_scores
+
+    from tiled_gridpull.synthetic.street_sample import make_street_sample
+
+    sample_dir = work / f"street_{n_points}"
+    sample = make_street_sample(sample_dir, n_points=n_points, origin=(500000.0, 4000000.0, 100.0))
+    face_classes = json.loads(Path(sample["meta"]).read_text())["face_classes"]
+    gt = read_mesh(sample["gt_mesh"])
+    observed = read_points(sample["laz"]).xyz
+    base = {"scene": "street (synthetic)", "suite": "classes", "points": sample["n_points"], "workers": workers}
+
+    def score(mesh_path: Path) -> dict:
+        return {"classes": class_scores(read_mesh(mesh_path), gt, face_classes, n_samples=200_000, tau=0.05,
+                                        observed=observed, observed_radius=0.2)}
+
+    pout = sample_dir / "poisson.ply"
+    poisson = poisson_scene(sample["laz"], pout, depth)
+    record(poisson_row(base, poisson, depth, **score(pout)))
+    for v in variants:
+        out = sample_dir / f"gridpull_{v}.ply"
+        row = reconstruct(sample["laz"], out, workers, scene_args(VARIANTS[v]))
+        record(gridpull_row(row, base, poisson, v, **score(out)))
+
+
 def poisson_row(base: dict, poisson: dict, depth: int, **extra) -> dict:
     """A results row of a Poisson run (:func:`poisson_scene` output) beside the GridPull rows of the same run."""
     return {**base, **{k: v for k, v in poisson.items() if k != "points"}, **extra, "method": "poisson",
@@ -298,7 +328,7 @@ def tile_costs(mesh: Path) -> list[dict]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("suite", choices=("street", "workers", "lidar", "tiles", "wide", "holdout"))
+    ap.add_argument("suite", choices=("street", "workers", "lidar", "tiles", "wide", "holdout", "classes"))
     ap.add_argument("--variants", nargs="+", choices=sorted(VARIANTS), default=["today", "default"],
                     help="wide: GridPull settings to run beside Poisson")
     ap.add_argument("--depth", type=int, default=None,
@@ -327,6 +357,8 @@ def main() -> None:
                 street(n, a.workers, work, overrides)
         elif a.suite == "holdout":
             holdout(a.workers, work, a.variants, a.depth or 10)
+        elif a.suite == "classes":
+            classes(a.points[0], a.workers, work, a.variants, a.depth or 11)
         elif a.suite == "wide":
             for n in a.points:
                 wide(n, a.workers, work, a.variants, a.depth or 11)
@@ -347,7 +379,7 @@ def main() -> None:
 def render(rows: list[dict]) -> str:
     """Markdown table of every scene run (newest last)."""
     runs = [r for r in rows if r.get("scene") not in (None, "machine")
-            and r.get("suite") not in ("tiles", "wide", "holdout")]
+            and r.get("suite") not in ("tiles", "wide", "holdout", "classes")]
     if not runs:
         return ""
     out = ["| date | scene | coarse thinning | query pool | points | workers | tiles | wall s | points/s | "
@@ -442,6 +474,30 @@ def render_holdout(rows: list[dict]) -> str:
                                   ("holdout_within_cell", "share within 1 cell", ".3f"),
                                   ("area_far_share", "area > 2 cells from points", ".3f"),
                                   ("boundary_edges", "boundary edges", ""), ("components", "pieces", "")])
+
+
+def render_classes(rows: list[dict]) -> str:
+    """Markdown table of the latest ``classes`` run: each class of the street's ground truth, GridPull beside
+    Poisson."""
+    runs = [r for r in rows if r.get("suite") == "classes"]
+    if not runs:
+        return ""
+    # the latest run: its Poisson row and the GridPull rows after it
+    poissons = [i for i, r in enumerate(runs) if r["method"] == "poisson"]
+    runs = runs[poissons[-1]:] if poissons else runs
+    table = []
+    for name in runs[0]["classes"]:
+        for r in runs:
+            c = r["classes"][name]
+            table.append({"date": r["date"], "class": name,
+                          "what": "Poisson" if r["method"] == "poisson" else f"GridPull {r['variant']}",
+                          **{k: c[k] for k in ("gt_samples", "completeness", "recall", "normal_consistency",
+                                               "pred_share", "accuracy")}})
+    return markdown_table(table, [("date", "date", ""), ("class", "class", ""), ("what", "method", ""),
+                                  ("gt_samples", "observed truth samples", ""),
+                                  ("completeness", "truth to mesh m", ".4f"), ("recall", "within 5 cm", ".3f"),
+                                  ("normal_consistency", "NC", ".4f"), ("pred_share", "share of the mesh", ".3f"),
+                                  ("accuracy", "mesh to truth m", ".4f")])
 
 
 def plot_tile_costs(rows: list[dict], path: Path) -> Path | None:

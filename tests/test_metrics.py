@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tiled_gridpull.metrics import _fscore, evaluate, point_to_mesh, sample_surface
+from tiled_gridpull.metrics import _fscore, class_scores, evaluate, point_to_mesh, sample_surface
 from tiled_gridpull.mesh import Mesh
 
 
@@ -103,3 +103,41 @@ def test_topology_of_a_tetrahedron_and_two_pieces():
     assert two.topology.components == 2 and two.topology.watertight
     open_tet = Mesh(v, f[:3])
     assert not open_tet.topology.watertight and open_tet.topology.boundary_edges == 3
+
+
+def two_classes() -> tuple[Mesh, dict]:
+    """A floor (the unit square) and a second square 3 to 4 along x: faces 0-1 and 2-3."""
+    a, b = square(), square()
+    verts = np.concatenate([a.vertices, b.vertices + [3.0, 0.0, 0.0]])
+    return Mesh(verts, np.concatenate([a.faces, b.faces + 4])), {"floor": (0, 2), "post": (2, 4)}
+
+
+def test_class_scores_hand_computed():
+    gt, classes = two_classes()
+    # the floor 0.01 above the truth and tilted by 20 degrees; the post missing altogether
+    pred = square(z=0.01, tilt_deg=20.0)
+    s = class_scores(pred, gt, classes, n_samples=4000, tau=0.05)
+    floor, post = s["floor"], s["post"]
+    assert floor["normal_consistency"] == pytest.approx(np.cos(np.radians(20.0)), abs=1e-9)
+    assert floor["pred_share"] == 1.0 and post["pred_share"] == 0.0
+    assert post["accuracy"] is None
+    # every post sample is at least 2 from the floor's square (x >= 3 against x <= 1)
+    assert post["completeness"] >= 2.0 and post["recall"] == 0.0
+    # the tilted floor: a point at y from the centre line is |(y - 0.5) sin 20| - 0.01 cos 20 from it, so under
+    # 0.05 for |y - 0.5| < 0.146 + ..., a band in the middle; the mean is the integral of that distance
+    y = np.linspace(0, 1, 200001)[:, None]
+    tilted = square(z=0.01, tilt_deg=20.0)
+    d, _ = point_to_mesh(np.c_[np.full(len(y), 0.5), y, np.zeros(len(y))], tilted)
+    assert floor["completeness"] == pytest.approx(d.mean(), rel=0.03)
+    assert floor["recall"] == pytest.approx(np.mean(d <= 0.05), abs=0.03)
+
+
+def test_class_scores_observed_and_bad_spans():
+    gt, classes = two_classes()
+    pred = gt
+    near_floor = np.random.default_rng(0).random((500, 3)) * [1, 1, 0]
+    s = class_scores(pred, gt, classes, n_samples=2000, observed=near_floor, observed_radius=0.1)
+    assert s["post"]["gt_samples"] == 0 and s["post"]["completeness"] is None
+    assert s["floor"]["gt_samples"] > 1500 and s["floor"]["completeness"] < 1e-9
+    with pytest.raises(ValueError, match="class 'post'"):
+        class_scores(pred, gt, {"post": (2, 9)})
