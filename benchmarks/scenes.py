@@ -15,6 +15,7 @@ Usage::
     python -m benchmarks.scenes tiles --points 4000000 --copies 1 2 4 8   # time vs tile count, fixed density
     python -m benchmarks.scenes wide --points 1000000 14000000 [--variants today default]
     python -m benchmarks.scenes classes --points 300000   # per kind of object (poles, cars...), beside Poisson
+    python -m benchmarks.scenes thin                        # a wall 0.05-0.3 m thick seen from both sides
         # a 200 m x 200 m grid of streets beside Open3D screened Poisson (depth 11) in the same run
 
 ``wide`` runs, per cloud, Poisson once (:mod:`benchmarks.poisson_scene`: its normal estimation included, file in
@@ -262,6 +263,34 @@ def classes(n_points: int, workers: int, work: Path, variants: list[str], depth:
         record(gridpull_row(row, base, poisson, v, **score(out)))
 
 
+#: wall thicknesses (m) of the ``thin`` suite, at 0.1 m cells
+THIN_WALLS = (0.05, 0.1, 0.15, 0.2, 0.3)
+
+
+def thin_walls(workers: int, work: Path, thicknesses=THIN_WALLS) -> None:
+    """A wall scanned from both sides (:func:`tiled_gridpull.synthetic.fence.fence_scene`), configs/scene.yaml at
+    0.1 m cells: does each face of the wall come out? Two placements against the lattice (vertices at multiples
+    of 0.1 m): the wall centred on a vertex plane, and with its front face on one (no vertex strictly inside a
+    wall of a cell or less)."""
+    from tiled_gridpull.io import read_mesh
+    from tiled_gridpull.metrics import class_scores
+    from tiled_gridpull.synthetic.fence import fence_scene
+
+    for t in thicknesses:
+        for place, centre in (("centred on a vertex plane", 0.0), ("front face on a vertex plane", t / 2)):
+            d = work / f"fence_{t:g}_{centre:g}"
+            scene = fence_scene(d / "seq", t, centre)
+            out = d / "mesh.ply"
+            row = reconstruct(scene["sequence"], out, workers, [*scene_args({}), "--voxel-size", "0.1"])
+            mesh = read_mesh(out)
+            scores = class_scores(mesh, scene["gt"], scene["classes"], n_samples=100_000, tau=0.02,
+                                  observed=scene["points"], observed_radius=0.05)
+            record({"scene": "wall seen from both sides (synthetic)", "suite": "thin", "method": "gridpull",
+                    "thickness_m": t, "placement": place, "cell": 0.1, "workers": workers,
+                    "wall_s": row["wall_s"], "classes": scores,
+                    "boundary_edges": int(mesh.topology.boundary_edges), "components": int(mesh.topology.components)})
+
+
 def poisson_row(base: dict, poisson: dict, depth: int, **extra) -> dict:
     """A results row of a Poisson run (:func:`poisson_scene` output) beside the GridPull rows of the same run."""
     return {**base, **{k: v for k, v in poisson.items() if k != "points"}, **extra, "method": "poisson",
@@ -328,7 +357,7 @@ def tile_costs(mesh: Path) -> list[dict]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("suite", choices=("street", "workers", "lidar", "tiles", "wide", "holdout", "classes"))
+    ap.add_argument("suite", choices=("street", "workers", "lidar", "tiles", "wide", "holdout", "classes", "thin"))
     ap.add_argument("--variants", nargs="+", choices=sorted(VARIANTS), default=["today", "default"],
                     help="wide: GridPull settings to run beside Poisson")
     ap.add_argument("--depth", type=int, default=None,
@@ -357,6 +386,8 @@ def main() -> None:
                 street(n, a.workers, work, overrides)
         elif a.suite == "holdout":
             holdout(a.workers, work, a.variants, a.depth or 10)
+        elif a.suite == "thin":
+            thin_walls(a.workers, work)
         elif a.suite == "classes":
             classes(a.points[0], a.workers, work, a.variants, a.depth or 11)
         elif a.suite == "wide":
@@ -379,7 +410,7 @@ def main() -> None:
 def render(rows: list[dict]) -> str:
     """Markdown table of every scene run (newest last)."""
     runs = [r for r in rows if r.get("scene") not in (None, "machine")
-            and r.get("suite") not in ("tiles", "wide", "holdout", "classes")]
+            and r.get("suite") not in ("tiles", "wide", "holdout", "classes", "thin")]
     if not runs:
         return ""
     out = ["| date | scene | coarse thinning | query pool | points | workers | tiles | wall s | points/s | "
@@ -498,6 +529,29 @@ def render_classes(rows: list[dict]) -> str:
                                   ("completeness", "truth to mesh m", ".4f"), ("recall", "within 5 cm", ".3f"),
                                   ("normal_consistency", "NC", ".4f"), ("pred_share", "share of the mesh", ".3f"),
                                   ("accuracy", "mesh to truth m", ".4f")])
+
+
+def render_thin(rows: list[dict]) -> str:
+    """Markdown table of the latest ``thin`` series: each wall's two faces, truth to mesh."""
+    runs = [r for r in rows if r.get("suite") == "thin"]
+    if not runs:
+        return ""
+    # the latest series: from the last row of the first thickness on
+    first = max(i for i, r in enumerate(runs) if r["thickness_m"] == runs[0]["thickness_m"]
+                and r["placement"] == runs[0]["placement"])
+    table = []
+    for r in runs[first:]:
+        f, b = r["classes"]["front"], r["classes"]["back"]
+        table.append({"date": r["date"], "t": r["thickness_m"], "cells": r["thickness_m"] / r["cell"],
+                      "placement": r["placement"], "front": f["completeness"], "front_recall": f["recall"],
+                      "back": b["completeness"], "back_recall": b["recall"],
+                      "both": "yes" if min(f["recall"], b["recall"]) >= 0.8 else "no", "wall_s": r["wall_s"]})
+    return markdown_table(table, [("date", "date", ""), ("t", "wall m", "g"), ("cells", "cells", "g"),
+                                  ("placement", "against the lattice", ""),
+                                  ("front", "front face: truth to mesh m", ".4f"),
+                                  ("front_recall", "within 2 cm", ".3f"),
+                                  ("back", "back face: truth to mesh m", ".4f"), ("back_recall", "within 2 cm", ".3f"),
+                                  ("both", "both faces (80 % within 2 cm)", ""), ("wall_s", "job s", ".1f")])
 
 
 def plot_tile_costs(rows: list[dict], path: Path) -> Path | None:

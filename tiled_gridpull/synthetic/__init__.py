@@ -1,8 +1,10 @@
-"""Synthetic data with exact ground truth: closed analytic shapes and a LiDAR-scanned street.
+"""Synthetic data with exact ground truth: closed analytic shapes, a LiDAR-scanned street, and a thin wall seen
+from both sides.
 
 Feeds the tests, the demo command and the benchmarks. Everything is deterministic given its seed.
 """
 
+from .fence import FENCE_CLASSES, fence_scene
 from .shapes import box, sample_shape, sphere, torus
 from .lidar import (
     POINTS_PER_FRAME_DEFAULT,
@@ -25,6 +27,6 @@ __all__ = [
     "StreetScene", "Scan", "build_street", "scan_street", "sensor_poses", "terrain_height",
     "hdl64_directions",
     "points_per_frame", "frames_for_points", "street_length_for_frames", "write_las", "write_kitti_sequence",
-    "make_street_sample", "observed_samples",
+    "make_street_sample", "observed_samples", "fence_scene", "FENCE_CLASSES",
     "FACE_CLASSES", "KITTI_TR", "POINTS_PER_FRAME_DEFAULT", "SENSOR_HEIGHT_M",
 ]
