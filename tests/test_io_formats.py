@@ -594,8 +594,8 @@ def test_kitti_chunks_frame_by_frame(tmp_path):
 
 def test_the_partition_reads_a_sequence_frame_by_frame(tmp_path, monkeypatch):
     """The job's read of a KITTI sequence (prepare._chunks) streams it: no frame is loaded before the chunks of
-    the frames before it are handed on, the sequence is never read whole, and the points, sensor origins and frame
-    range are those of read_kitti_sequence."""
+    the frames before it are handed on, the sequence is never read whole, and the chunks, points, sensor origins
+    and frame range are those of the sequence read whole."""
     from tiled_gridpull import prepare
     from tiled_gridpull.io import kitti
 
@@ -609,6 +609,9 @@ def test_the_partition_reads_a_sequence_frame_by_frame(tmp_path, monkeypatch):
     assert len(loaded) == 1 and len(first) <= 5
     rest = list(chunks)
     assert len(loaded) == 3
+    # the chunks of the sequence read whole: 5 points each but the last (the scan's outlier sample takes every
+    # 16th point of each chunk, so the cut must not move)
+    assert [len(c) for c in [first, *rest]][:-1] == [5] * len(rest) and 0 < len(rest[-1]) <= 5
     xyz, origins, _ = expected_world(frames, poses, tr, range(1, 4))
     np.testing.assert_array_equal(np.concatenate([c.xyz for c in [first, *rest]]), xyz)
     np.testing.assert_array_equal(np.concatenate([c.sensor for c in [first, *rest]]), origins)

@@ -311,11 +311,27 @@ def _chunks(inputs, chunk_size, frames, trajectory: Trajectory | None = None):
     for path in inputs:
         p = Path(path)
         if p.is_dir():
-            # frame by frame: a sequence of thousands of scans is never held whole
-            for chunk in kitti_chunks(p, frames, chunk_size):
-                yield PointCloud(chunk.xyz, sensor=chunk.sensor, source=str(p))
+            # frame by frame (a sequence of thousands of scans is never held whole), cut into the same chunks as
+            # the sequence read whole would be: the scan's outlier sample takes every 16th point of each chunk
+            yield from _rechunk(kitti_chunks(p, frames, chunk_size), chunk_size, str(p))
         else:
             yield from iter_point_chunks([p], chunk_size)
+
+
+def _rechunk(clouds, size: int, source: str):
+    """``clouds`` (with sensor origins) as consecutive chunks of ``size`` points, the last one shorter; at most
+    ``size`` points plus one cloud are held at a time."""
+    xyz, sensor, held = [], [], 0
+    for c in clouds:
+        xyz.append(c.xyz)
+        sensor.append(c.sensor)
+        held += len(c)
+        while held >= size:
+            x, o = np.concatenate(xyz), np.concatenate(sensor)
+            yield PointCloud(x[:size], sensor=o[:size], source=source)
+            xyz, sensor, held = [x[size:]], [o[size:]], held - size
+    if held:
+        yield PointCloud(np.concatenate(xyz), sensor=np.concatenate(sensor), source=source)
 
 
 def _with_sensor(chunks, trajectory: Trajectory, path):
