@@ -114,22 +114,39 @@ def two_classes() -> tuple[Mesh, dict]:
 
 def test_class_scores_hand_computed():
     gt, classes = two_classes()
-    # the floor 0.01 above the truth and tilted by 20 degrees; the post missing altogether
-    pred = square(z=0.01, tilt_deg=20.0)
+    # the floor tilted by 20 degrees about its centre line; a half-width copy of the post tilted by 40 degrees:
+    # a third of the mesh's area lies by the post
+    floor = square(tilt_deg=20.0)
+    post = square(tilt_deg=40.0)
+    post_v = post.vertices * [0.5, 1.0, 1.0] + [3.0, 0.0, 0.0]
+    # the post's copy wound the other way (its normal points down): the consistency is of unoriented normals
+    pred = Mesh(np.concatenate([floor.vertices, post_v]), np.concatenate([floor.faces, post.faces[:, ::-1] + 4]))
+    s = class_scores(pred, gt, classes, n_samples=20000, tau=0.05)
+    for name, tilt, share in (("floor", 20.0, 2 / 3), ("post", 40.0, 1 / 3)):
+        c = s[name]
+        # every sample of a square faces a face of the tilted copy above it
+        assert c["normal_consistency"] == pytest.approx(np.cos(np.radians(tilt)), abs=1e-9)
+        assert c["pred_share"] == pytest.approx(share, abs=0.015)
+        # a point of the copy at y along its surface is |y - 0.5| sin(tilt) from the truth's plane: mean sin / 4
+        assert c["accuracy"] == pytest.approx(np.sin(np.radians(tilt)) / 4, rel=0.03)
+    # the truth's floor, measured to the tilted floor: the distance of (x, y, 0) to it, integrated over y
+    y = np.linspace(0, 1, 200001)
+    d, _ = point_to_mesh(np.c_[np.full(len(y), 0.5), y, np.zeros(len(y))], floor)
+    assert s["floor"]["completeness"] == pytest.approx(d.mean(), rel=0.03)
+    assert s["floor"]["recall"] == pytest.approx(np.mean(d <= 0.05), abs=0.02)
+    # half of the post's truth (x beyond 3.5) has no pred face above it: at least its distance to the copy's edge
+    assert s["post"]["recall"] < 0.6
+
+
+def test_class_scores_a_missing_class_and_the_order_of_classes():
+    gt, classes = two_classes()
+    pred = square(z=0.01)
     s = class_scores(pred, gt, classes, n_samples=4000, tau=0.05)
-    floor, post = s["floor"], s["post"]
-    assert floor["normal_consistency"] == pytest.approx(np.cos(np.radians(20.0)), abs=1e-9)
-    assert floor["pred_share"] == 1.0 and post["pred_share"] == 0.0
-    assert post["accuracy"] is None
-    # every post sample is at least 2 from the floor's square (x >= 3 against x <= 1)
-    assert post["completeness"] >= 2.0 and post["recall"] == 0.0
-    # the tilted floor: a point at y from the centre line is |(y - 0.5) sin 20| - 0.01 cos 20 from it, so under
-    # 0.05 for |y - 0.5| < 0.146 + ..., a band in the middle; the mean is the integral of that distance
-    y = np.linspace(0, 1, 200001)[:, None]
-    tilted = square(z=0.01, tilt_deg=20.0)
-    d, _ = point_to_mesh(np.c_[np.full(len(y), 0.5), y, np.zeros(len(y))], tilted)
-    assert floor["completeness"] == pytest.approx(d.mean(), rel=0.03)
-    assert floor["recall"] == pytest.approx(np.mean(d <= 0.05), abs=0.03)
+    assert s["floor"]["pred_share"] == 1.0 and s["post"]["pred_share"] == 0.0 and s["post"]["accuracy"] is None
+    assert s["post"]["completeness"] >= 2.0 and s["post"]["recall"] == 0.0
+    assert s["floor"]["completeness"] == pytest.approx(0.01) and s["floor"]["recall"] == 1.0
+    # the same scores whatever the order of the classes
+    assert class_scores(pred, gt, dict(reversed(list(classes.items()))), n_samples=4000, tau=0.05) == s
 
 
 def test_class_scores_observed_and_bad_spans():
@@ -141,3 +158,11 @@ def test_class_scores_observed_and_bad_spans():
     assert s["floor"]["gt_samples"] > 1500 and s["floor"]["completeness"] < 1e-9
     with pytest.raises(ValueError, match="class 'post'"):
         class_scores(pred, gt, {"post": (2, 9)})
+    with pytest.raises(ValueError, match="integers"):
+        class_scores(pred, gt, {"post": (0.5, 2.9)})
+    with pytest.raises(ValueError, match="share faces"):
+        class_scores(pred, gt, {"floor": (0, 3), "post": (2, 4)})
+    # an empty class: no samples, not an error
+    empty = class_scores(pred, gt, {"floor": (0, 2), "none": (2, 2)}, n_samples=500)
+    assert empty["none"] == {"pred_share": 0.0, "accuracy": None, "gt_samples": 0, "completeness": None,
+                             "recall": None, "normal_consistency": None}

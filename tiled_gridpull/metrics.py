@@ -19,6 +19,8 @@ triangle, via VTK's cell locator), which ranks good methods properly.
 
 from __future__ import annotations
 
+import zlib
+
 import numpy as np
 from pykdtree.kdtree import KDTree
 
@@ -186,7 +188,8 @@ def class_scores(pred: Mesh, gt: Mesh, classes: dict, n_samples: int = 100_000, 
     pred, gt : Mesh
         Same units.
     classes : dict of str -> (start, stop)
-        Each class's faces in ``gt``: ``gt.faces[start:stop]`` (the synthetic street's ``face_classes``).
+        Each class's faces in ``gt``: ``gt.faces[start:stop]`` (the synthetic street's ``face_classes``); integer
+        ranges that do not overlap (an empty range is a class with no samples).
     n_samples : int
         Samples on each class of ``gt`` and on ``pred``.
     tau : float
@@ -201,7 +204,8 @@ def class_scores(pred: Mesh, gt: Mesh, classes: dict, n_samples: int = 100_000, 
     dict of str -> dict
         Per class: ``gt_samples`` (the samples kept), ``completeness`` (mean distance of the class's samples to
         ``pred``'s surface), ``recall`` (share within ``tau``), ``normal_consistency`` (mean ``|cos|`` between a
-        sample's face normal and that of ``pred``'s closest face), ``pred_share`` (share of ``pred``'s samples
+        sample's face normal and that of ``pred``'s closest face, however far that face is, as in :func:`evaluate`:
+        read it beside the recall), ``pred_share`` (share of ``pred``'s samples
         whose closest ground-truth face is in the class) and ``accuracy`` (their mean distance; None when there
         are none).
     """
@@ -209,27 +213,38 @@ def class_scores(pred: Mesh, gt: Mesh, classes: dict, n_samples: int = 100_000, 
         raise ValueError("the reconstructed mesh has no faces")
     spans = {}
     for name, span in classes.items():
-        start, stop = (int(v) for v in span)
-        if not 0 <= start < stop <= gt.n_faces:
+        try:
+            start, stop = span
+        except (TypeError, ValueError):
+            raise ValueError(f"class {name!r}: expected a (start, stop) pair of face indices, got {span!r}") from None
+        if not all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) for v in (start, stop)):
+            raise ValueError(f"class {name!r}: face indices must be integers, got {span!r}")
+        if not 0 <= start <= stop <= gt.n_faces:
             raise ValueError(f"class {name!r}: faces [{start}, {stop}) are not within the {gt.n_faces} "
                              "ground-truth faces")
-        spans[name] = (start, stop)
+        spans[name] = (int(start), int(stop))
+    order = sorted(spans.items(), key=lambda kv: kv[1])
+    for (a, (_, stop_a)), (b, (start_b, _)) in zip(order, order[1:]):
+        if start_b < stop_a:
+            raise ValueError(f"classes {a!r} and {b!r} share faces (from face {start_b})")
     p_pts, _ = sample_surface(pred, n_samples, seed)
     acc_d, acc_f = point_to_mesh(p_pts, gt)
     pred_n, _ = pred.face_normals()
     out = {}
-    for k, (name, (start, stop)) in enumerate(spans.items()):
-        g_pts, g_nrm = sample_surface(Mesh(gt.vertices, gt.faces[start:stop]), n_samples, seed + 1 + k)
-        if observed is not None:
-            g_pts, g_nrm = _near(g_pts, g_nrm, observed, observed_radius)
+    for name, (start, stop) in spans.items():
         mine = (acc_f >= start) & (acc_f < stop)
-        row = {"gt_samples": int(len(g_pts)), "pred_share": float(mine.mean()),
-               "accuracy": float(acc_d[mine].mean()) if mine.any() else None}
-        if len(g_pts):
-            d, f = point_to_mesh(g_pts, pred)
-            row.update(completeness=float(d.mean()), recall=float(np.mean(d <= tau)),
-                       normal_consistency=float(np.abs(np.einsum("ij,ij->i", g_nrm, pred_n[f])).mean()))
-        else:
-            row.update(completeness=None, recall=None, normal_consistency=None)
+        row = {"pred_share": float(mine.mean()), "accuracy": float(acc_d[mine].mean()) if mine.any() else None,
+               "gt_samples": 0, "completeness": None, "recall": None, "normal_consistency": None}
+        part = Mesh(gt.vertices, gt.faces[start:stop])
+        if stop > start and part.face_normals()[1].sum() > 0:
+            # a seed of the class's own (not of its place in the dict): the scores do not depend on the order
+            g_pts, g_nrm = sample_surface(part, n_samples, seed + 1 + zlib.crc32(name.encode()) % 65536)
+            if observed is not None:
+                g_pts, g_nrm = _near(g_pts, g_nrm, observed, observed_radius)
+            row["gt_samples"] = int(len(g_pts))
+            if len(g_pts):
+                d, f = point_to_mesh(g_pts, pred)
+                row.update(completeness=float(d.mean()), recall=float(np.mean(d <= tau)),
+                           normal_consistency=float(np.abs(np.einsum("ij,ij->i", g_nrm, pred_n[f])).mean()))
         out[name] = row
     return out
