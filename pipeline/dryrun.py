@@ -133,7 +133,7 @@ def format_plan(info: dict, max_memory: int | None = None) -> str:
     ]
     noise = info.get("noise_treatment")
     if noise and noise.get("auto"):
-        given = noise["reason"].startswith("given")
+        given = bool(noise.get("given"))  # the user's own noise settings: nothing was measured or chosen
         what = "" if given else "denoising, " if noise["chosen"] else "no treatment, "
         lines.insert(-3, f"noise:    {what}{noise['reason']}{'' if given else ' (noise_auto)'}")
     if max_memory is not None:

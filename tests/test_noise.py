@@ -114,6 +114,7 @@ def test_settings_given_by_the_user_win_over_auto():
     pts = noisy_sphere(100_000, 0.0173)
     cfg, record, _ = _noise_treatment(SolverConfig(denoise=1), pts)
     assert cfg == SolverConfig(denoise=1) and record["chosen"] is None and record["reason"] == "given: denoise"
+    assert record["given"] == ["denoise"]
     preset = SolverConfig(**load_config_file(REPO / "configs" / "noisy.yaml"))
     assert _noise_treatment(preset, pts)[0] == preset
     cfg, record, _ = _noise_treatment(SolverConfig(), pts)

@@ -129,6 +129,7 @@ def test_a_tiled_job_denoises_its_points_and_the_surface_gets_closer(tmp_path):
                                  tmp_path / "j1")
     assert plain.metadata["noise_treatment"] == {"auto": False, "chosen": None, "reason": "noise_auto is off"}
     assert denoised.metadata["noise_treatment"]["reason"] == "given: denoise 2"
+    assert denoised.metadata["noise_treatment"]["given"] == ["denoise"]
     assert denoised.metadata["config"]["noise"]["denoise_passes"] == 2
     assert denoised.metadata["config"]["noise"]["denoise_radius"] == 1.5
     assert denoised.metadata["tiling"]["halo"] == 6 and plain.metadata["tiling"]["halo"] == 0

@@ -192,7 +192,7 @@ def scan_noise_treatment(inputs: list[str], tiling: TilingConfig, solver: Solver
     default = SolverConfig()
     given = [name for name in SCAN_NOISE_SETTINGS if solver.get(name) != default.get(name)]
     if given:
-        return solver, {"auto": True, "chosen": None,
+        return solver, {"auto": True, "chosen": None, "given": given,
                         "reason": "given: " + ", ".join(f"{name} {solver.get(name)}" for name in given)}
     head, _ = head_points(inputs, frames, NOISE_SAMPLE_POINTS)
     est = scan_noise(head, tiling.voxel_size, solver.noise.denoise_radius)

@@ -135,7 +135,7 @@ def _noise_treatment(cfg: SolverConfig, xyz: np.ndarray):
     given = [name for name in NOISE_SETTINGS if cfg.get(name) != default.get(name)]
     if given:
         # the user chose a treatment (a preset file or single settings): theirs wins
-        return cfg, {"auto": True, "chosen": None, "reason": f"given: {', '.join(given)}"}, None
+        return cfg, {"auto": True, "chosen": None, "given": given, "reason": f"given: {', '.join(given)}"}, None
     pick, raw, figures = select_treatment(xyz)
     record = {"auto": True, "chosen": pick, "estimate": figures,
               "settings": dict(NOISE_PRESETS[pick]) if pick else {},
