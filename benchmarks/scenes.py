@@ -14,9 +14,10 @@ Usage::
     python -m benchmarks.scenes lidar                              # ../shared/data/lidar files
     python -m benchmarks.scenes tiles --points 4000000 --copies 1 2 4 8   # time vs tile count, fixed density
     python -m benchmarks.scenes wide --points 1000000 14000000 [--variants today default]
-    python -m benchmarks.scenes classes --points 300000   # per kind of object (poles, cars...), beside Poisson
-    python -m benchmarks.scenes thin                        # a wall 0.05-0.3 m thick seen from both sides
         # a 200 m x 200 m grid of streets beside Open3D screened Poisson (depth 11) in the same run
+    python -m benchmarks.scenes classes --points 300000 --variants default
+        # the demo street scored per kind of object (poles, cars, ...), beside Poisson in the same run
+    python -m benchmarks.scenes thin                               # a wall 0.05-0.3 m thick seen from both sides
 
 ``wide`` runs, per cloud, Poisson once (:mod:`benchmarks.poisson_scene`: its normal estimation included, file in
 -> mesh out, its own process) and GridPull once per variant: ``default`` is configs/scene.yaml as shipped,
@@ -240,7 +241,6 @@ def classes(n_points: int, workers: int, work: Path, variants: list[str], depth:
     Chamfer distance."""
     from tiled_gridpull.io import read_mesh, read_points
     from tiled_gridpull.metrics import class_scores
-
     from tiled_gridpull.synthetic.street_sample import make_street_sample
 
     sample_dir = work / f"street_{n_points}"
