@@ -134,6 +134,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="street: offset added to every coordinate (e.g. UTM-like 500000 4000000 100)")
     sm.add_argument("--range-noise", type=float, default=0.0, metavar="M",
                     help="street: Gaussian noise of each return's range, in metres (a survey scanner: about 0.01-0.03)")
+    sm.add_argument("--frames", type=int, default=None, metavar="N",
+                    help="street: N frames 1 m apart, as a 10 Hz scanner on a car driving 36 km/h (default: "
+                         "max(4, points / 100,000), one sensor position's worth)")
     sm.add_argument("--seed", type=int, default=0)
     _add_common(sm)
 
@@ -153,6 +156,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="score only the ground truth observed by this point cloud (partial scans)")
     e.add_argument("--observed-radius", type=float, default=0.2,
                    help="with --observed: GT samples farther than this from every input point are left out")
+    e.add_argument("--footprint", type=float, nargs="+", metavar="R",
+                   help="with --observed: also score the footprint, the ground truth within R of any input point "
+                        "(recall within --footprint-tau: holes there are misses, bridges across scan-line gaps "
+                        "hits), and the precision of the whole mesh within --footprint-tau")
+    e.add_argument("--footprint-tau", type=float, default=0.1, metavar="TAU",
+                   help="with --footprint: distance of a hit, in the meshes' units")
     e.add_argument("--json", action="store_true", help="print JSON instead of a table")
     _add_common(e)
 
@@ -405,13 +414,18 @@ def cmd_sample(args) -> int:
         raise ConfigError(f"--points must be at least 100, got {args.points}")
     if not (math.isfinite(args.range_noise) and args.range_noise >= 0):
         raise ConfigError(f"--range-noise must be a length >= 0 in metres, got {args.range_noise}")
+    if args.frames is not None and not (1 <= args.frames <= 10_000):
+        raise ConfigError(f"--frames must be between 1 and 10,000, got {args.frames}")
+    if args.frames is not None and (args.kind != "street" or args.layout != "street"):
+        raise ConfigError("--frames applies to 'sample street' with the street layout only")
     out = Path(args.out_dir)
     if args.kind == "street":
         from tiled_gridpull.synthetic.street_sample import make_street_sample
 
         formats = ("laz",) + tuple(f for f in ("kitti", "copc", "ept") if getattr(args, f))
         info = make_street_sample(out, n_points=args.points, seed=args.seed, origin=tuple(args.origin),
-                                  formats=formats, layout=args.layout, range_noise=args.range_noise)
+                                  formats=formats, layout=args.layout, range_noise=args.range_noise,
+                                  frames=args.frames)
         log.info("wrote %s (%s layout, %d points, %d frames in %d passes) and ground truth %s", info["points"],
                  info["layout"], info["n_points"], info["n_frames"], info["n_passes"], info["gt_mesh"])
         return 0
@@ -466,8 +480,14 @@ def cmd_evaluate(args) -> int:
 
     from tiled_gridpull.io import read_mesh
     from tiled_gridpull.mesh import Mesh
-    from tiled_gridpull.metrics import evaluate
+    from tiled_gridpull.errors import ConfigError
+    from tiled_gridpull.metrics import evaluate, footprint_scores
 
+    if args.footprint is not None:
+        if not args.observed:
+            raise ConfigError("--footprint needs --observed CLOUD (the input points the footprint is measured from)")
+        if not all(np.isfinite(r) and r > 0 for r in [*args.footprint, args.footprint_tau]):
+            raise ConfigError("--footprint radii and --footprint-tau must be positive numbers")
     pred = read_mesh(args.mesh)
     gt = read_mesh(args.gt)
     centre, scale = np.zeros(3), 1.0
@@ -486,6 +506,16 @@ def cmd_evaluate(args) -> int:
             observed = (observed - centre) / scale
     res = evaluate(pred, gt, n_samples=args.samples, thresholds=tuple(args.thresholds), exact=not args.no_exact,
                    observed=observed, observed_radius=args.observed_radius / (scale if args.normalize else 1.0))
+    if args.footprint is not None:
+        unit = scale if args.normalize else 1.0
+        fp = footprint_scores(pred, gt, observed, radii=[r / unit for r in args.footprint],
+                              tau=args.footprint_tau / unit, n_samples=args.samples)
+        # named in the user's units, whatever --normalize did
+        res.update({"footprint_tau": args.footprint_tau,
+                    f"footprint_precision@{args.footprint_tau:g}": fp[f"precision@{args.footprint_tau / unit:g}"]})
+        for r in args.footprint:
+            res[f"footprint_recall@{r:g}"] = fp[f"footprint_recall@{r / unit:g}"]
+            res[f"footprint_samples@{r:g}"] = fp[f"footprint_samples@{r / unit:g}"]
     if args.json:
         print(json.dumps(res, indent=2, sort_keys=True,
                          default=lambda o: o.item() if isinstance(o, np.generic) else str(o)))

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tiled_gridpull.metrics import _fscore, class_scores, evaluate, point_to_mesh, sample_surface
+from tiled_gridpull.metrics import _fscore, class_scores, evaluate, footprint_scores, point_to_mesh, sample_surface
 from tiled_gridpull.mesh import Mesh
 
 
@@ -166,3 +166,43 @@ def test_class_scores_observed_and_bad_spans():
     empty = class_scores(pred, gt, {"floor": (0, 2), "none": (2, 2)}, n_samples=500)
     assert empty["none"] == {"pred_share": 0.0, "accuracy": None, "gt_samples": 0, "completeness": None,
                              "recall": None, "normal_consistency": None}
+
+
+def rect(x0: float, x1: float, y0: float, y1: float, z: float = 0.0) -> Mesh:
+    """An axis-aligned rectangle at height z, two triangles."""
+    v = np.array([[x0, y0, z], [x1, y0, z], [x1, y1, z], [x0, y1, z]], dtype=np.float64)
+    return Mesh(v, np.array([[0, 1, 2], [0, 2, 3]]))
+
+
+def test_footprint_scores_hand_computed():
+    # truth: the ground [0, 10] x [0, 10]; points cover x <= 4 (a line every 0.5 m): the footprint within R = 1
+    # is x <= 5, within R = 3 it is x <= 7
+    gx, gy = np.meshgrid(np.arange(0.0, 4.01, 0.5), np.arange(0.0, 10.01, 0.1))
+    pts = np.stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)], axis=1)
+    gt = rect(0, 10, 0, 10)
+    # the mesh: the data's part bridged 5 cm high (a hit), and a far sheet 1 m up over [0, 4] x [0, 2]
+    near = rect(0, 4, 0, 10, z=0.05)
+    far = rect(0, 4, 0, 2, z=1.0)
+    pred = Mesh(np.concatenate([near.vertices, far.vertices]), np.concatenate([near.faces, far.faces + 4]))
+    out = footprint_scores(pred, gt, pts, radii=(1.0, 3.0), tau=0.1, n_samples=100_000)
+    # the truth within tau of the bridge's edge counts too: sqrt(0.1^2 - 0.05^2) past x = 4
+    reach = 4 + np.sqrt(0.1 ** 2 - 0.05 ** 2)
+    assert out["footprint_recall@1"] == pytest.approx(reach / 5, abs=0.005)
+    assert out["footprint_recall@3"] == pytest.approx(reach / 7, abs=0.005)
+    assert out["footprint_samples@1"] == pytest.approx(50_000, rel=0.02)
+    # 40 m2 right, 8 m2 a metre off
+    assert out["precision@0.1"] == pytest.approx(40 / 48, abs=0.01)
+    assert out["boundary_edges"] == 8 and out["components"] == 2
+    # a bridge 15 cm off the truth is a miss at tau 0.1 and a hit at 0.2
+    high = rect(0, 4, 0, 10, z=0.15)
+    assert footprint_scores(high, gt, pts, radii=(1.0,), tau=0.1)["footprint_recall@1"] == 0.0
+    reach = 4 + np.sqrt(0.2 ** 2 - 0.15 ** 2)
+    assert footprint_scores(high, gt, pts, radii=(1.0,), tau=0.2)["footprint_recall@1"] == pytest.approx(reach / 5,
+                                                                                                        abs=0.005)
+
+
+@pytest.mark.parametrize("kw", [{"radii": ()}, {"radii": (0.0,)}, {"radii": (np.inf,)}, {"tau": -1.0}])
+def test_footprint_scores_refuses_bad_settings(kw):
+    pts = np.zeros((3, 3))
+    with pytest.raises(ValueError):
+        footprint_scores(rect(0, 1, 0, 1), rect(0, 1, 0, 1), pts, **kw)

@@ -250,3 +250,34 @@ def test_band_edges_option_reaches_the_solve_and_the_sidecar(tmp_path, capsys):
         rec = json.loads(out.with_suffix(".json").read_text())["band_edges"]
         assert rec["rule"] == rule and rec["loops"] == 2, rec  # one at each end of the tube
         assert (rec["faces_trimmed"] > 0, rec["loops_closed"]) == (rule == "trim", 2 if rule == "close" else 0), rec
+
+
+def test_evaluate_footprint(tmp_path, capsys):
+    from tiled_gridpull.io import write_mesh
+    from tiled_gridpull.mesh import Mesh
+
+    def rect(x1, z):
+        v = np.array([[0, 0, z], [x1, 0, z], [x1, 10, z], [0, 10, z]], dtype=np.float64)
+        return Mesh(v, np.array([[0, 1, 2], [0, 2, 3]]))
+
+    write_mesh(rect(10, 0.0), tmp_path / "gt.ply")
+    write_mesh(rect(4, 0.0), tmp_path / "mesh.ply")
+    gx, gy = np.meshgrid(np.arange(0.0, 4.01, 0.5), np.arange(0.0, 10.01, 0.1))
+    # a millimetre of scatter: an exactly planar cloud is refused as input
+    z = np.random.default_rng(0).uniform(-1e-3, 1e-3, gx.size)
+    np.save(tmp_path / "pts.npy", np.stack([gx.ravel(), gy.ravel(), z], axis=1))
+    args = ["evaluate", str(tmp_path / "mesh.ply"), str(tmp_path / "gt.ply"), "--json", "--samples", "50000"]
+    code, text, _ = run([*args, "--observed", str(tmp_path / "pts.npy"), "--footprint", "1", "3"], capsys)
+    assert code == 0
+    res = json.loads(text)
+    # the mesh covers x <= 4 (plus what lies within 0.1 of its edge); the footprint within 1 m is x <= 5
+    assert res["footprint_recall@1"] == pytest.approx(4.1 / 5, abs=0.01)
+    assert res["footprint_recall@3"] == pytest.approx(4.1 / 7, abs=0.01)
+    assert res["footprint_precision@0.1"] == 1.0 and res["footprint_tau"] == 0.1
+    # --normalize scales the radii with the meshes, and the names stay in the user's units
+    code, text, _ = run([*args, "--observed", str(tmp_path / "pts.npy"), "--footprint", "1", "--normalize"], capsys)
+    assert code == 0 and json.loads(text)["footprint_recall@1"] == pytest.approx(4.1 / 5, abs=0.01)
+    code, _, err = run([*args, "--footprint", "1"], capsys)
+    assert code == 2 and "--footprint needs --observed" in err
+    code, _, err = run([*args, "--observed", str(tmp_path / "pts.npy"), "--footprint", "0"], capsys)
+    assert code == 2 and "positive" in err

@@ -29,9 +29,12 @@ from .mesh import Mesh
 from .mesh_repair import boundary_loops
 from .nearest import distances_to_cloud
 
-__all__ = ["sample_surface", "point_to_mesh", "evaluate", "class_scores", "DEFAULT_THRESHOLDS"]
+__all__ = ["sample_surface", "point_to_mesh", "evaluate", "class_scores", "footprint_scores",
+           "DEFAULT_THRESHOLDS", "FOOTPRINT_RADII"]
 
 DEFAULT_THRESHOLDS = (0.002, 0.004, 0.01)
+# metres: how far past the scan lines a scene mesh is expected to reach (a gap of up to twice this between rings)
+FOOTPRINT_RADII = (1.5, 3.0)
 
 
 def sample_surface(mesh: Mesh, n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -247,4 +250,65 @@ def class_scores(pred: Mesh, gt: Mesh, classes: dict, n_samples: int = 100_000, 
                 row.update(completeness=float(d.mean()), recall=float(np.mean(d <= tau)),
                            normal_consistency=float(np.abs(np.einsum("ij,ij->i", g_nrm, pred_n[f])).mean()))
         out[name] = row
+    return out
+
+
+def footprint_scores(pred: Mesh, gt: Mesh, points: np.ndarray, radii=FOOTPRINT_RADII, tau: float = 0.1,
+                     n_samples: int = 200_000, seed: int = 0) -> dict:
+    """How much of the scanned footprint a scene mesh covers, and how much of the mesh is right.
+
+    The footprint is the ground-truth surface within ``R`` of any input point. It is method-neutral: a hole
+    there is a miss whatever its cause, and a surface bridged across a gap between scan lines is a hit when it
+    lies within ``tau`` of the truth. The observed-region Chamfer distance (:func:`evaluate` with
+    ``observed``) charges every bridge for being less exact than data; this yardstick does not, and the
+    precision over the whole mesh charges bridges that go where the truth is not (across a kerb, into empty
+    space).
+
+    Parameters
+    ----------
+    pred, gt : Mesh
+        Same units (a scene's: metres or feet).
+    points : (N, 3) float
+        The input points, in the meshes' frame.
+    radii : sequence of float
+        Footprint radii ``R``, in the meshes' units.
+    tau : float
+        Distance within which a sample counts as a hit, same units.
+    n_samples : int
+        Area-uniform samples on each mesh (the footprint keeps those of ``gt`` within ``R``).
+    seed : int
+
+    Returns
+    -------
+    dict
+        ``footprint_recall@R`` (share of the footprint's samples within ``tau`` of ``pred``'s surface, exact
+        point-to-triangle distances) and ``footprint_samples@R`` for each ``R``; ``precision@tau`` (share of
+        ``pred``'s samples within ``tau`` of ``gt``'s surface); ``tau``; ``boundary_edges`` and ``components``
+        (pieces) of ``pred``.
+    """
+    if pred.n_faces == 0:
+        raise ValueError("the reconstructed mesh has no faces")
+    radii = tuple(float(r) for r in radii)
+    if not radii or not all(np.isfinite(r) and r > 0 for r in radii):
+        raise ValueError(f"footprint radii must be positive, got {radii}")
+    if not (np.isfinite(tau) and tau > 0):
+        raise ValueError(f"tau must be positive, got {tau}")
+    points = np.asarray(points, np.float64)
+    if points.ndim != 2 or points.shape[1] != 3 or len(points) == 0:
+        raise ValueError("points must be a non-empty (N, 3) array")
+    g_pts, _ = sample_surface(gt, n_samples, seed + 1)
+    near = distances_to_cloud(g_pts, points, max(radii))
+    out: dict = {"tau": float(tau)}
+    within = np.isfinite(near)
+    hit = np.zeros(len(g_pts), bool)
+    if within.any():
+        hit[within] = point_to_mesh(g_pts[within], pred)[0] <= tau
+    for r in radii:
+        mine = within & (near <= r)
+        out[f"footprint_samples@{r:g}"] = int(mine.sum())
+        out[f"footprint_recall@{r:g}"] = float(hit[mine].mean()) if mine.any() else None
+    p_pts, _ = sample_surface(pred, n_samples, seed)
+    out[f"precision@{tau:g}"] = float(np.mean(point_to_mesh(p_pts, gt)[0] <= tau))
+    topo = pred.topology
+    out.update(boundary_edges=int(topo.boundary_edges), components=int(topo.components))
     return out

@@ -196,7 +196,9 @@ def solve_key(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig, centre
                    "block": spec.block.to_dict(), "min_points": tiling.min_points, "orientation": rule,
                    "normal_neighbors": tiling.normal_neighbors, "solver": settings,
                    "centre": list(centre) if rule == "outward" and centre is not None else None,
-                   "version": __version__})
+                   "version": __version__,
+                   # only when on: keys of jobs that do not bridge stay those they were
+                   **({"bridge": tiling.bridge} if tiling.bridge else {})})
 
 
 def mesh_key(spec: TileSpec, field_sha: str, neighbors: list[tuple[str, str]], tiling: TilingConfig,

@@ -17,6 +17,7 @@ import numpy as np
 
 from .band import Band, dense_brick_table
 from .blend import blend_into
+from .bridge import bridged_cells
 from .field import Field
 from .io.atomic import atomic_path
 from .isosurface import extract_mesh
@@ -53,7 +54,8 @@ class MeshPiece:
 
 
 def trim_faces(mesh: Mesh, keys: np.ndarray | None, points: np.ndarray, max_distance: float,
-               keep_gaps: float = 0.0, ends: np.ndarray | None = None) -> tuple[Mesh, np.ndarray | None]:
+               keep_gaps: float = 0.0, ends: np.ndarray | None = None,
+               keep: np.ndarray | None = None) -> tuple[Mesh, np.ndarray | None]:
     """Drop faces whose centroid is farther than ``max_distance`` from every point (same units).
 
     With ``keep_gaps > 0``, a connected region of far faces stays when it is enclosed by kept faces and none of
@@ -73,6 +75,8 @@ def trim_faces(mesh: Mesh, keys: np.ndarray | None, points: np.ndarray, max_dist
     d = distances_to_cloud(mesh.vertices[mesh.faces].mean(axis=1), points,
                            max(max_distance, keep_gaps) if deep else max_distance)
     far = ~(np.isfinite(d) & (d <= max_distance))
+    if keep is not None:
+        far &= ~np.asarray(keep, bool)
     if keep_gaps > 0 and far.any():
         labels, count = vertex_components(mesh.n_vertices, mesh.faces[far])
         drop = np.zeros(count, bool)
@@ -170,7 +174,11 @@ def mesh_tile(spec, neighbors: list, tiling, key_ref: np.ndarray, field_path: st
     if tiling.trim_distance > 0 and mesh.n_faces:
         xyz, _ = read_tile_points(spec)
         pts = xyz.astype(np.float64) + block.low_corner
-        mesh, keys = trim_faces(mesh, keys, pts, tiling.trim_distance * block.cell_size)
+        keep = None
+        if tiling.bridge > 0:
+            centroid = (mesh.vertices[mesh.faces].mean(axis=1) - block.low_corner) / block.cell_size
+            keep = bridged_cells(fld, np.floor(centroid).astype(np.int64))
+        mesh, keys = trim_faces(mesh, keys, pts, tiling.trim_distance * block.cell_size, keep=keep)
     save_piece(MeshPiece(mesh.vertices, mesh.faces, keys), piece_path)
     return {"tile": spec.name, "faces": mesh.n_faces, "vertices": mesh.n_vertices, "trimmed": n_raw - mesh.n_faces,
             "blended_vertices": changed, "piece_path": str(piece_path), "time_s": time.perf_counter() - t0,

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .bridge import BridgeRule, bridge_field
 from .cloud import duplicate_mask
 from .config import SolverConfig
 from .errors import ConfigError, GridPullError
@@ -93,6 +94,10 @@ def solve_tile(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig, field
             if orientation_score(grads, normals) < 0:
                 fld.values *= -1
                 flipped = True
+        if tiling.bridge > 0 and rule in ("up", "sensor"):
+            # ground is bridged where outside is up; a closed object cut into tiles ("outward") has no ground
+            fld, bridged = bridge_field(fld, xyz, BridgeRule(radius=tiling.bridge))
+            summary.update(bridged)
         off_bricks = np.asarray(spec.block.offset, np.int64) // BRICK
         field_sha = save_tile_field(field_path, fld.band.brick_coords.astype(np.int64) + off_bricks, fld.values,
                                     fld.band.flags)

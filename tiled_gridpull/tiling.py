@@ -71,6 +71,11 @@ class TilingConfig:
     trim_distance : float
         Faces farther than this many cells from every input point are removed (the same absolute distance in
         every tile, so trimming never opens a crack along a tile border).
+    bridge : float
+        Gaps between scan lines on the ground are bridged where the upward-facing points within this many cells
+        surround a column on one gently sloping plane (:mod:`tiled_gridpull.bridge`): gaps up to about twice
+        this wide close; 0 keeps the surface to the data alone. At most the overlap, so that every tiling
+        decides each column alike.
     orientation : {"auto", "sensor", "up", "outward", "sphere"}
         Which side is outside: facing the sensor (per-point sensor origins, e.g. KITTI), facing up (airborne
         LAS), facing away from the centre of the whole input (one closed, roughly star-shaped object cut into
@@ -100,6 +105,7 @@ class TilingConfig:
     overlap: float | None = None
     min_points: int = 100
     trim_distance: float = 3.0
+    bridge: float = 0.0
     orientation: str = "auto"
     normal_neighbors: int = 16
     drop_outliers: bool = False
@@ -172,6 +178,9 @@ class TilingConfig:
         if self.trim_distance > self.overlap_cells and self.trim_distance > 0:
             raise ConfigError(f"trim_distance ({self.trim_distance} cells) must not exceed the overlap "
                               f"({self.overlap_cells} cells): a tile must see every point that can keep a face")
+        if self.bridge > self.overlap_cells:
+            raise ConfigError(f"bridge ({self.bridge:g} cells) must not exceed the overlap ({self.overlap_cells} "
+                              "cells): a tile must see every point that decides a bridged column")
 
     def _check_record_fields(self) -> None:
         """``derived`` and ``units`` are records of how sizes were found (set here, read back from sidecars)."""
@@ -190,6 +199,9 @@ class TilingConfig:
         object.__setattr__(self, "trim_distance", finite_number("trim_distance", self.trim_distance))
         if self.trim_distance < 0:
             raise ConfigError(f"trim_distance must be >= 0, got {self.trim_distance!r}")
+        object.__setattr__(self, "bridge", finite_number("bridge", self.bridge))
+        if self.bridge < 0:
+            raise ConfigError(f"bridge must be >= 0 (cells; 0: no bridging), got {self.bridge!r}")
         for name in ("min_points", "normal_neighbors"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1 or v >= 1 << 62:

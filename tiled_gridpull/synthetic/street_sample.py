@@ -45,7 +45,7 @@ def grid_frames_for_points(n_points: int, n_passes: int = 2 * GRID_STREETS) -> i
 def make_street_sample(out_dir: str | Path, n_points: int = 100_000, seed: int = 0,
                        origin: tuple[float, float, float] = (0.0, 0.0, 0.0), formats=("laz",), *,
                        range_noise: float = 0.0, crs_wkt: str | None = None, layout: str = "street",
-                       extent_m: float = 200.0) -> dict:
+                       extent_m: float = 200.0, frames: int | None = None) -> dict:
     """Build, scan and write a street (or a grid of streets) sized for about ``n_points`` points.
 
     Single street: the scene gets ``max(4, ceil(n_points / 100 000))`` frames 1 m apart and 40 m of street
@@ -73,6 +73,9 @@ def make_street_sample(out_dir: str | Path, n_points: int = 100_000, seed: int =
         See :class:`StreetScene`.
     extent_m : float
         Side of the grid's square (m); unused by the single street.
+    frames : int, optional
+        Single street: this many frames 1 m apart (a 10 Hz scanner on a car at 36 km/h), the street long enough
+        for them; the points are shared among them. Default: ``max(4, ceil(n_points / 100 000))``.
 
     Returns
     -------
@@ -98,7 +101,9 @@ def make_street_sample(out_dir: str | Path, n_points: int = 100_000, seed: int =
         n_frames = grid_frames_for_points(n_points, n_passes)
     else:
         n_passes = 1
-        n_frames = max(4, int(math.ceil(int(n_points) / 100_000)))
+        n_frames = max(4, int(math.ceil(int(n_points) / 100_000))) if frames is None else int(frames)
+        if n_frames < 1:
+            raise ValueError(f"frames must be >= 1, got {frames!r}")
         scene = StreetScene(seed=seed, length_m=street_length_for_frames(n_frames), origin=tuple(origin))
     out_dir.mkdir(parents=True, exist_ok=True)
     mesh = build_street(scene)

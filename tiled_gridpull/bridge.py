@@ -1,0 +1,194 @@
+"""Bridging the gaps a scanner leaves between its scan lines on the ground.
+
+A LiDAR on a car samples the road in rings that spread apart with range: along a ring the points are
+centimetres apart, between rings metres. The solved band holds a field only within a few cells of the points,
+so the road comes out as stripes. Where the ground points *around* a gap lie on one plane, the gap is a
+sampling gap, not a hole, and this module extends the field across it: every lattice column that is surrounded
+by ground samples (the lowest layer of points in each small bin) within ``radius`` cells, all on one gently
+sloping plane (no kerb, car or wall within
+reach), gets the signed distance to that plane on the few vertices around it. Marching cubes then draws the
+road across the gap, welded to the solved surface at its edges, and the trim keeps those faces (their cells
+carry the ``BRIDGE`` flag).
+
+What is never bridged: a gap with points on one side only (a building's shadow, the scan's outer edge, water
+with no returns wider than ``2 * radius``), a gap across a height step (the plane fit's residuals), steep
+ground, and anything farther than ``radius`` from the points. Each column is decided from the points within
+``radius`` of it alone; with ``radius`` at most a tile's overlap, every tiling decides it the same way.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .band import Band, dense_brick_table
+from .field import Field
+from .kernels import BRICK, BRICK_VOLUME, CELL_OPT, PARAM
+from .kernels import bridge as kb
+from .kernels.band import brick_neighbors
+from .nearest import distances_to_cloud
+
+__all__ = ["BRIDGE", "BridgeRule", "bridge_field", "bridged_cells"]
+
+# Cell flag: all 8 corners of the cell hold bridged values; the trim keeps faces drawn there.
+BRIDGE = 16
+
+
+@dataclass(frozen=True)
+class BridgeRule:
+    """When a gap between ground samples is bridged (lengths in cells).
+
+    Attributes
+    ----------
+    radius : float
+        Ground samples farther than this from a column do not count for it: gaps up to about twice this wide
+        are closed. 0 turns bridging off.
+    pixel : float
+        Ground samples are thinned to one per ``pixel`` x ``pixel`` cells.
+    skip : float
+        Columns with a ground sample closer than this keep the solved field alone.
+    max_gap_deg : float
+        Widest empty angle around a column (degrees) that still counts as surrounded by samples.
+    rms_tol, step_tol : float
+        Largest RMS residual of the local plane fit, and largest residual of the nearest sample in any
+        direction: beyond them the neighbourhood holds a height step and the gap stays open.
+    max_slope : float
+        Steepest ground bridged (rise over run).
+    layer : float
+        The ground of each bin is its lowest layer of points, this thick.
+    blend_from, blend_to : float
+        Distance from the nearest point (any point) over which the solved field hands over to the bridge.
+    half_height : int
+        Vertices bridged above and below the plane in each column.
+    """
+
+    radius: float = 24.0
+    pixel: float = 2.0
+    skip: float = 2.0
+    max_gap_deg: float = 120.0
+    rms_tol: float = 0.25
+    step_tol: float = 1.5
+    max_slope: float = 0.6
+    layer: float = 1.0
+    blend_from: float = 1.5
+    blend_to: float = 3.0
+    half_height: int = 3
+
+
+def bridged_cells(fld: Field, cells: np.ndarray) -> np.ndarray:
+    """Whether each cell (M, 3) int (lowest corner, block index) carries the ``BRIDGE`` flag."""
+    band = fld.band
+    cells = np.asarray(cells, np.int64)
+    out = np.zeros(len(cells), bool)
+    bt = band.brick_table
+    b = cells // BRICK
+    ok = np.all((b >= 0) & (b < np.asarray(bt.shape)), axis=1)
+    row = np.full(len(cells), -1, np.int64)
+    row[ok] = bt[b[ok, 0], b[ok, 1], b[ok, 2]]
+    ok &= row >= 0
+    local = cells[ok] % BRICK
+    slot = (local[:, 0] << 6) | (local[:, 1] << 3) | local[:, 2]
+    out[ok] = (band.flags[row[ok], slot] & BRIDGE) != 0
+    return out
+
+
+def bridge_field(fld: Field, points: np.ndarray, rule: BridgeRule) -> tuple[Field, dict]:
+    """The field with the ground's sampling gaps bridged.
+
+    Parameters
+    ----------
+    fld : Field
+        A solved signed field (values in cells, outside up) on a lattice in the points' frame.
+    points : (N, 3) float64
+        The tile's points (world units).
+    rule : BridgeRule
+
+    Returns
+    -------
+    Field
+        A new field: bricks added where the bridge needs them, bridged vertices made parameters, their cells
+        optimised and flagged ``BRIDGE``.
+    dict
+        ``bridged_columns`` and ``bridged_cells``.
+    """
+    band = fld.band
+    lat = band.lattice
+    if rule.radius <= 0 or len(points) == 0:
+        return fld, {"bridged_columns": 0, "bridged_cells": 0}
+    X, Y, Z = (int(v) for v in lat.shape)
+    cells = (np.asarray(points, np.float64) - np.asarray(lat.origin, np.float64)) / lat.cell_size
+    nx, ny = int(math.ceil(X / rule.pixel)), int(math.ceil(Y / rule.pixel))
+    rep = kb.bin_ground(cells[:, 0].copy(), cells[:, 1].copy(), cells[:, 2].copy(), float(rule.pixel), nx, ny,
+                        float(rule.layer))
+    ii, jj = np.meshgrid(np.arange(X), np.arange(Y), indexing="ij")
+    cols = np.stack([ii.ravel(), jj.ravel()], axis=1).astype(np.float64)
+    max_gap = int(math.floor(rule.max_gap_deg / (360.0 / kb.SECTORS)))
+    fit = kb.fit_columns(rep, float(rule.pixel), cols, float(rule.radius), float(rule.skip), max_gap,
+                         float(rule.rms_tol), float(rule.step_tol), float(rule.max_slope))
+    hit = np.flatnonzero(np.isfinite(fit[:, 0]))
+    if len(hit) == 0:
+        return fld, {"bridged_columns": 0, "bridged_cells": 0}
+    h, gx, gy = fit[hit, 0], fit[hit, 1], fit[hit, 2]
+    nz = 1.0 / np.sqrt(1.0 + gx * gx + gy * gy)
+    ks = np.floor(h)[:, None].astype(np.int64) + np.arange(-rule.half_height + 1, rule.half_height + 1)[None]
+    col_xy = cols[hit].astype(np.int64)
+    verts = np.concatenate([np.repeat(col_xy, ks.shape[1], axis=0), ks.reshape(-1, 1)], axis=1)
+    plane = ((ks - h[:, None]) * nz[:, None]).reshape(-1)
+    inside = (verts[:, 2] >= 0) & (verts[:, 2] < Z)
+    verts, plane = verts[inside], plane[inside]
+    # hand over from the solved field near the points to the plane beyond them
+    dist = distances_to_cloud(verts * lat.cell_size + np.asarray(lat.origin, np.float64), points,
+                              rule.blend_to * lat.cell_size) / lat.cell_size
+    w = np.clip((dist - rule.blend_from) / (rule.blend_to - rule.blend_from), 0.0, 1.0)
+    w[~np.isfinite(dist)] = 1.0
+
+    # bricks: the band's, then those only the bridge reaches
+    coords = band.brick_coords.astype(np.int64)
+    need = np.unique(verts // BRICK, axis=0)
+    bshape = band.brick_table.shape
+    have = band.brick_table[need[:, 0], need[:, 1], need[:, 2]] >= 0
+    new = need[~have]
+    coords = np.concatenate([coords, new]) if len(new) else coords
+    values = np.concatenate([fld.values, np.zeros((len(new), BRICK_VOLUME), np.float32)])
+    flags = np.concatenate([band.flags, np.zeros((len(new), BRICK_VOLUME), np.uint8)])
+    table = dense_brick_table(bshape, coords.astype(np.int32))
+    flat_v = values.reshape(-1)
+    flat_f = flags.reshape(-1)
+
+    def slots(v: np.ndarray) -> np.ndarray:
+        """Flat slot of each vertex (M, 3), -1 where its brick is absent or it is off the lattice."""
+        out = np.full(len(v), -1, np.int64)
+        ok = np.all((v >= 0) & (v < np.asarray([X, Y, Z])), axis=1)
+        b = table[v[ok, 0] // BRICK, v[ok, 1] // BRICK, v[ok, 2] // BRICK].astype(np.int64)
+        loc = v[ok] % BRICK
+        s = b * BRICK_VOLUME + ((loc[:, 0] << 6) | (loc[:, 1] << 3) | loc[:, 2])
+        out[ok] = np.where(b >= 0, s, -1)
+        return out
+
+    sv = slots(verts)
+    solved = (flat_f[sv] & PARAM) != 0
+    mixed = np.where(solved, (1.0 - w) * flat_v[sv] + w * plane, plane)
+    flat_v[sv] = mixed.astype(np.float32)
+    flat_f[sv] |= PARAM
+    is_bridge = np.zeros(len(flat_v), bool)
+    is_bridge[sv] = True
+
+    # cells touching a bridged vertex: optimised when all 8 corners are parameters, bridged when all 8 are bridged
+    corner = np.indices((2, 2, 2)).reshape(3, -1).T
+    cand = np.unique((verts[:, None, :] - corner[None]).reshape(-1, 3), axis=0)
+    cand = cand[np.all((cand >= 0) & (cand < np.asarray([X - 1, Y - 1, Z - 1])), axis=1)]
+    cs = np.stack([slots(cand + c) for c in corner], axis=1)
+    present = np.all(cs >= 0, axis=1)
+    cand, cs = cand[present], cs[present]
+    all_param = np.all((flat_f[cs] & PARAM) != 0, axis=1)
+    all_bridge = np.all(is_bridge[cs], axis=1)
+    lowest = cs[:, 0]
+    flat_f[lowest[all_param]] |= CELL_OPT
+    flat_f[lowest[all_bridge]] |= BRIDGE
+    coords32 = coords.astype(np.int32)
+    new_band = Band(lat, band.m1, band.m2, coords32, table, brick_neighbors(coords32, table), flags,
+                    dict(band.stats))
+    info = {"bridged_columns": int(len(hit)), "bridged_cells": int(all_bridge.sum())}
+    return Field(new_band, values, fld.signed, dict(fld.info)), info

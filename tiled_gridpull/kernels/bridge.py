@@ -1,0 +1,209 @@
+"""Bridging gaps between scan lines on near-horizontal ground: a local height fit per lattice column.
+
+Ground samples are binned into a 2D grid of ``pixel`` cells (one representative per pixel: the mean of the
+lowest layer of points there). For a lattice column, the representatives within ``radius`` cells are looked at in
+``SECTORS`` directions; the column is bridged only where they surround it (no run of empty sectors wider than
+``max_gap`` sectors), lie on one plane (weighted RMS residual and the largest residual of the nearest
+representative of each sector below tolerances) and that plane is not steep. Every column is decided from the
+representatives within ``radius`` alone, so two tiles that both hold them decide it alike.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+SECTORS = 12
+
+
+@njit(cache=True)
+def bin_ground(x, y, z, pixel, nx, ny, layer):
+    """Mean position of the lowest layer of points in each ``pixel`` x ``pixel`` bin of a 2D grid (cells).
+
+    The lowest layer (points within ``layer`` of the bin's lowest) is the ground where anything stands on it:
+    under a tree's crown, at a wall's foot (the wall's bin then reads the ground it stands on), beside a car.
+
+    Parameters
+    ----------
+    x, y, z : (N,) float64
+        Points in cells (block-local lattice coordinates).
+    pixel : float
+        Bin size in cells.
+    nx, ny : int
+        Bins per axis (points outside are ignored).
+    layer : float
+        Thickness of the lowest layer (cells).
+
+    Returns
+    -------
+    rep : (nx, ny, 3) float64
+        Mean x, y, z of each bin's lowest layer; NaN where a bin holds no point.
+    """
+    low = np.full((nx, ny), np.inf)
+    for n in range(x.shape[0]):
+        i = int(math.floor(x[n] / pixel))
+        j = int(math.floor(y[n] / pixel))
+        if 0 <= i < nx and 0 <= j < ny and z[n] < low[i, j]:
+            low[i, j] = z[n]
+    acc = np.zeros((nx, ny, 4))
+    for n in range(x.shape[0]):
+        i = int(math.floor(x[n] / pixel))
+        j = int(math.floor(y[n] / pixel))
+        if 0 <= i < nx and 0 <= j < ny and z[n] <= low[i, j] + layer:
+            acc[i, j, 0] += x[n]
+            acc[i, j, 1] += y[n]
+            acc[i, j, 2] += z[n]
+            acc[i, j, 3] += 1.0
+    rep = np.full((nx, ny, 3), np.nan)
+    for i in range(nx):
+        for j in range(ny):
+            c = acc[i, j, 3]
+            if c > 0:
+                rep[i, j, 0] = acc[i, j, 0] / c
+                rep[i, j, 1] = acc[i, j, 1] / c
+                rep[i, j, 2] = acc[i, j, 2] / c
+    return rep
+
+
+@njit(cache=True, parallel=True)
+def fit_columns(rep, pixel, cols, radius, skip, max_gap, rms_tol, step_tol, max_slope):
+    """Bridged height of each lattice column, or NaN where it is not bridged.
+
+    Parameters
+    ----------
+    rep : (nx, ny, 3) float64
+        Ground representatives per bin (:func:`bin_ground`), NaN where none.
+    pixel : float
+        Bin size in cells.
+    cols : (M, 2) float64
+        Column positions (x, y) in cells.
+    radius : float
+        Representatives farther than this (cells, horizontally) are not used.
+    skip : float
+        Columns with a representative closer than this are left to the solved field (NaN).
+    max_gap : int
+        Widest run of empty sectors (of ``SECTORS``) that still counts as surrounded.
+    rms_tol, step_tol : float
+        Largest weighted RMS residual of the plane fit, and largest residual of the nearest representative of
+        any sector (cells): more means a height step (a kerb, a car, a wall's foot) within reach.
+    max_slope : float
+        Largest gradient of the fitted plane (rise over run).
+
+    Returns
+    -------
+    out : (M, 3) float64
+        Height at the column and the plane's slopes (dz/dx, dz/dy); NaN rows where not bridged.
+    """
+    nx, ny = rep.shape[0], rep.shape[1]
+    m = cols.shape[0]
+    out = np.full((m, 3), np.nan)
+    reach = int(math.ceil(radius / pixel)) + 1
+    r2 = radius * radius
+    for c in prange(m):
+        cx, cy = cols[c, 0], cols[c, 1]
+        ic = int(math.floor(cx / pixel))
+        jc = int(math.floor(cy / pixel))
+        near_d = np.full(SECTORS, np.inf)
+        near_i = np.full(SECTORS, -1, np.int64)
+        near_j = np.full(SECTORS, -1, np.int64)
+        nearest = np.inf
+        for i in range(max(0, ic - reach), min(nx, ic + reach + 1)):
+            for j in range(max(0, jc - reach), min(ny, jc + reach + 1)):
+                if math.isnan(rep[i, j, 2]):
+                    continue
+                dx = rep[i, j, 0] - cx
+                dy = rep[i, j, 1] - cy
+                d2 = dx * dx + dy * dy
+                if d2 > r2:
+                    continue
+                if d2 < nearest:
+                    nearest = d2
+                a = math.atan2(dy, dx)
+                s = int((a + math.pi) / (2.0 * math.pi) * SECTORS) % SECTORS
+                if d2 < near_d[s]:
+                    near_d[s] = d2
+                    near_i[s] = i
+                    near_j[s] = j
+        if not nearest < r2 or nearest < skip * skip:
+            continue
+        # widest run of empty sectors, wrapping around
+        run = 0
+        widest = 0
+        for t in range(2 * SECTORS):
+            if near_i[t % SECTORS] < 0:
+                run += 1
+                if run > widest:
+                    widest = run
+            else:
+                run = 0
+        if widest > max_gap:
+            continue
+        # weighted plane z = h + gx (x - cx) + gy (y - cy): Gaussian weights as wide as the gap, so the nearest
+        # samples on every side shape the plane and far ones only steady it
+        sigma = max(1.5 * math.sqrt(nearest), pixel)
+        inv = 1.0 / (sigma * sigma)
+        A = np.zeros((3, 3))
+        b = np.zeros(3)
+        for i in range(max(0, ic - reach), min(nx, ic + reach + 1)):
+            for j in range(max(0, jc - reach), min(ny, jc + reach + 1)):
+                if math.isnan(rep[i, j, 2]):
+                    continue
+                dx = rep[i, j, 0] - cx
+                dy = rep[i, j, 1] - cy
+                d2 = dx * dx + dy * dy
+                if d2 > r2:
+                    continue
+                w = math.exp(-d2 * inv)
+                v0, v1, v2 = 1.0, dx, dy
+                zz = rep[i, j, 2]
+                A[0, 0] += w * v0 * v0
+                A[0, 1] += w * v0 * v1
+                A[0, 2] += w * v0 * v2
+                A[1, 1] += w * v1 * v1
+                A[1, 2] += w * v1 * v2
+                A[2, 2] += w * v2 * v2
+                b[0] += w * zz
+                b[1] += w * v1 * zz
+                b[2] += w * v2 * zz
+        A[1, 0] = A[0, 1]
+        A[2, 0] = A[0, 2]
+        A[2, 1] = A[1, 2]
+        det = np.linalg.det(A)
+        if not abs(det) > 1e-12 * (A[0, 0] * A[1, 1] * A[2, 2] + 1e-300):
+            continue
+        sol = np.linalg.solve(A, b)
+        h, gx, gy = sol[0], sol[1], sol[2]
+        if gx * gx + gy * gy > max_slope * max_slope:
+            continue
+        ss = 0.0
+        sw = 0.0
+        for i in range(max(0, ic - reach), min(nx, ic + reach + 1)):
+            for j in range(max(0, jc - reach), min(ny, jc + reach + 1)):
+                if math.isnan(rep[i, j, 2]):
+                    continue
+                dx = rep[i, j, 0] - cx
+                dy = rep[i, j, 1] - cy
+                d2 = dx * dx + dy * dy
+                if d2 > r2:
+                    continue
+                w = math.exp(-d2 * inv)
+                e = rep[i, j, 2] - (h + gx * dx + gy * dy)
+                ss += w * e * e
+                sw += w
+        if not ss <= rms_tol * rms_tol * sw:
+            continue
+        worst = 0.0
+        for s in range(SECTORS):
+            if near_i[s] >= 0:
+                i, j = near_i[s], near_j[s]
+                e = abs(rep[i, j, 2] - (h + gx * (rep[i, j, 0] - cx) + gy * (rep[i, j, 1] - cy)))
+                if e > worst:
+                    worst = e
+        if worst > step_tol:
+            continue
+        out[c, 0] = h
+        out[c, 1] = gx
+        out[c, 2] = gy
+    return out
