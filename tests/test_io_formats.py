@@ -321,6 +321,44 @@ def test_ply_offset_comment_of_another_tool_is_not_applied(tmp_path):
     np.testing.assert_allclose(read_mesh(p).vertices, xyz + [1000, 2000, 3000], rtol=0, atol=1e-9)
 
 
+@pytest.mark.parametrize("offset", ["1e308 0 0", "nan 0 0", "0 inf 0", "-1e200 5 5", "1 two 3"])
+def test_ply_absurd_offset_beside_our_generator_is_refused_naming_it(tmp_path, offset):
+    """Our own file's offset is trusted: one that is not finite, or beyond what float64 arithmetic resolves
+    (1e308 made the one-shape solve fail with LinAlgError), is damage, refused in one line naming it."""
+    from tiled_gridpull.io import read_mesh
+
+    xyz = cloud_xyz(12)
+    p = tmp_path / "ours.ply"
+    p.write_text("ply\nformat ascii 1.0\ncomment generator tiled_gridpull 0.1.0\n"
+                 f"comment offset {offset}\nelement vertex 12\nproperty float x\nproperty float y\n"
+                 "property float z\nend_header\n" + "".join(f"{a!r} {b!r} {c!r}\n" for a, b, c in xyz.tolist()))
+    for read in (read_points, lambda q: next(iter_point_chunks(q)), read_mesh):
+        with pytest.raises(InputError, match=rf"ours\.ply: .*offset '{offset}'"):
+            read(p)
+
+
+@pytest.mark.parametrize("scale,offset,needle", [
+    (float("nan"), 0.0, "scale"), (0.0, 0.0, "scale"), (1e300, 0.0, "scale"),
+    (0.001, 1e308, "offset"), (0.001, float("inf"), "offset"),
+])
+def test_las_absurd_scale_or_offset_is_refused_naming_it(tmp_path, scale, offset, needle):
+    """laspy applies the header's scale and offset to every point: non-finite, zero or absurd ones
+    are refused in one line naming them (not points that are all NaN, identical or overflowing)."""
+    import laspy
+
+    p = write_las(tmp_path / "bad.las", cloud_xyz(20), offset=[0.0, 0.0, 0.0])
+    las = laspy.read(str(p))
+    raw = p.read_bytes()
+    # scales at bytes 131..155, offsets at 155..179 of the public header block (LAS 1.2)
+    fields = np.frombuffer(raw[131:179], "<f8").copy()
+    fields[0], fields[3] = scale, offset
+    p.write_bytes(raw[:131] + fields.tobytes() + raw[179:])
+    assert len(las.points) == 20
+    for read in (read_points, lambda q: next(iter_point_chunks(q))):
+        with pytest.raises(InputError, match=rf"bad\.las: .*{needle}"):
+            read(p)
+
+
 def test_ply_faces_but_no_vertices(tmp_path):
     p = tmp_path / "faces.ply"
     p.write_text("ply\nformat ascii 1.0\nelement vertex 0\nproperty float x\nproperty float y\n"

@@ -250,3 +250,21 @@ def test_band_edges_option_reaches_the_solve_and_the_sidecar(tmp_path, capsys):
         rec = json.loads(out.with_suffix(".json").read_text())["band_edges"]
         assert rec["rule"] == rule and rec["loops"] == 2, rec  # one at each end of the tube
         assert (rec["faces_trimmed"] > 0, rec["loops_closed"]) == (rule == "trim", 2 if rule == "close" else 0), rec
+
+
+@pytest.mark.parametrize("tiled", [False, True])
+def test_absurd_ply_offset_is_exit_3_one_line_in_both_modes(tmp_path, capsys, sphere_xyz, tiled):
+    """Our own PLY's ``comment offset 1e308 0 0``: one-shape mode failed with "internal error: LinAlgError"
+    (exit 1), tiled mode with a numpy message about the lattice origin (exit 2)."""
+    pts = np.loadtxt(sphere_xyz)
+    src = tmp_path / "ours.ply"
+    src.write_text("ply\nformat ascii 1.0\ncomment generator tiled_gridpull 0.1.0\ncomment offset 1e308 0 0\n"
+                   f"element vertex {len(pts)}\nproperty float x\nproperty float y\nproperty float z\nend_header\n"
+                   + "".join(f"{a} {b} {c}\n" for a, b, c in pts))
+    out = tmp_path / "out.ply"
+    mode = ["--voxel-size", "0.1"] if tiled else ["--resolution", "32"]
+    code, _, err = run(["reconstruct", str(src), "-o", str(out), "-q", *mode], capsys)
+    assert code == 3, err
+    _one_error_line(err)
+    assert "offset '1e308 0 0'" in err and str(src) in err
+    assert not out.exists() and not out.with_suffix(".json").exists()

@@ -25,7 +25,10 @@ _DEGENERATE_RTOL = 1e-9
 # Degeneracy is first tested on this many evenly spaced points: a non-degenerate subset proves the whole
 # cloud non-degenerate, so the full O(N) factorisation is only needed for (nearly) degenerate clouds.
 _IDENTICAL_ULPS = 64
-_EXTENT_RANGE = (1e-150, 1e150)
+#: Largest coordinate magnitude float64 arithmetic on a cloud resolves: beyond it squared distances overflow
+#: (and sums over a few points). Readers refuse a header's offset or scale that would put points there.
+COORDINATE_LIMIT = 1e150
+_EXTENT_RANGE = (1e-150, COORDINATE_LIMIT)
 _DEGENERATE_SAMPLE = 200_000
 
 
