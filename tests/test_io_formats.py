@@ -573,10 +573,12 @@ def make_sequence(root: Path, n_frames=3, *, poses=None, calib=True, subdir=True
     (root / "poses.txt").write_text("\n".join(lines) + "\n")
     # velodyne -> camera: x_cam = -y_velo, y_cam = -z_velo, z_cam = x_velo, plus a small shift
     tr = np.array([[0, -1, 0, 0.25], [0, 0, -1, -0.5], [1, 0, 0, 1.0]], dtype=np.float64)
+    if calib == "identity":  # poses already in the velodyne frame: said so with an identity Tr
+        tr = np.eye(4)[:3]
     if calib:
         (root / "calib.txt").write_text("P0: " + " ".join(["0"] * 12) + "\nTr: "
                                         + " ".join(repr(float(v)) for v in tr.ravel()) + "\n")
-    return frames, poses, (tr if calib else np.eye(4)[:3])
+    return frames, poses, tr
 
 
 def expected_world(frames, poses, tr, which):
@@ -591,7 +593,7 @@ def expected_world(frames, poses, tr, which):
     return np.concatenate(pts), np.concatenate(origins), np.concatenate(ids)
 
 
-@pytest.mark.parametrize("calib,subdir", [(True, True), (False, False)])
+@pytest.mark.parametrize("calib,subdir", [(True, True), ("identity", False)])
 def test_kitti_sequence_world_transform(tmp_path, calib, subdir):
     frames, poses, tr = make_sequence(tmp_path / "seq", calib=calib, subdir=subdir)
     cloud = read_kitti_sequence(tmp_path / "seq")
@@ -695,6 +697,24 @@ def test_kitti_wrong_poses_length(tmp_path):
     with pytest.raises(InputError, match="poses.txt has 3 poses but frame 000004 was requested"):
         read_kitti_sequence(tmp_path / "seq", frames=(2, 5))
     assert len(read_kitti_sequence(tmp_path / "seq", frames=(0, 3)).xyz) == 10 + 11 + 12
+
+
+def test_kitti_sequence_without_calib_is_refused_not_merged_with_identity(tmp_path, capsys):
+    """KITTI poses are camera-0 poses: without calib.txt's velodyne-to-camera Tr the scans would be placed
+    rotated by 90 degrees about two axes (they were merged with an identity Tr, without a word). Refused in one
+    line naming the file and the way on (the calibration, or an identity Tr for poses in the velodyne frame)."""
+    from tiled_gridpull.pipeline.cli import main
+
+    make_sequence(tmp_path / "seq", calib=False)
+    for read in (read_kitti_sequence, lambda q: next(iter_point_chunks(q))):
+        with pytest.raises(InputError, match=r"seq: KITTI sequence has no calib\.txt.*Tr: 1 0 0 0 0 1 0 0 0 0 1 0"):
+            read(tmp_path / "seq")
+    out = tmp_path / "o.ply"
+    code = main(["reconstruct", str(tmp_path / "seq"), "-o", str(out), "-q", "--voxel-size", "1"])
+    err = capsys.readouterr().err
+    lines = [ln for ln in err.strip().splitlines() if ln.strip()]
+    assert code == 3 and len(lines) == 1 and "calib.txt" in lines[0] and "Traceback" not in err, err
+    assert not out.exists()
 
 
 def test_kitti_malformed_files(tmp_path):
