@@ -241,13 +241,16 @@ def _scan(chunks) -> dict:
     n = 0
     sample = []
     has_sensor = True
-    crs = crs_source = None
+    crs = crs_source = bare_source = None  # the first chunk declaring a CRS, and the first declaring none
     for chunk in chunks:
         if chunk.crs:
             if crs is None:
                 crs, crs_source = chunk.crs, chunk.source
-            else:
-                check_same_crs([(crs, crs_source), (chunk.crs, chunk.source)])
+            check_same_crs([(crs, crs_source), (chunk.crs, chunk.source)])
+        elif bare_source is None:
+            bare_source = chunk.source
+        if crs is not None and bare_source is not None:
+            check_same_crs([(crs, crs_source), (None, bare_source)])
         if len(chunk) == 0:
             continue
         lo = np.minimum(lo, chunk.xyz.min(axis=0))
@@ -257,13 +260,14 @@ def _scan(chunks) -> dict:
         # a copy: a strided view would keep every whole chunk alive, i.e. the whole input in memory
         sample.append(chunk.xyz[::SAMPLE_STRIDE].copy())
     return {"lo": lo, "hi": hi, "points": n, "has_sensor": bool(has_sensor), "crs": crs, "crs_source": crs_source,
-            "sample": sample}
+            "bare_source": bare_source, "sample": sample}
 
 
 def _joined_scan(parts: list[dict], inputs) -> dict:
     """The scan of the whole stream from its segments' scans, in stream order (the same facts, the same refusal
-    of a second CRS, as one pass)."""
-    check_same_crs([(p["crs"], p["crs_source"]) for p in parts])
+    of a second CRS or of inputs without one, as one pass)."""
+    check_same_crs([(p["crs"], p["crs_source"]) for p in parts if p["crs"]]
+                   + [(None, p["bare_source"]) for p in parts if p["bare_source"] is not None])
     n = sum(p["points"] for p in parts)
     if n == 0:
         raise InputError(f"{', '.join(map(shown, inputs))}: no points")
