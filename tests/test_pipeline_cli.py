@@ -268,3 +268,21 @@ def test_absurd_ply_offset_is_exit_3_one_line_in_both_modes(tmp_path, capsys, sp
     _one_error_line(err)
     assert "offset '1e308 0 0'" in err and str(src) in err
     assert not out.exists() and not out.with_suffix(".json").exists()
+
+
+def test_planar_patch_is_meshed_in_udf_mode_and_refused_in_signed_mode(tmp_path, capsys):
+    """``--mode udf`` takes an exactly planar patch (an open flat surface); the signed mode refuses it."""
+    from tiled_gridpull.io import read_mesh
+
+    rng = np.random.default_rng(0)
+    src = tmp_path / "plane.xyz"
+    np.savetxt(src, np.c_[rng.random((3000, 2)) * 4.0, np.full(3000, 1.5)])
+    out = tmp_path / "out.ply"
+    fast = ["--resolution", "32", "--iterations", "100", "--set", "coarse_iterations=100"]
+    code, _, err = run(["reconstruct", str(src), "-o", str(out), "-q", *fast], capsys)
+    assert code == 3 and "coplanar" in err and not out.exists()
+    _one_error_line(err)
+    code, _, err = run(["reconstruct", str(src), "-o", str(out), "-q", "--mode", "udf", *fast], capsys)
+    assert code == 0, err
+    mesh = read_mesh(out)
+    assert mesh.n_faces > 0 and np.abs(mesh.vertices[:, 2] - 1.5).max() < 0.05

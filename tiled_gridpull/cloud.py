@@ -166,7 +166,8 @@ def clean_points(cloud: PointCloud, *, what: str = "", min_points: int = 10,
         raise InputError(f"{what}: only {m} points{extra} (at least {min_points} needed)")
     kind = _degeneracy(xyz, reject_planar)
     if kind is not None:
-        raise InputError(f"{what}: all {m} points are {kind}; a surface cannot be reconstructed from them")
+        hint = " (an open flat patch is meshed by the unsigned mode: --mode udf)" if kind == "coplanar" else ""
+        raise InputError(f"{what}: all {m} points are {kind}; a surface cannot be reconstructed from them{hint}")
     extent = float(np.max(xyz.max(axis=0) - xyz.min(axis=0)))
     if not _EXTENT_RANGE[0] <= extent <= _EXTENT_RANGE[1]:
         # squared distances of such an extent underflow or overflow float64: the mesh would be garbage
