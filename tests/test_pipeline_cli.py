@@ -286,3 +286,20 @@ def test_planar_patch_is_meshed_in_udf_mode_and_refused_in_signed_mode(tmp_path,
     assert code == 0, err
     mesh = read_mesh(out)
     assert mesh.n_faces > 0 and np.abs(mesh.vertices[:, 2] - 1.5).max() < 0.05
+
+
+@pytest.mark.parametrize("dry_run", [False, True])
+def test_collinear_points_are_refused_in_tiled_mode_too(tmp_path, capsys, dry_run):
+    """Tiled mode meshed points on a line (a mesh made from a line) that one-shape mode refuses: the same rule
+    (tiled_gridpull.cloud.degeneracy) now refuses them before anything is written, from the dry run too."""
+    t = np.linspace(0.0, 10.0, 3000)
+    src = tmp_path / "line.xyz"
+    np.savetxt(src, np.c_[t, 2 * t + 1, 3 * t - 2])
+    out = tmp_path / "out.ply"
+    code, _, err = run(["reconstruct", str(src), "-o", str(out), "-q", "--voxel-size", "0.25",
+                        *(["--dry-run"] if dry_run else [])], capsys)
+    assert code == 3, err
+    _one_error_line(err)
+    assert "collinear" in err and str(src) in err
+    assert not out.exists() and not out.with_suffix(".json").exists()
+    assert not (out.with_suffix(".job") / "manifest.json").exists()

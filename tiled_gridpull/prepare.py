@@ -20,7 +20,7 @@ from ._version import __version__
 from .config import SCAN_NOISE_SETTINGS, SolverConfig
 from .crs import check_same_crs, crs_name
 from .errors import ConfigError, InputError
-from .cloud import PointCloud
+from .cloud import PointCloud, degenerate_error, stream_degeneracy
 from .io import iter_point_chunks, iter_row_chunks
 from .io.kitti import kitti_chunks
 from .io.indexed import indexed_kind
@@ -415,6 +415,9 @@ def plan_inputs(inputs: list[str], tiling: TilingConfig, *, chunk_size: int = 2_
                 run_tasks: Callable | None = None) -> tuple[TilePlan, dict, Callable[[], Iterator]]:
     """Scan the inputs and lay the tile plan over them (the job's and ``--dry-run``'s first step).
 
+    Identical or collinear points are refused as one-shape mode refuses them
+    (:func:`~tiled_gridpull.cloud.stream_degeneracy`); coplanar ones are a legal scene.
+
     Points far from the rest (:mod:`tiled_gridpull.outliers`) are dropped when ``tiling.drop_outliers`` is set
     (a warning says how many); otherwise, when they stretch the lattice past what it can hold, the refusal says
     how many there are and how to drop them.
@@ -455,6 +458,12 @@ def plan_inputs(inputs: list[str], tiling: TilingConfig, *, chunk_size: int = 2_
             warnings.warn(f"drop_outliers: {describe(n_far, scan['points'], box, example)}: dropped",
                           stacklevel=2)
             scan["bounds"], scan["points"] = inside, scan["points"] - n_far
+    # one-shape mode's rule (coplanar points are a legal scene: a flat parking lot); a sample that is not
+    # degenerate settles it, so only a degenerate-looking input is read again
+    kind = stream_degeneracy(lambda: (c.xyz for c in chunks()), reject_planar=False,
+                             sample=None if scan.get("far_points_dropped") else sample)  # it holds them
+    if kind is not None:
+        raise degenerate_error(", ".join(map(shown, inputs)), scan["points"], kind)
     try:
         plan = plan_tiles(scan["bounds"], scan["points"], tiling)
     except LatticeSpanError as exc:
