@@ -26,7 +26,8 @@ def check_path(path: str | os.PathLike) -> Path:
     return p
 
 
-def check_frame(where: str, offset, scale=None, *, reach: float = 0.0, written: str | None = None) -> None:
+def check_frame(where: str, offset, scale=None, *, reach: float = 0.0, written: str | None = None,
+                label: str = "offset") -> None:
     """Refuse the offset (and scale) a file's header applies to every coordinate when the coordinates they
     make cannot be computed with: not finite, a zero scale, or beyond
     :data:`~tiled_gridpull.cloud.COORDINATE_LIMIT` (an offset of 1e308 passes every reader, then overflows the
@@ -43,6 +44,8 @@ def check_frame(where: str, offset, scale=None, *, reach: float = 0.0, written: 
         Largest stored value the scale multiplies (2**31 for LAS's int32 records).
     written : str, optional
         The offset as the header writes it, shown instead of the parsed numbers.
+    label : str
+        What the header calls the offset ("offset", an E57 pose's "translation").
 
     Raises
     ------
@@ -52,7 +55,7 @@ def check_frame(where: str, offset, scale=None, *, reach: float = 0.0, written: 
     offset = np.asarray(offset, dtype=np.float64)
     shown_offset = written if written is not None else " ".join(f"{v:g}" for v in offset)
     if not np.all(np.isfinite(offset)) or np.abs(offset).max() > COORDINATE_LIMIT:
-        raise InputError(f"{where} offset '{shown_offset}' is not 3 finite numbers within +-{COORDINATE_LIMIT:g} "
+        raise InputError(f"{where} {label} '{shown_offset}' is not 3 finite numbers within +-{COORDINATE_LIMIT:g} "
                          "(coordinates beyond that overflow float64 arithmetic): a damaged header")
     if scale is None:
         return
