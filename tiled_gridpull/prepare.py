@@ -43,7 +43,8 @@ __all__ = ["check_registered", "resolve_units", "head_points", "scan_noise_treat
 def check_registered(inputs: list[str]) -> None:
     """Refuse inputs that are not in one frame: a single KITTI scan (``.bin``) holds points in its own sensor
     frame, so merging it with any other input would overlay scans taken from different places as if they were
-    registered. A KITTI sequence directory (its ``poses.txt`` places every frame) is the way to give several.
+    registered. A KITTI sequence directory (its ``poses.txt`` and ``calib.txt`` place every frame) is the way to give
+    several.
 
     Raises
     ------
@@ -55,7 +56,7 @@ def check_registered(inputs: list[str]) -> None:
         shown = ", ".join(scans[:3]) + (f" and {len(scans) - 3} more" if len(scans) > 3 else "")
         raise InputError(f"{shown}: a KITTI scan file is in its own sensor frame and cannot be merged with other "
                          f"inputs ({len(inputs)} given) without poses; give the sequence directory (velodyne/*.bin "
-                         f"with poses.txt) instead, or one scan alone")
+                         f"with poses.txt and calib.txt) instead, or one scan alone")
 
 
 def check_remote(inputs: list[str], trajectory=None, tiling: TilingConfig | None = None) -> None:
