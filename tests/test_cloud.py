@@ -240,3 +240,6 @@ def test_stream_degeneracy_is_the_rule_of_clean_points():
                                     reject_planar=flat, sample=pts[::16])
             assert got == expected, (expected, got, size)
     assert degeneracy(off_line, reject_planar=False) is None and degeneracy(line, reject_planar=False) == "collinear"
+    two = line[:2]
+    assert stream_degeneracy(lambda: iter([two[:1], two[1:]]), reject_planar=False) == "collinear"
+    assert stream_degeneracy(lambda: iter([]), reject_planar=False) is None

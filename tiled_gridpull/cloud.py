@@ -23,13 +23,13 @@ __all__ = ["PointCloud", "clean_points", "duplicate_mask", "concat_clouds", "clo
 
 # Relative tolerance on singular values for the collinear / coplanar tests (see clean_points).
 _DEGENERATE_RTOL = 1e-9
-# Degeneracy is first tested on this many evenly spaced points: a non-degenerate subset proves the whole
-# cloud non-degenerate, so the full O(N) factorisation is only needed for (nearly) degenerate clouds.
 _IDENTICAL_ULPS = 64
 #: Largest coordinate magnitude float64 arithmetic on a cloud resolves: beyond it squared distances overflow
 #: (and sums over a few points). Readers refuse a header's offset or scale that would put points there.
 COORDINATE_LIMIT = 1e150
 _EXTENT_RANGE = (1e-150, COORDINATE_LIMIT)
+# Degeneracy is first tested on this many evenly spaced points: a non-degenerate subset proves the whole
+# cloud non-degenerate, so the full O(N) factorisation is only needed for (nearly) degenerate clouds.
 _DEGENERATE_SAMPLE = 200_000
 
 
@@ -412,7 +412,10 @@ def stream_degeneracy(chunks: Callable[[], Iterable[np.ndarray]], *, reject_plan
     for xyz in chunks():
         if len(xyz):
             r = np.linalg.qr(np.vstack([r, xyz - mean]), mode="r")
-    return _classify(np.linalg.svd(r, compute_uv=False), largest, n, reject_planar)
+    s = np.zeros(3)  # fewer than 3 points have fewer singular values: the missing ones are 0
+    sv = np.linalg.svd(r, compute_uv=False)
+    s[:len(sv)] = sv
+    return _classify(s, largest, n, reject_planar)
 
 
 def degenerate_error(what: str, n: int, kind: str) -> InputError:
