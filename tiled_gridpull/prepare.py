@@ -27,7 +27,8 @@ from .io.indexed import indexed_kind
 from .io.remote import is_url, recorded, shown
 from .jobdir import JobPaths, write_manifest
 from .outliers import SAMPLE_STRIDE, body_box, describe, far_mask
-from .indexed_inputs import all_indexed, candidate_tiles, indexed_sources, plan_indexed, read_tile
+from .indexed_inputs import (all_indexed, candidate_tiles, indexed_degeneracy, indexed_sources, plan_indexed,
+                             read_tile)
 from .partition import merge_segments, partition
 from .resume import load_partition, partition_key, scan_record
 from .tile_plan import LatticeSpanError, TilePlan, TileSpec, plan_tiles
@@ -571,6 +572,9 @@ def _read_indexed(inputs, tiling, paths: JobPaths, check, run_tasks):
     sources = indexed_sources(inputs)
     plan, scan, indexes = plan_indexed(inputs, tiling, sources)
     tiles = candidate_tiles(indexes, plan)
+    kind = indexed_degeneracy(sources, plan, tiles)  # as plan_inputs refuses streamed inputs
+    if kind is not None:
+        raise degenerate_error(", ".join(map(shown, inputs)), scan["points"], kind)
     out = paths.points()
     out.mkdir(parents=True, exist_ok=True)
     args = [(sources, plan, t, str(out)) for t in tiles]
