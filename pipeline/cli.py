@@ -304,7 +304,8 @@ def cmd_reconstruct(args) -> int:
         raise ConfigError("--dry-run applies to tiled mode: give --voxel-size too")
     if len(args.inputs) != 1:
         raise InputError("one-shape mode reads one input; give --voxel-size to reconstruct several files as tiles")
-    cloud = read_points(args.inputs[0])
+    # cleaned by reconstruct, whose mode decides whether a flat patch is data (udf) or degenerate (sdf)
+    cloud = read_points(args.inputs[0], clean=False)
     log.info("read %s: %d points", args.inputs[0], len(cloud))
     bar = _progress_bar(cfg.total_iterations(cfg.resolution), args)
     try:

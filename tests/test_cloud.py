@@ -219,3 +219,27 @@ def test_reconstruct_accepts_pyvista_and_open3d_like_clouds_with_their_normals()
     np.testing.assert_array_equal(got.vertices, with_normals.vertices)
     with pytest.raises(InputError, match="needs input normals"):
         reconstruct(FakeOpen3dCloud(pts), normal_weight=0.1, **fast)
+
+
+def test_stream_degeneracy_is_the_rule_of_clean_points():
+    """The streamed test (tiled mode) gives what the whole-array test gives, chunk size and sample aside."""
+    from tiled_gridpull.cloud import degeneracy, stream_degeneracy
+
+    rng = np.random.default_rng(4)
+    t = rng.random(1000)
+    line = np.c_[t, 2 * t, 3 * t] * 50 + [4e6, 5e5, 100.0]
+    plane = np.c_[rng.random((1000, 2)), np.zeros(1000)] @ np.linalg.qr(rng.normal(size=(3, 3)))[0].T
+    off_line = line.copy()
+    off_line[5] += [0.0, 1.0, 0.0]  # one point off the line, not in an every-16th sample
+    same = np.tile([[1e6, 2e6, 3.0]], (100, 1))
+    for pts, flat in ((line, False), (plane, False), (plane, True), (off_line, False), (same, False),
+                      (rng.random((500, 3)), True)):
+        expected = degeneracy(pts, reject_planar=flat)
+        for size in (7, 100, 5000):
+            got = stream_degeneracy(lambda: (pts[i:i + size] for i in range(0, len(pts), size)),
+                                    reject_planar=flat, sample=pts[::16])
+            assert got == expected, (expected, got, size)
+    assert degeneracy(off_line, reject_planar=False) is None and degeneracy(line, reject_planar=False) == "collinear"
+    two = line[:2]
+    assert stream_degeneracy(lambda: iter([two[:1], two[1:]]), reject_planar=False) == "collinear"
+    assert stream_degeneracy(lambda: iter([]), reject_planar=False) is None

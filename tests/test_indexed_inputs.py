@@ -274,3 +274,26 @@ def test_a_point_no_tile_task_read_is_refused(inputs, tmp_path, monkeypatch):
     with pytest.raises(InputError, match="the tiles read [0-9,]+ points, the headers declare"):
         prepare_job([inputs["EPT"]], TILING, JobPaths(tmp_path / "b"))
     assert not (tmp_path / "b" / "points").exists()
+
+
+@pytest.mark.parametrize("kind", ["COPC", "EPT"])
+def test_collinear_indexed_inputs_are_refused_before_any_tile_is_read(tmp_path, kind):
+    """Tiled mode's rule for streamed inputs (one-shape mode's: identical or collinear points are refused) holds
+    for indexed inputs too; a line with one point off it is a (thin) scene, not refused."""
+    from tiled_gridpull.cloud import degeneracy
+    from tiled_gridpull.io import read_points
+
+    k = np.random.default_rng(1).permutation(6000).astype(np.float64)
+    line = np.c_[4 * k, 2 * k, k] * 0.001 + [500000.0, 4000000.0, 2.0]  # on the files' millimetre grid
+    write = write_copc if kind == "COPC" else write_ept
+    name = "l.copc.laz" if kind == "COPC" else "l"
+    p = write(tmp_path / name, line, max_node_points=1000, scale=0.001)
+    assert degeneracy(read_points(p, clean=False).xyz, reject_planar=False) == "collinear"  # as stored
+    with pytest.raises(InputError, match=r"all 6000 points are collinear"):
+        prepare_job([str(p)], TILING, JobPaths(tmp_path / "j"))
+    assert not (tmp_path / "j" / "points").exists() and not (tmp_path / "j" / "manifest.json").exists()
+    bent = line.copy()
+    bent[4321] += [0.0, 1.0, 0.0]
+    q = write(tmp_path / ("b.copc.laz" if kind == "COPC" else "b"), bent, max_node_points=1000, scale=0.001)
+    plan, specs, scan = prepare_job([str(q)], TILING, JobPaths(tmp_path / "k"))
+    assert scan["points"] == 6000 and specs

@@ -79,3 +79,28 @@ def test_damaged_e57_is_one_line(tmp_path, capsys, damage):
     lines = [ln for ln in err.strip().splitlines() if ln.strip()]
     assert code == 3 and len(lines) == 1 and "two.e57" in lines[0] and "Traceback" not in err, err
     assert not (tmp_path / "o.ply").exists()
+
+
+@pytest.mark.parametrize("translation,rotation,needle", [
+    ((1e308, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0), "scan 0's pose translation '1e+308 0 0'"),
+    ((0.0, -1e200, 0.0), (1.0, 0.0, 0.0, 0.0), "scan 0's pose translation '0 -1e+200 0'"),
+    ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 0.0), "scan 0's pose rotation '0 0 0 0' is not a quaternion"),
+])
+def test_absurd_scan_pose_is_refused_naming_it(tmp_path, capsys, translation, rotation, needle):
+    """pye57 applies every scan's pose to its points: a translation of 1e308 made the one-shape solve fail with
+    LinAlgError, a zero quaternion put every point on the scanner ("all points are identical")."""
+    p = tmp_path / "pose.e57"
+    rng = np.random.default_rng(0)
+    xyz = rng.normal(size=(500, 3))
+    e57 = pye57.E57(str(p), mode="w")
+    e57.write_scan_raw({"cartesianX": xyz[:, 0], "cartesianY": xyz[:, 1], "cartesianZ": xyz[:, 2]},
+                       rotation=np.array(rotation), translation=np.array(translation))
+    e57.close()
+    for read in (read_points, lambda q: next(iter_point_chunks([q]))):
+        with pytest.raises(InputError, match=needle.replace("+", r"\+")):
+            read(p)
+    code = main(["reconstruct", str(p), "-o", str(tmp_path / "o.ply"), "-q"])
+    err = capsys.readouterr().err
+    lines = [ln for ln in err.strip().splitlines() if ln.strip()]
+    assert code == 3 and len(lines) == 1 and "pose" in lines[0] and "Traceback" not in err, err
+    assert not (tmp_path / "o.ply").exists()

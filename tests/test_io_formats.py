@@ -321,6 +321,44 @@ def test_ply_offset_comment_of_another_tool_is_not_applied(tmp_path):
     np.testing.assert_allclose(read_mesh(p).vertices, xyz + [1000, 2000, 3000], rtol=0, atol=1e-9)
 
 
+@pytest.mark.parametrize("offset", ["1e308 0 0", "nan 0 0", "0 inf 0", "-1e200 5 5", "1 two 3"])
+def test_ply_absurd_offset_beside_our_generator_is_refused_naming_it(tmp_path, offset):
+    """Our own file's offset is trusted: one that is not finite, or beyond what float64 arithmetic resolves
+    (1e308 made the one-shape solve fail with LinAlgError), is damage, refused in one line naming it."""
+    from tiled_gridpull.io import read_mesh
+
+    xyz = cloud_xyz(12)
+    p = tmp_path / "ours.ply"
+    p.write_text("ply\nformat ascii 1.0\ncomment generator tiled_gridpull 0.1.0\n"
+                 f"comment offset {offset}\nelement vertex 12\nproperty float x\nproperty float y\n"
+                 "property float z\nend_header\n" + "".join(f"{a!r} {b!r} {c!r}\n" for a, b, c in xyz.tolist()))
+    for read in (read_points, lambda q: next(iter_point_chunks(q)), read_mesh):
+        with pytest.raises(InputError, match=rf"ours\.ply: .*offset '{offset}'"):
+            read(p)
+
+
+@pytest.mark.parametrize("scale,offset,needle", [
+    (float("nan"), 0.0, "scale"), (0.0, 0.0, "scale"), (1e300, 0.0, "scale"),
+    (0.001, 1e308, "offset"), (0.001, float("inf"), "offset"),
+])
+def test_las_absurd_scale_or_offset_is_refused_naming_it(tmp_path, scale, offset, needle):
+    """laspy applies the header's scale and offset to every point: non-finite, zero or absurd ones
+    are refused in one line naming them (not points that are all NaN, identical or overflowing)."""
+    import laspy
+
+    p = write_las(tmp_path / "bad.las", cloud_xyz(20), offset=[0.0, 0.0, 0.0])
+    las = laspy.read(str(p))
+    raw = p.read_bytes()
+    # scales at bytes 131..155, offsets at 155..179 of the public header block (LAS 1.2)
+    fields = np.frombuffer(raw[131:179], "<f8").copy()
+    fields[0], fields[3] = scale, offset
+    p.write_bytes(raw[:131] + fields.tobytes() + raw[179:])
+    assert len(las.points) == 20
+    for read in (read_points, lambda q: next(iter_point_chunks(q))):
+        with pytest.raises(InputError, match=rf"bad\.las: .*{needle}"):
+            read(p)
+
+
 def test_ply_faces_but_no_vertices(tmp_path):
     p = tmp_path / "faces.ply"
     p.write_text("ply\nformat ascii 1.0\nelement vertex 0\nproperty float x\nproperty float y\n"
@@ -535,10 +573,12 @@ def make_sequence(root: Path, n_frames=3, *, poses=None, calib=True, subdir=True
     (root / "poses.txt").write_text("\n".join(lines) + "\n")
     # velodyne -> camera: x_cam = -y_velo, y_cam = -z_velo, z_cam = x_velo, plus a small shift
     tr = np.array([[0, -1, 0, 0.25], [0, 0, -1, -0.5], [1, 0, 0, 1.0]], dtype=np.float64)
+    if calib == "identity":  # poses already in the velodyne frame: said so with an identity Tr
+        tr = np.eye(4)[:3]
     if calib:
         (root / "calib.txt").write_text("P0: " + " ".join(["0"] * 12) + "\nTr: "
                                         + " ".join(repr(float(v)) for v in tr.ravel()) + "\n")
-    return frames, poses, (tr if calib else np.eye(4)[:3])
+    return frames, poses, tr
 
 
 def expected_world(frames, poses, tr, which):
@@ -553,7 +593,7 @@ def expected_world(frames, poses, tr, which):
     return np.concatenate(pts), np.concatenate(origins), np.concatenate(ids)
 
 
-@pytest.mark.parametrize("calib,subdir", [(True, True), (False, False)])
+@pytest.mark.parametrize("calib,subdir", [(True, True), ("identity", False)])
 def test_kitti_sequence_world_transform(tmp_path, calib, subdir):
     frames, poses, tr = make_sequence(tmp_path / "seq", calib=calib, subdir=subdir)
     cloud = read_kitti_sequence(tmp_path / "seq")
@@ -657,6 +697,24 @@ def test_kitti_wrong_poses_length(tmp_path):
     with pytest.raises(InputError, match="poses.txt has 3 poses but frame 000004 was requested"):
         read_kitti_sequence(tmp_path / "seq", frames=(2, 5))
     assert len(read_kitti_sequence(tmp_path / "seq", frames=(0, 3)).xyz) == 10 + 11 + 12
+
+
+def test_kitti_sequence_without_calib_is_refused_not_merged_with_identity(tmp_path, capsys):
+    """KITTI poses are camera-0 poses: without calib.txt's velodyne-to-camera Tr the scans would be placed
+    rotated by 90 degrees about two axes (they were merged with an identity Tr, without a word). Refused in one
+    line naming the file and the way on (the calibration, or an identity Tr for poses in the velodyne frame)."""
+    from tiled_gridpull.pipeline.cli import main
+
+    make_sequence(tmp_path / "seq", calib=False)
+    for read in (read_kitti_sequence, lambda q: next(iter_point_chunks(q))):
+        with pytest.raises(InputError, match=r"seq: KITTI sequence has no calib\.txt.*Tr: 1 0 0 0 0 1 0 0 0 0 1 0"):
+            read(tmp_path / "seq")
+    out = tmp_path / "o.ply"
+    code = main(["reconstruct", str(tmp_path / "seq"), "-o", str(out), "-q", "--voxel-size", "1"])
+    err = capsys.readouterr().err
+    lines = [ln for ln in err.strip().splitlines() if ln.strip()]
+    assert code == 3 and len(lines) == 1 and "calib.txt" in lines[0] and "Traceback" not in err, err
+    assert not out.exists()
 
 
 def test_kitti_malformed_files(tmp_path):

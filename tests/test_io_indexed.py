@@ -140,3 +140,28 @@ def test_damaged_indexed_inputs_are_one_line(files, tmp_path):
     cut.write_bytes(files["COPC"].read_bytes()[:2000])
     with pytest.raises(InputError, match="cut.copc.laz"):
         read_index(cut)
+
+
+@pytest.mark.parametrize("kind", ["COPC", "EPT", "EPT binary"])
+def test_absurd_scale_or_offset_of_an_index_is_refused_naming_it(files, tmp_path, kind):
+    """The header's (COPC) or ept.json schema's (EPT) scale and offset are applied to every point: non-finite,
+    zero or absurd ones are refused when the index is read, in one line naming them, as a LAS header's are."""
+    import shutil
+
+    if kind == "COPC":
+        p = tmp_path / "c.copc.laz"
+        raw = files["COPC"].read_bytes()
+        fields = np.frombuffer(raw[131:179], "<f8").copy()  # three scales, then three offsets
+        fields[3] = 1e308
+        p.write_bytes(raw[:131] + fields.tobytes() + raw[179:])
+        needle = r"c\.copc\.laz: the (COPC|LAS) header's offset '1e\+308"  # read whole as the LAZ it is
+    else:
+        shutil.copytree(files[kind].parent, tmp_path / "e")
+        p = tmp_path / "e" / "ept.json"
+        meta = json.loads(p.read_text())
+        meta["schema"][1]["scale"] = 0.0
+        p.write_text(json.dumps(meta))
+        needle = r"ept\.json: the ept\.json schema's scale '[^']* 0 "
+    for call in (read_index, read_points) if kind == "COPC" else (read_index, point_count, read_points):
+        with pytest.raises(InputError, match=needle):
+            call(p)

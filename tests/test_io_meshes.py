@@ -80,8 +80,10 @@ def test_ply_offset_is_trusted_only_beside_our_generator():
     assert np.array_equal(ply_offset(["generator tiled_gridpull 1.0", "offset 1 2 3"]), [1.0, 2.0, 3.0])
     assert ply_offset(["generator other-tool", "offset 1 2 3"]) is None
     assert ply_offset(["offset 1 2 3"]) is None
-    assert ply_offset(["generator tiled_gridpull", "offset 1 nan 3"]) is None
-    assert ply_offset(["generator tiled_gridpull", "offset a b c"]) is None
+    # beside our marker the offset is applied: a damaged one is refused, not ignored (vertices off by it)
+    for bad in ("1 nan 3", "a b c", "1 2", "1e308 0 0"):
+        with pytest.raises(InputError, match=f"m.ply: the PLY header's offset '{bad}'"):
+            ply_offset(["generator tiled_gridpull", f"offset {bad}"], "m.ply")
 
 
 def test_another_tools_offset_comment_is_not_applied(tmp_path):

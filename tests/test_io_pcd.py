@@ -83,6 +83,25 @@ def test_the_default_viewpoint_is_a_sensor_only_for_organised_clouds(tmp_path, h
         np.testing.assert_array_equal(c.sensor, np.tile(sensor, (4, 1)))
 
 
+@pytest.mark.parametrize("viewpoint", ["nan 0 0 1 0 0 0", "0 inf 0 1 0 0 0", "0 0 -inf 1 0 0 0", "0 0 0 nan 0 0 0",
+                                       "0 0 0 1 0 0", "0 0 0 1 0 0 0 0", "0 0 x 1 0 0 0"])
+def test_viewpoint_that_is_not_7_finite_numbers_is_refused_naming_it(tmp_path, capsys, viewpoint):
+    """A NaN or infinite VIEWPOINT gave every point a NaN sensor origin without a word; a header's VIEWPOINT
+    is 7 numbers (translation, quaternion)."""
+    header = ["VERSION 0.7", "FIELDS x y z", "SIZE 4 4 4", "TYPE F F F", "COUNT 1 1 1", "WIDTH 500", "HEIGHT 1",
+              f"VIEWPOINT {viewpoint}", "POINTS 500", "DATA ascii"]
+    p = tmp_path / "c.pcd"
+    p.write_text("\n".join(header + [" ".join(map(repr, row)) for row in cloud().tolist()]) + "\n")
+    for read in (read_points, lambda q: next(iter_point_chunks([q]))):
+        with pytest.raises(InputError, match=f"c.pcd: PCD header's VIEWPOINT '{viewpoint}' is not 7 finite"):
+            read(p)
+    code = main(["reconstruct", str(p), "-o", str(tmp_path / "o.ply"), "-q"])
+    err = capsys.readouterr().err
+    lines = [ln for ln in err.strip().splitlines() if ln.strip()]
+    assert code == 3 and len(lines) == 1 and "VIEWPOINT" in lines[0] and "Traceback" not in err, err
+    assert not (tmp_path / "o.ply").exists()
+
+
 @pytest.mark.parametrize("damage,needle", [
     (lambda b: b[: len(b) // 2], "truncated or corrupted PCD"),
     (lambda b: b.replace(b"FIELDS x y z", b"FIELDS a b c"), "without x y z fields"),

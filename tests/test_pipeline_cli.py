@@ -281,3 +281,56 @@ def test_evaluate_footprint(tmp_path, capsys):
     assert code == 2 and "--footprint needs --observed" in err
     code, _, err = run([*args, "--observed", str(tmp_path / "pts.npy"), "--footprint", "0"], capsys)
     assert code == 2 and "positive" in err
+
+
+@pytest.mark.parametrize("tiled", [False, True])
+def test_absurd_ply_offset_is_exit_3_one_line_in_both_modes(tmp_path, capsys, sphere_xyz, tiled):
+    """Our own PLY's ``comment offset 1e308 0 0``: one-shape mode failed with "internal error: LinAlgError"
+    (exit 1), tiled mode with a numpy message about the lattice origin (exit 2)."""
+    pts = np.loadtxt(sphere_xyz)
+    src = tmp_path / "ours.ply"
+    src.write_text("ply\nformat ascii 1.0\ncomment generator tiled_gridpull 0.1.0\ncomment offset 1e308 0 0\n"
+                   f"element vertex {len(pts)}\nproperty float x\nproperty float y\nproperty float z\nend_header\n"
+                   + "".join(f"{a} {b} {c}\n" for a, b, c in pts))
+    out = tmp_path / "out.ply"
+    mode = ["--voxel-size", "0.1"] if tiled else ["--resolution", "32"]
+    code, _, err = run(["reconstruct", str(src), "-o", str(out), "-q", *mode], capsys)
+    assert code == 3, err
+    _one_error_line(err)
+    assert "offset '1e308 0 0'" in err and str(src) in err
+    assert not out.exists() and not out.with_suffix(".json").exists()
+
+
+def test_planar_patch_is_meshed_in_udf_mode_and_refused_in_signed_mode(tmp_path, capsys):
+    """``--mode udf`` takes an exactly planar patch (an open flat surface); the signed mode refuses it."""
+    from tiled_gridpull.io import read_mesh
+
+    rng = np.random.default_rng(0)
+    src = tmp_path / "plane.xyz"
+    np.savetxt(src, np.c_[rng.random((3000, 2)) * 4.0, np.full(3000, 1.5)])
+    out = tmp_path / "out.ply"
+    fast = ["--resolution", "32", "--iterations", "100", "--set", "coarse_iterations=100"]
+    code, _, err = run(["reconstruct", str(src), "-o", str(out), "-q", *fast], capsys)
+    assert code == 3 and "coplanar" in err and not out.exists()
+    _one_error_line(err)
+    code, _, err = run(["reconstruct", str(src), "-o", str(out), "-q", "--mode", "udf", *fast], capsys)
+    assert code == 0, err
+    mesh = read_mesh(out)
+    assert mesh.n_faces > 0 and np.abs(mesh.vertices[:, 2] - 1.5).max() < 0.05
+
+
+@pytest.mark.parametrize("dry_run", [False, True])
+def test_collinear_points_are_refused_in_tiled_mode_too(tmp_path, capsys, dry_run):
+    """Tiled mode meshed points on a line (a mesh made from a line) that one-shape mode refuses: the same rule
+    (tiled_gridpull.cloud.degeneracy) now refuses them before anything is written, from the dry run too."""
+    t = np.linspace(0.0, 10.0, 3000)
+    src = tmp_path / "line.xyz"
+    np.savetxt(src, np.c_[t, 2 * t + 1, 3 * t - 2])
+    out = tmp_path / "out.ply"
+    code, _, err = run(["reconstruct", str(src), "-o", str(out), "-q", "--voxel-size", "0.25",
+                        *(["--dry-run"] if dry_run else [])], capsys)
+    assert code == 3, err
+    _one_error_line(err)
+    assert "collinear" in err and str(src) in err
+    assert not out.exists() and not out.with_suffix(".json").exists()
+    assert not (out.with_suffix(".job") / "manifest.json").exists()

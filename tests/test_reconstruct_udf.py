@@ -193,3 +193,25 @@ def test_tiled_mode_refuses_udf():
 
     with pytest.raises(ConfigError, match="mode udf"):
         check_compatible(TilingConfig(voxel_size=0.1), SolverConfig(mode="udf", m2=25))
+
+
+def test_udf_meshes_an_exactly_planar_patch_as_a_flat_sheet():
+    """An open flat surface is data for the unsigned mode (tiled mode meshes a flat parking lot too); it was
+    refused as coplanar whatever the mode. The signed mode still refuses it: a plane encloses nothing."""
+    from tiled_gridpull import reconstruct
+    from tiled_gridpull.errors import InputError
+
+    rng = np.random.default_rng(0)
+    # tilted: the sheet must lie in the plane, not in a coordinate plane
+    basis = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    origin = np.array([12.0, -40.0, 3.0])
+    uv = rng.random((4000, 2)) * 4.0
+    pts = np.c_[uv, np.zeros(len(uv))] @ basis.T + origin
+    mesh = reconstruct(pts, mode="udf", resolution=40, iterations=150, coarse_iterations=150)
+    cell = mesh.metadata["lattice"]["cell_size"]
+    topo = mesh.topology
+    assert topo.n_faces > 0 and topo.components == 1 and topo.nonmanifold_edges == 0
+    assert np.abs((mesh.vertices - origin) @ basis[:, 2]).max() < 0.3 * cell     # in the plane
+    assert 0.9 * 16.0 < mesh.area < 1.2 * 16.0                                   # the 4 x 4 patch, once
+    with pytest.raises(InputError, match="coplanar"):
+        reconstruct(pts, resolution=40, iterations=150, coarse_iterations=150)

@@ -259,6 +259,39 @@ def _las_with_wkt(path, xyz, wkt):
     las.write(str(path))
 
 
+def test_an_input_with_a_crs_and_one_without_are_refused_naming_both(tmp_path, capsys):
+    """A LAS in a CRS and an XYZ file without one were merged without a word (the XYZ's coordinates may be in
+    any frame). Refused in one line naming both, in either order, from one pass and from the scan run in
+    segments alike, before any job file is written."""
+    from tiled_gridpull.errors import InputError
+    from tiled_gridpull.jobdir import JobPaths
+    from tiled_gridpull.pipeline.cli import main
+    from tiled_gridpull.prepare import prepare_job, scan_inputs
+    from tiled_gridpull.tiling import TilingConfig
+
+    rng = np.random.default_rng(0)
+    a, d = tmp_path / "a.las", tmp_path / "d.xyz"
+    _las_with_wkt(a, rng.uniform(0, 10, (500, 3)), 'PROJCS["Amersfoort / RD New",GEOGCS["Amersfoort"]]')
+    np.savetxt(d, rng.uniform(0, 10, (500, 3)))
+    for pair in ([a, d], [d, a]):
+        with pytest.raises(InputError, match=r"a\.las.* \(Amersfoort / RD New\) and .*d\.xyz.* \(none declared\)"):
+            scan_inputs([str(p) for p in pair])
+
+    def run_here(fn, args):
+        return [fn(*x) for x in args]
+
+    tiling = TilingConfig(voxel_size=0.5, tile_size=8.0, overlap=1.0)
+    with pytest.raises(InputError, match=r"a\.las.* \(Amersfoort / RD New\) and .*d\.xyz.* \(none declared\)"):
+        prepare_job([str(d), str(a)], tiling, JobPaths(tmp_path / "j"), run_tasks=run_here, segment_points=100,
+                    chunk_size=100)
+    out = tmp_path / "o.ply"
+    code = main(["reconstruct", str(a), str(d), "-o", str(out), "-q", "--voxel-size", "0.5"])
+    err = capsys.readouterr().err
+    lines = [ln for ln in err.strip().splitlines() if ln.strip()]
+    assert code == 3 and len(lines) == 1 and "a.las" in lines[0] and "d.xyz" in lines[0], err
+    assert not out.exists()
+
+
 def test_inputs_in_different_crs_are_refused(tmp_path):
     from tiled_gridpull.errors import InputError
     from tiled_gridpull.prepare import scan_inputs

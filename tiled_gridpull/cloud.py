@@ -9,7 +9,7 @@ reconstructed from; :func:`duplicate_mask` is the one duplicate test (the tile s
 from __future__ import annotations
 
 import warnings
-from collections.abc import Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -18,14 +18,18 @@ import numpy as np
 from .errors import InputError
 
 __all__ = ["PointCloud", "clean_points", "duplicate_mask", "concat_clouds", "cloud_slices",
-           "drop_nonfinite_rows", "unit_normals", "as_points"]
+           "drop_nonfinite_rows", "unit_normals", "as_points", "degeneracy", "stream_degeneracy",
+           "degenerate_error", "COORDINATE_LIMIT"]
 
 # Relative tolerance on singular values for the collinear / coplanar tests (see clean_points).
 _DEGENERATE_RTOL = 1e-9
+_IDENTICAL_ULPS = 64
+#: Largest coordinate magnitude float64 arithmetic on a cloud resolves: beyond it squared distances overflow
+#: (and sums over a few points). Readers refuse a header's offset or scale that would put points there.
+COORDINATE_LIMIT = 1e150
+_EXTENT_RANGE = (1e-150, COORDINATE_LIMIT)
 # Degeneracy is first tested on this many evenly spaced points: a non-degenerate subset proves the whole
 # cloud non-degenerate, so the full O(N) factorisation is only needed for (nearly) degenerate clouds.
-_IDENTICAL_ULPS = 64
-_EXTENT_RANGE = (1e-150, 1e150)
 _DEGENERATE_SAMPLE = 200_000
 
 
@@ -161,9 +165,9 @@ def clean_points(cloud: PointCloud, *, what: str = "", min_points: int = 10,
         dropped = n - m
         extra = f" after dropping {dropped} non-finite or duplicate points" if dropped else ""
         raise InputError(f"{what}: only {m} points{extra} (at least {min_points} needed)")
-    kind = _degeneracy(xyz, reject_planar)
+    kind = degeneracy(xyz, reject_planar=reject_planar)
     if kind is not None:
-        raise InputError(f"{what}: all {m} points are {kind}; a surface cannot be reconstructed from them")
+        raise degenerate_error(what, m, kind)
     extent = float(np.max(xyz.max(axis=0) - xyz.min(axis=0)))
     if not _EXTENT_RANGE[0] <= extent <= _EXTENT_RANGE[1]:
         # squared distances of such an extent underflow or overflow float64: the mesh would be garbage
@@ -329,21 +333,39 @@ def _singular_values(xyz: np.ndarray) -> np.ndarray:
     return np.linalg.svd(r, compute_uv=False)
 
 
-def _degeneracy(xyz: np.ndarray, reject_planar: bool) -> str | None:
-    """'identical', 'collinear', 'coplanar' (only if reject_planar) or None."""
+def _classify(s: np.ndarray, largest: float, n: int, reject_planar: bool) -> str | None:
+    """The degeneracy of ``n`` points from the singular values ``s`` of their mean-centred coordinates and
+    their largest coordinate magnitude: the one rule of :func:`degeneracy` and :func:`stream_degeneracy`."""
+    scale = max(largest, np.finfo(np.float64).tiny)
+    # identical up to the rounding of coordinates this large: a few units in the last place, not a fixed
+    # fraction (1e-12 of 1e12 is a metre: a 1 m object there was called a single point)
+    if s[0] <= _IDENTICAL_ULPS * np.finfo(np.float64).eps * scale * np.sqrt(n):
+        return "identical"
+    if s[1] <= _DEGENERATE_RTOL * s[0]:
+        return "collinear"
+    if reject_planar and s[2] <= _DEGENERATE_RTOL * s[0]:
+        return "coplanar"
+    return None
+
+
+def degeneracy(xyz: np.ndarray, *, reject_planar: bool = True) -> str | None:
+    """Whether the points are degenerate, by the rule of :func:`clean_points` (step 5).
+
+    Parameters
+    ----------
+    xyz : (N, 3) float64
+        Finite points.
+    reject_planar : bool
+        Also call coplanar points degenerate.
+
+    Returns
+    -------
+    str or None
+        ``"identical"``, ``"collinear"``, ``"coplanar"`` (only with ``reject_planar``) or None.
+    """
 
     def classify(pts):
-        s = _singular_values(pts)
-        scale = max(float(np.abs(pts).max()), np.finfo(np.float64).tiny)
-        # identical up to the rounding of coordinates this large: a few units in the last place, not a fixed
-        # fraction (1e-12 of 1e12 is a metre: a 1 m object there was called a single point)
-        if s[0] <= _IDENTICAL_ULPS * np.finfo(np.float64).eps * scale * np.sqrt(len(pts)):
-            return "identical"
-        if s[1] <= _DEGENERATE_RTOL * s[0]:
-            return "collinear"
-        if reject_planar and s[2] <= _DEGENERATE_RTOL * s[0]:
-            return "coplanar"
-        return None
+        return _classify(_singular_values(pts), float(np.abs(pts).max()), len(pts), reject_planar)
 
     n = len(xyz)
     if n > _DEGENERATE_SAMPLE:
@@ -351,6 +373,55 @@ def _degeneracy(xyz: np.ndarray, reject_planar: bool) -> str | None:
         if classify(sample) is None:
             return None
     return classify(xyz)
+
+
+def stream_degeneracy(chunks: Callable[[], Iterable[np.ndarray]], *, reject_planar: bool = True,
+                      sample: np.ndarray | None = None) -> str | None:
+    """:func:`degeneracy` of points that come in chunks and are never held whole (tiled mode's inputs).
+
+    A ``sample`` of the points that is not degenerate proves the whole set is not (no pass over the points).
+    Otherwise two passes over ``chunks()``: the mean and the largest magnitude, then the R factor of the
+    centred points, chunk by chunk (the R of stacked rows is the R of [R; next rows], so its singular values
+    are those of the whole centred set).
+
+    Parameters
+    ----------
+    chunks : callable
+        ``chunks()`` yields (M, 3) float64 arrays of finite points, the same each call.
+    reject_planar : bool
+    sample : (K, 3) float64, optional
+        Some of the points.
+
+    Returns
+    -------
+    str or None
+        As :func:`degeneracy`; None when there are no points.
+    """
+    if sample is not None and len(sample) >= 3 and degeneracy(sample, reject_planar=reject_planar) is None:
+        return None
+    n, total, largest = 0, np.zeros(3), 0.0
+    for xyz in chunks():
+        if len(xyz):
+            n += len(xyz)
+            total += xyz.sum(axis=0)
+            largest = max(largest, float(np.abs(xyz).max()))
+    if n == 0:
+        return None
+    mean = total / n
+    r = np.zeros((0, 3))
+    for xyz in chunks():
+        if len(xyz):
+            r = np.linalg.qr(np.vstack([r, xyz - mean]), mode="r")
+    s = np.zeros(3)  # fewer than 3 points have fewer singular values: the missing ones are 0
+    sv = np.linalg.svd(r, compute_uv=False)
+    s[:len(sv)] = sv
+    return _classify(s, largest, n, reject_planar)
+
+
+def degenerate_error(what: str, n: int, kind: str) -> InputError:
+    """The refusal of ``n`` points whose :func:`degeneracy` is ``kind``, as one line naming ``what``."""
+    hint = " (an open flat patch is meshed by the unsigned mode: --mode udf)" if kind == "coplanar" else ""
+    return InputError(f"{what}: all {n} points are {kind}; a surface cannot be reconstructed from them{hint}")
 
 
 # ------------------------------------------------------------------------------------------------------------

@@ -140,13 +140,31 @@ def parse_length(value) -> tuple[float, str | None]:
 
 def check_same_crs(declared: list[tuple[str | None, str]]) -> None:
     """Refuse inputs in different CRSs (merging would place one survey's points in another's frame without a
-    word). ``declared``: (CRS or None, source) pairs; inputs without a CRS are not compared."""
+    word), and inputs of which some declare a CRS and some do not (the bare ones' coordinates may be in any
+    frame: nothing can be stated for them here, so they are not assumed to be in the others').
+
+    Parameters
+    ----------
+    declared : list of (CRS or None, source)
+        What each input (or chunk of one: ``path[start:stop]``) declares; sources name the files in messages.
+
+    Raises
+    ------
+    InputError
+        Naming the first two inputs that disagree and their CRSs.
+    """
     named = [(c, s) for c, s in declared if c]
     for crs, source in named[1:]:
         if _crs_text(crs) != _crs_text(named[0][0]):
             raise InputError(f"inputs in different coordinate reference systems: {_file_of(named[0][1])} "
                              f"({crs_name(named[0][0])}) and {_file_of(source)} ({crs_name(crs)}); "
                              "reproject them to one first")
+    bare = [s for c, s in declared if not c]
+    if named and bare:
+        raise InputError(f"inputs with and without a coordinate reference system: {_file_of(named[0][1])} "
+                         f"({crs_name(named[0][0])}) and {_file_of(bare[0])} (none declared); if "
+                         f"{_file_of(bare[0])} is in {crs_name(named[0][0])}, give it as LAS/LAZ declaring that CRS, "
+                         "otherwise reproject it first")
 
 
 def _crs_text(crs: str) -> str:

@@ -12,6 +12,8 @@ tile's points read from the input by the tile's own task, on a worker, instead o
   tile's spill file by :func:`tiled_gridpull.partition.partition`. The file is byte for byte the one the
   streaming partition writes for the same input, so the tile's solve key, which hashes it, is derived from
   what the tile read, and a resumed job keys every tile as the interrupted one did.
+* **Degenerate inputs** (:func:`indexed_degeneracy`): identical or collinear points are refused before any tile
+  is read, as streamed inputs are; the octrees' root nodes settle it unless they look degenerate themselves.
 * **Dry run** (:func:`estimate_specs`): tiles, points and occupied bricks estimated from the subsample and the
   deeper nodes' counts, in seconds.
 
@@ -23,11 +25,13 @@ from __future__ import annotations
 
 import functools
 import os
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from .cloud import PointCloud, stream_degeneracy
 from .crs import check_same_crs
 from .errors import InputError
 from .io.indexed import PointIndex, indexed_kind, read_box, read_index, read_levels
@@ -38,7 +42,7 @@ from .tile_plan import TilePlan, TileSpec, plan_tiles
 from .tiling import TilingConfig
 
 __all__ = ["SAMPLE_POINTS", "IndexedSource", "all_indexed", "source_version", "cached_index", "indexed_sources",
-           "plan_indexed", "candidate_tiles", "read_tile", "estimate_specs", "dense_region"]
+           "plan_indexed", "candidate_tiles", "read_tile", "indexed_degeneracy", "estimate_specs", "dense_region"]
 
 #: points of the octree's shallow levels read on the driver (candidate tiles, dry run), at most
 SAMPLE_POINTS = 2_000_000
@@ -221,25 +225,54 @@ def read_tile(inputs: list, plan: TilePlan, tile: tuple, out_dir: str) -> tuple[
         the inputs once, which is how the driver checks that no point was lost between the tasks.
     """
     tile = tuple(int(v) for v in tile)
-    lo, hi = _read_box(plan, tile)
     owned = 0
 
     def chunks():
         nonlocal owned
-        for src in inputs:
-            if not isinstance(src, IndexedSource):
-                src = indexed_sources([src])[0]
-            s_lo, s_hi = np.asarray(src.lo), np.asarray(src.hi)
-            if not (np.all(s_lo <= hi) and np.all(s_hi >= lo)):
-                continue
-            ix = cached_index(src.path, src.version)
-            # an open side (a border tile) reaches as far as the input's octree does
-            for cloud in read_box(ix, np.where(np.isinf(lo), s_lo, lo), np.where(np.isinf(hi), s_hi, hi)):
-                owned += int(np.all(plan.owner_of(plan.lattice.to_index(cloud.xyz)) == tile, axis=1).sum())
-                yield cloud
+        for cloud in _tile_clouds(inputs, plan, tile):
+            owned += int(_owned(plan, tile, cloud.xyz).sum())
+            yield cloud
 
     specs = partition(chunks(), plan, out_dir, False, only=tile)
     return (specs[0] if specs else None), owned
+
+
+def _tile_clouds(inputs: list, plan: TilePlan, tile: tuple) -> Iterator[PointCloud]:
+    """The points of the inputs in the tile's read box (:func:`_read_box`), input by input in stream order."""
+    lo, hi = _read_box(plan, tile)
+    for src in inputs:
+        if not isinstance(src, IndexedSource):
+            src = indexed_sources([src])[0]
+        s_lo, s_hi = np.asarray(src.lo), np.asarray(src.hi)
+        if not (np.all(s_lo <= hi) and np.all(s_hi >= lo)):
+            continue
+        ix = cached_index(src.path, src.version)
+        # an open side (a border tile) reaches as far as the input's octree does
+        yield from read_box(ix, np.where(np.isinf(lo), s_lo, lo), np.where(np.isinf(hi), s_hi, hi))
+
+
+def _owned(plan: TilePlan, tile: tuple, xyz: np.ndarray) -> np.ndarray:
+    """(N,) bool: the points whose owner is ``tile``."""
+    return np.all(plan.owner_of(plan.lattice.to_index(xyz)) == tile, axis=1)
+
+
+def indexed_degeneracy(inputs: list[IndexedSource], plan: TilePlan, tiles: list[tuple]) -> str | None:
+    """Whether the indexed inputs' points are identical or collinear, by the rule streamed inputs are refused by
+    (:func:`~tiled_gridpull.cloud.stream_degeneracy`; coplanar points are a legal scene).
+
+    The octrees' root nodes (a few thousand points each, a subset) settle it unless they look degenerate
+    themselves; only then is every point read on the driver, twice, tile by tile (each tile's own points, so
+    every point once, as the tile tasks read them).
+    """
+    root = [c.xyz for src in inputs for c in read_levels(cached_index(src.path, src.version), 1)]
+
+    def chunks():
+        for t in tiles:
+            t = tuple(int(v) for v in t)
+            for cloud in _tile_clouds(inputs, plan, t):
+                yield cloud.xyz[_owned(plan, t, cloud.xyz)]
+
+    return stream_degeneracy(chunks, reject_planar=False, sample=np.concatenate(root) if root else None)
 
 
 def estimate_specs(indexes: list[PointIndex], plan: TilePlan,
@@ -296,8 +329,6 @@ def dense_region(path: str | os.PathLike, limit: int, regions: int = 8):
     deepest nodes, chosen at even steps of their cumulative point count: regions in proportion to where the
     points are, as the first points of a plain file sample them. None for an input without points.
     """
-    from .cloud import PointCloud
-
     ix = cached_index(path)
     if len(ix.keys) == 0:
         return None

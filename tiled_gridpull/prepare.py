@@ -20,14 +20,15 @@ from ._version import __version__
 from .config import SCAN_NOISE_SETTINGS, SolverConfig
 from .crs import check_same_crs, crs_name
 from .errors import ConfigError, InputError
-from .cloud import PointCloud
+from .cloud import PointCloud, degenerate_error, stream_degeneracy
 from .io import iter_point_chunks, iter_row_chunks
 from .io.kitti import kitti_chunks
 from .io.indexed import indexed_kind
 from .io.remote import is_url, recorded, shown
 from .jobdir import JobPaths, write_manifest
 from .outliers import SAMPLE_STRIDE, body_box, describe, far_mask
-from .indexed_inputs import all_indexed, candidate_tiles, indexed_sources, plan_indexed, read_tile
+from .indexed_inputs import (all_indexed, candidate_tiles, indexed_degeneracy, indexed_sources, plan_indexed,
+                             read_tile)
 from .partition import merge_segments, partition
 from .resume import load_partition, partition_key, scan_record
 from .tile_plan import LatticeSpanError, TilePlan, TileSpec, plan_tiles
@@ -43,7 +44,8 @@ __all__ = ["check_registered", "resolve_units", "head_points", "scan_noise_treat
 def check_registered(inputs: list[str]) -> None:
     """Refuse inputs that are not in one frame: a single KITTI scan (``.bin``) holds points in its own sensor
     frame, so merging it with any other input would overlay scans taken from different places as if they were
-    registered. A KITTI sequence directory (its ``poses.txt`` places every frame) is the way to give several.
+    registered. A KITTI sequence directory (its ``poses.txt`` and ``calib.txt`` place every frame) is the way to give
+    several.
 
     Raises
     ------
@@ -55,7 +57,7 @@ def check_registered(inputs: list[str]) -> None:
         shown = ", ".join(scans[:3]) + (f" and {len(scans) - 3} more" if len(scans) > 3 else "")
         raise InputError(f"{shown}: a KITTI scan file is in its own sensor frame and cannot be merged with other "
                          f"inputs ({len(inputs)} given) without poses; give the sequence directory (velodyne/*.bin "
-                         f"with poses.txt) instead, or one scan alone")
+                         f"with poses.txt and calib.txt) instead, or one scan alone")
 
 
 def check_remote(inputs: list[str], trajectory=None, tiling: TilingConfig | None = None) -> None:
@@ -241,13 +243,16 @@ def _scan(chunks) -> dict:
     n = 0
     sample = []
     has_sensor = True
-    crs = crs_source = None
+    crs = crs_source = bare_source = None  # the first chunk declaring a CRS, and the first declaring none
     for chunk in chunks:
         if chunk.crs:
             if crs is None:
                 crs, crs_source = chunk.crs, chunk.source
-            else:
-                check_same_crs([(crs, crs_source), (chunk.crs, chunk.source)])
+            check_same_crs([(crs, crs_source), (chunk.crs, chunk.source)])
+        elif bare_source is None:
+            bare_source = chunk.source
+        if crs is not None and bare_source is not None:
+            check_same_crs([(crs, crs_source), (None, bare_source)])
         if len(chunk) == 0:
             continue
         lo = np.minimum(lo, chunk.xyz.min(axis=0))
@@ -257,13 +262,14 @@ def _scan(chunks) -> dict:
         # a copy: a strided view would keep every whole chunk alive, i.e. the whole input in memory
         sample.append(chunk.xyz[::SAMPLE_STRIDE].copy())
     return {"lo": lo, "hi": hi, "points": n, "has_sensor": bool(has_sensor), "crs": crs, "crs_source": crs_source,
-            "sample": sample}
+            "bare_source": bare_source, "sample": sample}
 
 
 def _joined_scan(parts: list[dict], inputs) -> dict:
     """The scan of the whole stream from its segments' scans, in stream order (the same facts, the same refusal
-    of a second CRS, as one pass)."""
-    check_same_crs([(p["crs"], p["crs_source"]) for p in parts])
+    of a second CRS or of inputs without one, as one pass)."""
+    check_same_crs([(p["crs"], p["crs_source"]) for p in parts if p["crs"]]
+                   + [(None, p["bare_source"]) for p in parts if p["bare_source"] is not None])
     n = sum(p["points"] for p in parts)
     if n == 0:
         raise InputError(f"{', '.join(map(shown, inputs))}: no points")
@@ -411,6 +417,9 @@ def plan_inputs(inputs: list[str], tiling: TilingConfig, *, chunk_size: int = 2_
                 run_tasks: Callable | None = None) -> tuple[TilePlan, dict, Callable[[], Iterator]]:
     """Scan the inputs and lay the tile plan over them (the job's and ``--dry-run``'s first step).
 
+    Identical or collinear points are refused as one-shape mode refuses them
+    (:func:`~tiled_gridpull.cloud.stream_degeneracy`); coplanar ones are a legal scene.
+
     Points far from the rest (:mod:`tiled_gridpull.outliers`) are dropped when ``tiling.drop_outliers`` is set
     (a warning says how many); otherwise, when they stretch the lattice past what it can hold, the refusal says
     how many there are and how to drop them.
@@ -451,6 +460,12 @@ def plan_inputs(inputs: list[str], tiling: TilingConfig, *, chunk_size: int = 2_
             warnings.warn(f"drop_outliers: {describe(n_far, scan['points'], box, example)}: dropped",
                           stacklevel=2)
             scan["bounds"], scan["points"] = inside, scan["points"] - n_far
+    # one-shape mode's rule (coplanar points are a legal scene: a flat parking lot); a sample that is not
+    # degenerate settles it, so only a degenerate-looking input is read again
+    kind = stream_degeneracy(lambda: (c.xyz for c in chunks()), reject_planar=False,
+                             sample=None if scan.get("far_points_dropped") else sample)  # it holds them
+    if kind is not None:
+        raise degenerate_error(", ".join(map(shown, inputs)), scan["points"], kind)
     try:
         plan = plan_tiles(scan["bounds"], scan["points"], tiling)
     except LatticeSpanError as exc:
@@ -557,6 +572,9 @@ def _read_indexed(inputs, tiling, paths: JobPaths, check, run_tasks):
     sources = indexed_sources(inputs)
     plan, scan, indexes = plan_indexed(inputs, tiling, sources)
     tiles = candidate_tiles(indexes, plan)
+    kind = indexed_degeneracy(sources, plan, tiles)  # as plan_inputs refuses streamed inputs
+    if kind is not None:
+        raise degenerate_error(", ".join(map(shown, inputs)), scan["points"], kind)
     out = paths.points()
     out.mkdir(parents=True, exist_ok=True)
     args = [(sources, plan, t, str(out)) for t in tiles]

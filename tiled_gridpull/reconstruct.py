@@ -91,12 +91,13 @@ def shape_lattice(points: np.ndarray, config: SolverConfig) -> Lattice:
     return Lattice.fit(points, config.resolution, config.margin, pad=pad) if pad else lattice
 
 
-def prepare_points(points: Any, normals: np.ndarray | None = None, *, what: str = "input",
+def prepare_points(points: Any, normals: np.ndarray | None = None, *, what: str | None = None,
                    reject_planar: bool = True) -> tuple[np.ndarray, np.ndarray | None, dict]:
     """Validate and clean a cloud given as an array or a :class:`~tiled_gridpull.cloud.PointCloud`.
 
     Non-finite rows are dropped (with a warning) and exact duplicates removed; empty, too small and degenerate
-    (identical, collinear, coplanar) clouds raise :class:`InputError`.
+    (identical, collinear, and with ``reject_planar`` coplanar) clouds raise :class:`InputError`. Messages
+    name ``what``: by default a PointCloud's ``source`` (its file), else "input".
 
     Returns
     -------
@@ -107,9 +108,11 @@ def prepare_points(points: Any, normals: np.ndarray | None = None, *, what: str 
     """
     if isinstance(points, PointCloud):
         cloud = points
+        what = what or cloud.source or "input"
         if normals is not None:
             cloud.normals = np.asarray(normals, dtype=np.float32)
     else:
+        what = what or "input"
         try:
             xyz = np.asarray(points, dtype=np.float64)
         except (TypeError, ValueError):
@@ -219,7 +222,9 @@ def reconstruct(points: Any, *, config: SolverConfig | None = None, normals: np.
         raise ConfigError(f"band_edges {band_edges!r} applies to signed mode (udf mode ends its sheets at the data "
                           "already)")
     points, own_normals = as_points(points)
-    xyz, nrm, report = prepare_points(points, own_normals if normals is None else normals)
+    # an open flat patch is a surface for the unsigned mode (a sheet); the signed mode needs an inside
+    xyz, nrm, report = prepare_points(points, own_normals if normals is None else normals,
+                                      reject_planar=cfg.mode == "sdf")
     if cfg.losses.normal_weight > 0 and nrm is None:
         raise InputError("normal_weight > 0 needs input normals, but the cloud has none")
     cfg, treatment, raw_noise = _noise_treatment(cfg, xyz)

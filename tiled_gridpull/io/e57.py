@@ -4,7 +4,8 @@ Every scan's points come in the file's common frame (its pose applied; spherical
 point gets its scan's position as its sensor origin, so tiled mode's ``orientation: auto`` faces each surface
 towards the scanner that saw it. Points flagged invalid by the scan (``cartesianInvalidState`` /
 ``sphericalInvalidState``) are dropped. Intensity is kept when the scans have it. A scan is read whole (the
-library reads scans, not ranges of them): memory follows the largest scan, not the file.
+library reads scans, not ranges of them): memory follows the largest scan, not the file. A pose that places no
+point (a translation beyond what float64 arithmetic resolves, a zero rotation quaternion) is refused, naming it.
 """
 
 from __future__ import annotations
@@ -16,6 +17,8 @@ import numpy as np
 
 from .._optional import require
 from ..cloud import PointCloud, concat_clouds
+from ..errors import InputError
+from .input_errors import check_frame
 
 __all__ = ["read", "chunks", "count"]
 
@@ -46,6 +49,7 @@ def _scans(p: Path) -> Iterator[PointCloud]:
             crs = None
         done = 0
         for i in range(e57.scan_count):
+            _check_pose(p, i, e57.get_header(i))
             data = e57.read_scan(i, intensity=True, ignore_missing_fields=True)
             xyz = np.column_stack([np.asarray(data[k], dtype=np.float64)
                                    for k in ("cartesianX", "cartesianY", "cartesianZ")])
@@ -58,6 +62,18 @@ def _scans(p: Path) -> Iterator[PointCloud]:
             done += len(xyz)
     finally:
         e57.close()
+
+
+def _check_pose(p: Path, i: int, header) -> None:
+    """Refuse a scan pose pye57 would apply to every point but that places none: a translation that is not
+    finite or is absurd (1e308 overflowed the first sum over the points), a rotation quaternion that is not 4
+    finite numbers of non-zero length (a zero one puts every point on the scanner)."""
+    where = f"{p}: scan {i}'s pose"
+    check_frame(where, np.asarray(header.translation, dtype=np.float64).reshape(3), label="translation")
+    q = np.asarray(header.rotation, dtype=np.float64).ravel()
+    if q.shape != (4,) or not np.all(np.isfinite(q)) or not np.linalg.norm(q) > 0:
+        raise InputError(f"{where} rotation '{' '.join(f'{v:g}' for v in q)}' is not a quaternion (4 finite "
+                         "numbers, not all zero): a damaged file")
 
 
 def read(p: Path) -> PointCloud:

@@ -26,7 +26,7 @@ import numpy as np
 
 from ..cloud import PointCloud
 from ..errors import InputError
-from .input_errors import input_errors
+from .input_errors import check_frame, input_errors
 from .remote import RemoteFile, fetch, is_url, shown, url_join, url_name
 
 __all__ = ["PointIndex", "indexed_kind", "read_index", "read_box", "read_levels", "chunks", "read", "count",
@@ -142,6 +142,8 @@ def _copc_index_read(p, crs: str | None, stream) -> PointIndex:
         info = reader.copc_info
         half = float(info.halfsize)
         lo, hi = _cubes(keys, np.asarray(info.center, np.float64) - half, 2 * half)
+        # applied to every point, as a LAS header's: refused at planning, before a tile is read
+        check_frame(f"{shown(p)}: the COPC header's", header.offsets, header.scales, reach=2.0 ** 31)
         bounds = np.stack([np.asarray(header.mins, np.float64), np.asarray(header.maxs, np.float64)])
         declared = int(header.point_count)
     if counts.sum() != declared:
@@ -193,7 +195,23 @@ def _ept_meta(p) -> dict:
         raise InputError(f"{shown(p)}: EPT dataType '{meta['dataType']}' is not read (laszip and binary are)")
     if meta.get("hierarchyType", "json") != "json":
         raise InputError(f"{shown(p)}: EPT hierarchyType '{meta['hierarchyType']}' is not read (json is)")
+    _ept_schema_frame(p, meta)
     return meta
+
+
+def _ept_schema_frame(p, meta: dict) -> None:
+    """Refuse a schema whose X Y Z scale or offset (applied to every stored integer) cannot make usable
+    coordinates, as a LAS header's (:func:`~tiled_gridpull.io.input_errors.check_frame`)."""
+    dims = {d.get("name"): d for d in meta["schema"] if isinstance(d, dict)}
+    if not all(a in dims for a in "XYZ"):
+        raise InputError(f"{shown(p)}: EPT schema has no X, Y and Z dimensions")
+    try:
+        offset = [float(dims[a].get("offset", 0.0)) for a in "XYZ"]
+        scale = [float(dims[a].get("scale", 1.0)) for a in "XYZ"]
+        size = max(int(dims[a].get("size", 4)) for a in "XYZ")
+    except (TypeError, ValueError):
+        raise InputError(f"{shown(p)}: EPT schema's X Y Z scale, offset or size is not a number") from None
+    check_frame(f"{shown(p)}: the ept.json schema's", offset, scale, reach=2.0 ** (8 * min(size, 8) - 1))
 
 
 def _ept_hierarchy(p) -> dict[str, int]:
@@ -247,6 +265,8 @@ def _ept_node_points(f, meta: dict, count: int) -> np.ndarray:
 
         source = io.BytesIO(fetch(f)) if is_url(f) else str(f)  # a node is small: fetched whole
         with laspy.open(source, laz_backend=laz_backend()) as reader:
+            check_frame(f"{shown(f)}: the LAZ header's", reader.header.offsets, reader.header.scales,
+                        reach=2.0 ** 31)
             pts = reader.read_points(count)
         return np.column_stack([np.asarray(pts.x, np.float64), np.asarray(pts.y, np.float64),
                                 np.asarray(pts.z, np.float64)])

@@ -8,9 +8,12 @@ import os
 from collections.abc import Iterator
 from pathlib import Path
 
+import numpy as np
+
+from ..cloud import COORDINATE_LIMIT
 from ..errors import GridPullError, InputError
 
-__all__ = ["check_path", "input_errors"]
+__all__ = ["check_path", "input_errors", "check_frame"]
 
 
 def check_path(path: str | os.PathLike) -> Path:
@@ -21,6 +24,50 @@ def check_path(path: str | os.PathLike) -> Path:
     if not os.access(p, os.R_OK):
         raise InputError(f"{p}: permission denied (cannot read)")
     return p
+
+
+def check_frame(where: str, offset, scale=None, *, reach: float = 0.0, written: str | None = None,
+                label: str = "offset") -> None:
+    """Refuse the offset (and scale) a file's header applies to every coordinate when the coordinates they
+    make cannot be computed with: not finite, a zero scale, or beyond
+    :data:`~tiled_gridpull.cloud.COORDINATE_LIMIT` (an offset of 1e308 passes every reader, then overflows the
+    first sum over the points). Such values are damage, not data; the message names them.
+
+    Parameters
+    ----------
+    where : str
+        The file and header, as the message starts (``"<path>: the LAS header's"``).
+    offset : (3,) float
+    scale : (3,) float, optional
+        Multiplies stored integers of up to ``reach`` in magnitude.
+    reach : float
+        Largest stored value the scale multiplies (2**31 for LAS's int32 records).
+    written : str, optional
+        The offset as the header writes it, shown instead of the parsed numbers.
+    label : str
+        What the header calls the offset ("offset", an E57 pose's "translation").
+
+    Raises
+    ------
+    InputError
+        Naming the offset or the scale.
+    """
+    offset = np.asarray(offset, dtype=np.float64)
+    shown_offset = written if written is not None else " ".join(f"{v:g}" for v in offset)
+    if not np.all(np.isfinite(offset)) or np.abs(offset).max() > COORDINATE_LIMIT:
+        raise InputError(f"{where} {label} '{shown_offset}' is not 3 finite numbers within +-{COORDINATE_LIMIT:g} "
+                         "(coordinates beyond that overflow float64 arithmetic): a damaged header")
+    if scale is None:
+        return
+    scale = np.asarray(scale, dtype=np.float64)
+    shown_scale = " ".join(f"{v:g}" for v in scale)
+    if not np.all(np.isfinite(scale)) or np.any(scale == 0):
+        raise InputError(f"{where} scale '{shown_scale}' is not 3 finite non-zero numbers: a damaged header")
+    with np.errstate(over="ignore"):  # a scale of 1e300 times 2**31 is inf: refused all the same
+        largest = np.max(np.abs(offset) + np.abs(scale) * reach)
+    if largest > COORDINATE_LIMIT:
+        raise InputError(f"{where} scale '{shown_scale}' puts coordinates beyond +-{COORDINATE_LIMIT:g} "
+                         "(which overflow float64 arithmetic): a damaged header")
 
 
 def _reason(exc: BaseException) -> str:

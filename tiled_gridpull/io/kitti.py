@@ -1,5 +1,5 @@
 """KITTI odometry data: single Velodyne scans (``.bin``, float32 x y z reflectance) and whole sequences (a
-directory of scans with ``poses.txt`` and an optional ``calib.txt``) merged into one world-frame cloud."""
+directory of scans with ``poses.txt`` and ``calib.txt``) merged into one world-frame cloud."""
 
 from __future__ import annotations
 
@@ -39,8 +39,10 @@ def read_kitti_sequence(root: str | os.PathLike,
 
     Layout: ``root/velodyne/NNNNNN.bin`` (or ``root/NNNNNN.bin``), one float32 ``x y z reflectance`` scan per
     frame in metres in the Velodyne frame; ``root/poses.txt`` with one line per frame (12 numbers: the 3x4
-    camera-0 pose, row-major; line i is frame i); optional ``root/calib.txt`` with a ``Tr:`` line (the 3x4
-    Velodyne-to-camera-0 transform; identity when the file is absent).
+    camera-0 pose, row-major; line i is frame i); ``root/calib.txt`` with a ``Tr:`` line (the 3x4
+    Velodyne-to-camera-0 transform). Without calib.txt the sequence is refused: the poses are in the camera frame,
+    and an identity Tr would merge the scans turned and shifted without a word. Poses already in the Velodyne
+    frame are given with a calib.txt whose line is ``Tr: 1 0 0 0 0 1 0 0 0 0 1 0``.
 
     World point ``= pose_i @ Tr @ [p; 1]``; the sensor origin of frame i is ``pose_i @ Tr @ [0, 0, 0, 1]``.
 
@@ -62,8 +64,8 @@ def read_kitti_sequence(root: str | os.PathLike,
     Raises
     ------
     InputError
-        Not a KITTI sequence, a missing frame file, a poses.txt that does not cover the frames, a malformed
-        poses or calib line, a corrupted scan.
+        Not a KITTI sequence, a missing frame file, a poses.txt that does not cover the frames, no calib.txt,
+        a malformed poses or calib line, a corrupted scan.
     ConfigError
         ``frames`` is empty, negative or repeats a frame.
     """
@@ -220,10 +222,15 @@ def _kitti_frames(root: Path, frames) -> Iterator[tuple[int, np.ndarray, np.ndar
         raise InputError(f"{root}: poses.txt has {len(poses)} poses but frame {max(wanted):0{width}d} "
                          f"was requested")
     calib_path = root / "calib.txt"
-    tr = np.eye(4)
-    if calib_path.is_file():
-        with input_errors(calib_path, "text"):
-            tr = _read_calib(calib_path)
+    if not calib_path.is_file():
+        # the poses place camera 0, not the scanner: with an identity Tr every scan would be merged turned by
+        # 90 degrees about two axes and shifted, silently; a user whose poses are in the velodyne frame says so
+        raise InputError(f"{root}: KITTI sequence has no calib.txt (poses.txt gives camera-0 poses; its 'Tr:' "
+                         "line places the velodyne in that frame): copy the sequence's calib.txt from the KITTI "
+                         "odometry calibration, or, if the poses are already in the velodyne frame, write one "
+                         "with the line 'Tr: 1 0 0 0 0 1 0 0 0 0 1 0'")
+    with input_errors(calib_path, "text"):
+        tr = _read_calib(calib_path)
     for i in wanted:
         f = files[i]
         with input_errors(f, "KITTI scan"):

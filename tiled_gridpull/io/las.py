@@ -13,6 +13,7 @@ import numpy as np
 
 from ..cloud import PointCloud, concat_clouds, unit_normals
 from ..errors import InputError
+from .input_errors import check_frame
 
 __all__ = ["read", "chunks", "count"]
 
@@ -281,6 +282,8 @@ def _las_chunks(p: Path, chunk_size: int, gps_time: bool = False,
         if header.are_points_compressed:
             _laszip_items_check(p, header)
         _warn_undeclared_points(p, header, n_chunks, p.stat().st_size)
+        # laspy applies them to every record (int32): a damaged one makes NaN, identical or overflowing points
+        check_frame(f"{p}: the LAS header's", header.offsets, header.scales, reach=2.0 ** 31)
         crs = _las_crs(header)
         normal_dims = _las_normal_dims(header.point_format)
         has_intensity = "intensity" in header.point_format.dimension_names

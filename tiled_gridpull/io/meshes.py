@@ -175,7 +175,7 @@ def _read_ply(path: Path):
         raise InputError(f"{path}: PLY has no vertex element")
     v = ply["vertex"].data
     V = np.column_stack([np.asarray(v[a], dtype=np.float64) for a in ("x", "y", "z")])
-    offset = ply_offset(ply.comments)
+    offset = ply_offset(ply.comments, str(path))
     if offset is not None:
         V = V + offset
     if "face" not in names:
@@ -192,21 +192,31 @@ def _read_ply(path: Path):
     return V, F
 
 
-def ply_offset(comments: list[str]) -> np.ndarray | None:
+def ply_offset(comments: list[str], where: str = "PLY") -> np.ndarray | None:
     """The base point of a PLY written by :func:`write_mesh` with ``float32=True`` (vertices are relative to it):
     its ``comment offset x y z``, trusted only beside this package's ``comment generator tiled_gridpull...``
-    (another tool's comment of that form means something else, or nothing)."""
+    (another tool's comment of that form means something else, or nothing).
+
+    Beside our marker the offset is applied to every vertex, so one that is not 3 finite numbers within
+    :data:`~tiled_gridpull.cloud.COORDINATE_LIMIT` is damage (never written by :func:`write_mesh`): refused
+    with an :class:`InputError` naming it and ``where`` (the file), rather than ignored (vertices off by the
+    offset) or applied (sums over the points overflow).
+    """
+    from .input_errors import check_frame
+
     words = [c.split() for c in comments]
     if not any(len(w) >= 2 and w[0] == "generator" and w[1].startswith("tiled_gridpull") for w in words):
         return None
     for parts in words:
-        if len(parts) == 4 and parts[0] == "offset":
+        if parts and parts[0] == "offset":
+            written = " ".join(parts[1:])
             try:
                 off = np.array([float(x) for x in parts[1:]])
             except ValueError:
-                continue
-            if np.all(np.isfinite(off)):
-                return off
+                off = np.full(3, np.nan)
+            check_frame(f"{where}: the PLY header's", off if off.shape == (3,) else np.full(3, np.nan),
+                        written=written)
+            return off
     return None
 
 

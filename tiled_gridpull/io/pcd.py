@@ -5,6 +5,7 @@ header's ``VIEWPOINT`` is where the sensor stood (translation, then orientation)
 as its sensor origin, so tiled mode's ``orientation: auto`` faces the outside towards the sensor, as for KITTI.
 The default viewpoint (``0 0 0 1 0 0 0``, written when nobody set one) counts only for organised clouds, which are
 in their sensor's frame; an unorganised cloud with it (a registered map, its origin anywhere) gets no sensor.
+A VIEWPOINT that is not 7 finite numbers is refused (a NaN one would make every sensor origin NaN).
 Organised clouds (``HEIGHT > 1``, e.g. a depth camera's 640 x 480 image) mark pixels without a return with NaN
 coordinates; those rows are dropped like every non-finite row (counted in the cloud's report).
 """
@@ -74,6 +75,7 @@ def read(p: Path) -> PointCloud:
     if not {"x", "y", "z"} <= set(fields):
         raise InputError(f"{p}: PCD file without x y z fields (it has {' '.join(h['FIELDS'])})")
     expected = count(p)
+    view = _viewpoint(p, h)
     pc = PcdCloud.from_path(p)
     data = pc.pc_data
     if len(data) != expected:
@@ -88,17 +90,35 @@ def read(p: Path) -> PointCloud:
     if "intensity" in names:
         attrs["intensity"] = np.asarray(data[names["intensity"]], dtype=np.float32)
     sensor = None
-    view = h.get("VIEWPOINT")
-    if view:
-        try:
-            origin = np.array([float(v) for v in view[:3]], dtype=np.float64)
-        except ValueError:
-            raise InputError(f"{p}: PCD header's VIEWPOINT is not 7 numbers: {' '.join(view)!r}") from None
-        organised = int((h.get("HEIGHT") or ["1"])[0]) > 1 if (h.get("HEIGHT") or ["1"])[0].isdigit() else False
-        default = [float(v) for v in view[:7]] == list(DEFAULT_VIEWPOINT) if len(view) >= 7 else False
+    if view is not None:
+        height = (h.get("HEIGHT") or ["1"])[0]
+        organised = height.isdigit() and int(height) > 1
         # every PCL writer puts the default there: it says where the sensor was only for an organised cloud,
         # which is in its sensor's own frame; an unorganised one (a registered map) keeps no sensor
-        if len(origin) == 3 and np.all(np.isfinite(origin)) and (organised or not default):
-            sensor = np.broadcast_to(origin, xyz.shape).copy()
+        if organised or tuple(view) != DEFAULT_VIEWPOINT:
+            sensor = np.broadcast_to(view[:3], xyz.shape).copy()
     return PointCloud(xyz, normals=normals, sensor=sensor, attributes=attrs, source=str(p),
                       report={"points_read": len(xyz)})
+
+
+def _viewpoint(p: Path, h: dict[str, list[str]]) -> np.ndarray | None:
+    """The header's VIEWPOINT as 7 float64 (translation, then the orientation quaternion w x y z); None when
+    the header has none.
+
+    Raises
+    ------
+    InputError
+        A VIEWPOINT that is not 7 finite numbers: its translation would be every point's sensor origin (a NaN
+        one made every origin NaN), and no writer puts a non-finite orientation there.
+    """
+    words = h.get("VIEWPOINT")
+    if words is None:
+        return None
+    try:
+        view = np.array([float(w) for w in words], dtype=np.float64)
+    except ValueError:
+        view = np.full(0, np.nan)
+    if view.shape != (7,) or not np.all(np.isfinite(view)):
+        raise InputError(f"{p}: PCD header's VIEWPOINT '{' '.join(words)}' is not 7 finite numbers "
+                         "(the sensor's position x y z, then its orientation quaternion w x y z)")
+    return view

@@ -219,7 +219,7 @@ def _ply_vertex_columns(p: Path) -> tuple[dict, int]:
         cols = {a: table[:, j] for j, a in enumerate(names)}
     else:
         cols = _ply_vertex_plyfile(p, n)
-    offset = ply_offset(hdr.comments)
+    offset = ply_offset(hdr.comments, str(p))
     if offset is not None:
         cols["__offset__"] = offset
     return cols, n

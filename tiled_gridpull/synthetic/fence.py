@@ -36,7 +36,7 @@ def fence_scene(root: str | Path, thickness: float, centre_y: float = 0.0, *, le
     Parameters
     ----------
     root : path
-        Directory to create (``root/velodyne/00000{0,1}.bin``, ``root/poses.txt``).
+        Directory to create (``root/velodyne/00000{0,1}.bin``, ``root/poses.txt``, ``root/calib.txt``).
     thickness : float
         Wall thickness (m): its faces are the planes ``y = centre_y -/+ thickness / 2``.
     centre_y : float
@@ -95,9 +95,11 @@ def fence_scene(root: str | Path, thickness: float, centre_y: float = 0.0, *, le
         rec[:, :3] = pts - s
         with atomic_open(root / "velodyne" / f"{i:06d}.bin", "wb") as fh:
             fh.write(rec.tobytes())
-        # identity rotation, no calib.txt: world = scan + sensor position
+        # identity rotation and Tr: world = scan + sensor position
         poses.append(" ".join(repr(float(x)) for x in np.c_[np.eye(3), s].ravel()))
     with atomic_open(root / "poses.txt", "w") as fh:
         fh.write("\n".join(poses) + "\n")
+    with atomic_open(root / "calib.txt", "w") as fh:  # the poses are the scanner's (a sequence needs its Tr)
+        fh.write("Tr: 1 0 0 0 0 1 0 0 0 0 1 0\n")
     return {"sequence": root, "gt": Mesh(np.concatenate(verts), np.concatenate(faces)), "classes": classes,
             "points": np.concatenate(seen[0] + seen[1])}
