@@ -182,6 +182,22 @@ def test_solve_result_reused_only_while_its_field_is_intact(tmp_path, ground):
     assert fourth["reused"] is False and fourth["field_sha256"] != first["field_sha256"]
 
 
+def test_a_result_computed_again_is_reused_afterwards_without_a_word_of_damage(tmp_path, ground):
+    """Once a damaged field has been solved again, later runs reuse it and say nothing about the damage (the
+    record of the redo used to carry ``redone`` into every later reuse, and each rerun warned again)."""
+    paths = JobPaths(tmp_path / "job")
+    _, specs, _ = prepare_job([str(ground)], TILING, paths)
+    s = max(specs, key=lambda t: t.n_points)
+    field, summary = paths.field(s), paths.summary("solve", s)
+    solve_tile_resumable(s, TILING, SOLVER, field, summary)
+    field.write_bytes(field.read_bytes()[:-1] + b"!")
+    redone = solve_tile_resumable(s, TILING, SOLVER, field, summary)
+    assert redone["reused"] is False and "damaged" in redone["redone"]
+    for _ in range(2):
+        later = solve_tile_resumable(s, TILING, SOLVER, field, summary, before_solve=pytest.fail)
+        assert later["reused"] is True and "redone" not in later, later.get("redone")
+
+
 def test_kitti_partition_key_ignores_outputs_written_inside_the_sequence(tmp_path):
     """A job whose mesh, sidecar and job directory lie inside the KITTI sequence directory reuses its partition:
     the key covers the files the reader reads (scans, poses, calib), not whatever else the directory holds."""

@@ -230,6 +230,9 @@ def _reusable(summary_path: Path, key: str, statuses: tuple, output: str | Path)
             return None, f"{output} is missing or unreadable"
         except (KeyError, TypeError):
             return None, None  # a record of an older layout: recompute quietly
+    # ``redone`` told why the run that wrote this record computed it again; this run computed nothing, and a
+    # reused record that kept it had every later rerun warn of damage long mended
+    prev.pop("redone", None)
     prev["reused"] = True
     return prev, None
 
