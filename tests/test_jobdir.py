@@ -94,3 +94,82 @@ def test_second_job_on_a_work_directory_is_refused(tmp_path, capsys):
     with job_lock(work):  # released when the holder is done
         pass
     assert not (tmp_path / "m.ply").exists()
+
+
+_FSIZE_JOB = """
+import resource, signal, sys
+import numpy as np
+if __name__ == "__main__":
+    signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # the write fails with EFBIG instead of killing the process
+    resource.setrlimit(resource.RLIMIT_FSIZE, (4000, resource.getrlimit(resource.RLIMIT_FSIZE)[1]))
+    from tiled_gridpull.pipeline.cli import main
+    sys.exit(main(sys.argv[1:]))
+"""
+
+
+def test_file_size_limit_mid_job_names_the_file_in_one_line(tmp_path):
+    """A write refused by the machine mid-job (here a file-size limit; a full disk alike) is one line naming
+    the file, exit 3 (README, "Exit codes"); the message was "error: File too large"."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    pts = np.random.default_rng(1).uniform(0, 5, size=(2000, 3))
+    np.save(tmp_path / "p.npy", pts)  # 48 kB, read, not written, under the limit
+    work = tmp_path / "job"
+    repo = Path(__file__).resolve().parents[1]
+    proc = subprocess.run([sys.executable, "-c", _FSIZE_JOB, "reconstruct", str(tmp_path / "p.npy"), "-o",
+                           str(tmp_path / "m.ply"), "--voxel-size", "0.2", "--tile-size", "6.4", "--overlap", "3.2",
+                           "--work-dir", str(work), "--workers", "1", "-q"],
+                          cwd=repo, capture_output=True, text=True, timeout=300)
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 3 and len(lines) == 1, proc.stderr
+    assert lines[0].startswith(f"error: {work / 'points'}/") and lines[0].endswith(": File too large"), lines[0]
+    assert not (tmp_path / "m.ply").exists()
+
+
+def test_an_atomic_write_refused_by_the_machine_names_its_file(tmp_path):
+    """The storage error of a write (EFBIG here, ENOSPC or EDQUOT alike) carries no file name of its own: the
+    atomic writer adds the file it was writing, and leaves neither it nor its temporary file behind."""
+    import errno
+    import resource
+    import signal
+
+    from tiled_gridpull.io.atomic import write_json
+
+    target = tmp_path / "fields" / "big.json"
+    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+    previous = signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (10_000, hard))
+    try:
+        with pytest.raises(OSError) as caught:
+            write_json(target, {"values": list(range(10_000))})
+    finally:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
+        signal.signal(signal.SIGXFSZ, previous)
+    assert caught.value.errno == errno.EFBIG and caught.value.filename == str(target)
+    assert list(target.parent.iterdir()) == []
+
+
+def test_an_occupancy_mask_refused_by_the_machine_is_a_storage_error_naming_it(tmp_path):
+    """NumPy's own file writer (``np.save`` into an open file) reports a short write without an error number,
+    which the command line took for a bug (exit 1): the partition's occupancy masks are written as bytes, so a
+    full disk there is a storage error naming the mask like any other."""
+    import errno
+    import resource
+    import signal
+
+    xyz = np.random.default_rng(0).uniform(0, 1, size=(5, 3))
+    tiling = TilingConfig(voxel_size=0.2, tile_size=6.4, overlap=1.6)
+    plan = plan_tiles(np.stack([xyz.min(0), xyz.max(0)]), len(xyz), tiling)
+    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+    previous = signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (150, hard))  # the 60-byte spill file fits, its mask does not
+    try:
+        with pytest.raises(OSError) as caught:
+            partition([PointCloud(xyz)], plan, tmp_path / "points", False)
+    finally:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
+        signal.signal(signal.SIGXFSZ, previous)
+    assert caught.value.errno == errno.EFBIG, caught.value
+    assert caught.value.filename.endswith(".occ.npy"), caught.value.filename
