@@ -21,7 +21,8 @@ atomically (a killed run leaves at most a hidden temporary file, never a result 
 
 A result is reused when its summary's key equals the key the current run computes and its output file is
 still the one the summary describes: same size and the same SHA-256 of its bytes (a file damaged in place, even
-with its size and modification time kept, is recomputed and the summary says why in ``redone``). Spill files
+with its size and modification time kept, is recomputed and that run's summary says why in ``redone``; a later
+run that reuses the new result says nothing of it). Spill files
 are checked against their recorded SHA-256 before a partition is reused. Anything else is recomputed. Solves
 and meshes are deterministic, so a resumed job writes the same mesh, byte for byte, as an uninterrupted one.
 """
