@@ -161,8 +161,9 @@ def load_partition(paths: JobPaths, key: str, tiling: TilingConfig):
             spill = paths.points() / f"{spec.name}.points"
             size = spill_record(spec.has_sensor, spec.exact_offsets).itemsize * spec.n_points
             spec = dataclasses.replace(spec, points_path=str(spill))
-            if (not spec.points_sha256 or not spill.is_file() or spill.stat().st_size != size
-                    or not Path(spec.occupancy_path).is_file()):
+            # never through a link: what the job reuses must be its own file
+            if (not spec.points_sha256 or spill.is_symlink() or not spill.is_file() or spill.stat().st_size != size
+                    or Path(spec.occupancy_path).is_symlink() or not Path(spec.occupancy_path).is_file()):
                 return None
             # the spill's content is what every solve key stands on: a damaged one means partitioning again
             if file_sha256(spill) != spec.points_sha256:
@@ -214,6 +215,9 @@ def _reusable(summary_path: Path, key: str, statuses: tuple, output: str | Path)
     """``(summary, None)`` if the recorded summary's key matches and ``output`` (when it records one) is the file
     it describes, byte for byte; else ``(None, why)``, ``why`` naming a damaged or missing output when the
     record itself matched (None when there was nothing to reuse)."""
+    # a link is nothing the job wrote: never read to decide reuse (the result is computed again, the link replaced)
+    if Path(summary_path).is_symlink():
+        return None, None
     try:
         prev = json.loads(Path(summary_path).read_text())
     except (OSError, ValueError):
@@ -222,6 +226,8 @@ def _reusable(summary_path: Path, key: str, statuses: tuple, output: str | Path)
         return None, None
     rec = prev.get("output")
     if rec is not None:
+        if Path(output).is_symlink():
+            return None, f"{output} is a link"
         try:
             if Path(output).stat().st_size != rec["size"]:
                 return None, f"{output} changed size since it was written"
