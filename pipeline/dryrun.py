@@ -23,13 +23,14 @@ def plan_job(inputs: list[str], tiling: TilingConfig, solver: SolverConfig, work
     """Everything the dry run reports (see :func:`format_plan`)."""
     from tiled_gridpull.indexed_inputs import all_indexed, estimate_specs, plan_indexed
     from tiled_gridpull.io.remote import recorded
-    from tiled_gridpull.jobdir import JobPaths
+    from tiled_gridpull.jobdir import JobPaths, check_job_dir
     from tiled_gridpull.memory import estimate_tiles
     from tiled_gridpull.partition import partition
     from tiled_gridpull.prepare import check_registered, plan_inputs, resolve_units, scan_noise_treatment
     from tiled_gridpull.resume import load_partition, partition_key
     from tiled_gridpull.tiling import check_compatible, with_halo
 
+    check_job_dir(work_dir)  # the partition is read to be reused: never through a linked folder
     check_registered(inputs)
     tiling = resolve_units(inputs, tiling, frames)
     solver, noise = scan_noise_treatment(inputs, tiling, solver, frames)

@@ -96,6 +96,20 @@ def test_written_by_us_reads_the_marker(tmp_path, suffix):
     assert not written_by_us(tmp_path / "missing.ply")
 
 
+def test_written_by_us_reads_the_marker_of_a_picture(tmp_path):
+    """A PNG the tool draws (a job's tiles.png) carries the generator in its Software text; another PNG, even
+    one with the words in its pixels' bytes, does not."""
+    from tiled_gridpull.images import save_png
+
+    img = np.zeros((20, 30, 3), np.uint8)
+    save_png(img, tmp_path / "ours.png")
+    assert written_by_us(tmp_path / "ours.png")
+    pytest.importorskip("PIL").Image.fromarray(img).save(tmp_path / "theirs.png")
+    assert not written_by_us(tmp_path / "theirs.png")
+    (tmp_path / "text.png").write_bytes(b"tEXtSoftware\0tiled_gridpull 1")
+    assert not written_by_us(tmp_path / "text.png")
+
+
 def test_directories_where_files_go_and_files_where_directories_go(tmp_path, capsys, cloud_ply):
     (tmp_path / "out.ply").mkdir()
     code, err = run(["reconstruct", str(cloud_ply), "-o", str(tmp_path / "out.ply"), *QUICK], capsys)

@@ -94,3 +94,164 @@ def test_second_job_on_a_work_directory_is_refused(tmp_path, capsys):
     with job_lock(work):  # released when the holder is done
         pass
     assert not (tmp_path / "m.ply").exists()
+
+
+_FSIZE_JOB = """
+import resource, signal, sys
+import numpy as np
+if __name__ == "__main__":
+    signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # the write fails with EFBIG instead of killing the process
+    resource.setrlimit(resource.RLIMIT_FSIZE, (4000, resource.getrlimit(resource.RLIMIT_FSIZE)[1]))
+    from tiled_gridpull.pipeline.cli import main
+    sys.exit(main(sys.argv[1:]))
+"""
+
+
+def test_file_size_limit_mid_job_names_the_file_in_one_line(tmp_path):
+    """A write refused by the machine mid-job (here a file-size limit; a full disk alike) is one line naming
+    the file, exit 3 (README, "Exit codes"); the message was "error: File too large"."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    pts = np.random.default_rng(1).uniform(0, 5, size=(2000, 3))
+    np.save(tmp_path / "p.npy", pts)  # 48 kB, read, not written, under the limit
+    work = tmp_path / "job"
+    repo = Path(__file__).resolve().parents[1]
+    proc = subprocess.run([sys.executable, "-c", _FSIZE_JOB, "reconstruct", str(tmp_path / "p.npy"), "-o",
+                           str(tmp_path / "m.ply"), "--voxel-size", "0.2", "--tile-size", "6.4", "--overlap", "3.2",
+                           "--work-dir", str(work), "--workers", "1", "-q"],
+                          cwd=repo, capture_output=True, text=True, timeout=300)
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 3 and len(lines) == 1, proc.stderr
+    assert lines[0].startswith(f"error: {work / 'points'}/") and lines[0].endswith(": File too large"), lines[0]
+    assert not (tmp_path / "m.ply").exists()
+
+
+def test_an_atomic_write_refused_by_the_machine_names_its_file(tmp_path):
+    """The storage error of a write (EFBIG here, ENOSPC or EDQUOT alike) carries no file name of its own: the
+    atomic writer adds the file it was writing, and leaves neither it nor its temporary file behind."""
+    import errno
+    import resource
+    import signal
+
+    from tiled_gridpull.io.atomic import write_json
+
+    target = tmp_path / "fields" / "big.json"
+    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+    previous = signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (10_000, hard))
+    try:
+        with pytest.raises(OSError) as caught:
+            write_json(target, {"values": list(range(10_000))})
+    finally:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
+        signal.signal(signal.SIGXFSZ, previous)
+    assert caught.value.errno == errno.EFBIG and caught.value.filename == str(target)
+    assert list(target.parent.iterdir()) == []
+
+
+def test_an_occupancy_mask_refused_by_the_machine_is_a_storage_error_naming_it(tmp_path):
+    """NumPy's own file writer (``np.save`` into an open file) reports a short write without an error number,
+    which the command line took for a bug (exit 1): the partition's occupancy masks are written as bytes, so a
+    full disk there is a storage error naming the mask like any other."""
+    import errno
+    import resource
+    import signal
+
+    xyz = np.random.default_rng(0).uniform(0, 1, size=(5, 3))
+    tiling = TilingConfig(voxel_size=0.2, tile_size=6.4, overlap=1.6)
+    plan = plan_tiles(np.stack([xyz.min(0), xyz.max(0)]), len(xyz), tiling)
+    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+    previous = signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (150, hard))  # the 60-byte spill file fits, its mask does not
+    try:
+        with pytest.raises(OSError) as caught:
+            partition([PointCloud(xyz)], plan, tmp_path / "points", False)
+    finally:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
+        signal.signal(signal.SIGXFSZ, previous)
+    assert caught.value.errno == errno.EFBIG, caught.value
+    assert caught.value.filename.endswith(".occ.npy"), caught.value.filename
+
+
+# ------------------------------------------------------------------ a chosen work directory: foreign files, links
+
+JOB = ["--voxel-size", "0.2", "--tile-size", "6.4", "--overlap", "3.2", "--set", "m2=6", "--set", "refine_m2=6",
+       "--iterations", "30", "--set", "coarse_iterations=30", "--set", "min_points=5", "-q"]
+
+
+def _tree(root):
+    """Every file and link under ``root``: bytes (or link target) and modification time."""
+    out = {}
+    for dirpath, dirnames, filenames in os.walk(root):
+        for name in dirnames + filenames:
+            p = os.path.join(dirpath, name)
+            st = os.lstat(p)
+            if os.path.islink(p):
+                out[os.path.relpath(p, root)] = ("link", os.readlink(p))
+            elif os.path.isfile(p):
+                out[os.path.relpath(p, root)] = (open(p, "rb").read(), st.st_mtime_ns)
+    return out
+
+
+@pytest.mark.parametrize("name", ["report.json", "manifest.json", "tiles.png"])
+def test_a_users_own_file_at_a_job_file_name_is_refused_before_anything_is_written(tmp_path, capsys, name):
+    """A work directory the user chose may hold their own files: a job replaces only the fixed-name files that
+    carry this tool's generator marker (the rule of the outputs), and refuses in one line, writing nothing,
+    when one of those names holds a file it did not write (their report.json used to be replaced silently)."""
+    np.save(tmp_path / "p.npy", np.random.default_rng(1).uniform(0, 5, size=(2000, 3)))
+    work = tmp_path / "mine"
+    work.mkdir()
+    (work / name).write_text('{"mine": true}\n')
+    (work / "notes.txt").write_text("mine too")
+    before = _tree(work)
+    code = main(["reconstruct", str(tmp_path / "p.npy"), "-o", str(tmp_path / "m.ply"), "--work-dir", str(work),
+                 *JOB])
+    err = capsys.readouterr().err
+    assert code == 2 and len(err.strip().splitlines()) == 1 and name in err, err
+    assert "not written by tiled-gridpull" in err, err
+    assert _tree(work) == before
+    assert not (tmp_path / "m.ply").exists()
+
+
+@pytest.fixture(scope="module")
+def finished_job(tmp_path_factory):
+    """A small finished job (serial: no cluster), copied by each test that damages it."""
+    from tiled_gridpull.config import SolverConfig
+    from tiled_gridpull.tiled_job import reconstruct_scene
+
+    d = tmp_path_factory.mktemp("jobdir_links")
+    np.save(d / "p.npy", np.random.default_rng(1).uniform(0, 5, size=(2000, 3)))
+    reconstruct_scene([str(d / "p.npy")], d / "ref.ply", TilingConfig(voxel_size=0.2, tile_size=6.4, overlap=3.2,
+                                                                       min_points=5),
+                      SolverConfig(m2=6, refine_m2=6, iterations=30, coarse_iterations=30), d / "ref.job")
+    return d
+
+
+@pytest.mark.parametrize("folder", ["points", "fields", "pieces", "summaries", "points/.segments"])
+@pytest.mark.parametrize("dry_run", [False, True])
+def test_a_folder_of_the_job_directory_linked_elsewhere_is_refused_and_nothing_outside_is_touched(
+        finished_job, tmp_path, capsys, folder, dry_run):
+    """A folder of the job directory replaced by a symlink to a folder outside: no write goes through it, and
+    no read that decides reuse either (the dry run reads the partition to reuse it). One line, exit 2, before
+    anything is read or written; the folder outside is left as it was (it used to be filled and replaced)."""
+    import shutil
+
+    work, outside = tmp_path / "job", tmp_path / "outside"
+    shutil.copytree(finished_job / "ref.job", work, symlinks=True)
+    linked = work / folder
+    if linked.exists():
+        shutil.move(linked, outside)  # the job's own files, now outside: a read through the link would reuse them
+    else:
+        outside.mkdir()
+    linked.symlink_to(outside, target_is_directory=True)
+    before = _tree(outside), _tree(work)
+    out = tmp_path / "m.ply"
+    code = main(["reconstruct", str(finished_job / "p.npy"), "-o", str(out), "--work-dir", str(work), *JOB,
+                 *(["--dry-run"] if dry_run else [])])
+    err = capsys.readouterr().err
+    assert code == 2 and len(err.strip().splitlines()) == 1, err
+    assert f"{folder} is a link" in err, err
+    assert (_tree(outside), _tree(work)) == before
+    assert not out.exists()

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 from tiled_gridpull.pipeline.cli import main
@@ -149,3 +149,72 @@ def test_damaged_job_directory_is_redone_or_refused_in_one_line(finished_job, ca
             mesh = read_mesh(out)
             assert np.array_equal(mesh.vertices, reference.vertices) and \
                 np.array_equal(mesh.faces, reference.faces), (victim.relative_to(work), how)
+
+
+_FOLDERS = ["points", "fields", "pieces", "summaries", "points/.segments"]
+
+
+def _snapshot(root: Path) -> dict:
+    """Every file and link under ``root`` (not followed): bytes or link target, and modification time."""
+    out = {}
+    for dirpath, dirnames, filenames in os.walk(root):
+        for name in dirnames + filenames:
+            p = Path(dirpath) / name
+            if p.is_symlink():
+                out[str(p.relative_to(root))] = ("link", os.readlink(p))
+            elif p.is_file():
+                out[str(p.relative_to(root))] = (p.read_bytes(), p.stat().st_mtime_ns)
+    return out
+
+
+@settings(max_examples=max(3, EXAMPLES // 8), deadline=None, derandomize=DERANDOMIZE,
+          suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
+@given(linked=st.lists(st.sampled_from(_FOLDERS), min_size=0, max_size=3, unique=True),
+       target=st.sampled_from(["moved", "empty", "dangling", "inside"]),
+       file_links=st.integers(0, 2), dry_run=st.booleans())
+@example(linked=[], target="moved", file_links=2, dry_run=False)  # file links alone: replaced, a full rerun
+@example(linked=["points"], target="moved", file_links=0, dry_run=True)  # the dry run reads what to reuse
+@pytest.mark.slow
+def test_linked_job_folders_are_never_written_or_read_through(finished_job, capsys, linked, target, file_links,
+                                                               dry_run):
+    """Replace folders of a finished job directory by symlinks (to the folder moved outside, to an empty folder
+    outside, to nowhere, or to another folder of the job), and some of its files by symlinks to folders outside,
+    then rerun (or dry-run): the job refuses a linked folder in one line, exit 2, and nothing outside the job
+    directory is written, whatever it answers."""
+    d, reference = finished_job
+    work, outside = d / "links.job", d / "outside"
+    for p in (work, outside):
+        shutil.rmtree(p, ignore_errors=True)
+    shutil.copytree(d / "ref.job", work, symlinks=True)
+    outside.mkdir()
+    for k, name in enumerate(sorted(linked, key=len, reverse=True)):  # points/.segments before points
+        folder, away = work / name, outside / f"folder{k}"
+        if target == "moved" and folder.is_dir():
+            shutil.move(folder, away)  # the job's own files, outside: a read through the link would reuse them
+        else:
+            shutil.rmtree(folder, ignore_errors=True)
+            if target == "empty":
+                away.mkdir()
+            elif target == "inside":
+                away = work / "summaries" if name != "summaries" else work / "fields"
+        folder.parent.mkdir(parents=True, exist_ok=True)
+        folder.symlink_to(away, target_is_directory=True)
+    files = sorted(p for p in work.rglob("*") if p.is_file() and not p.is_symlink() and p.suffix in (".npz", ".json")
+                   and p.parent != work)
+    for k, victim in enumerate(files[:: max(1, len(files) // max(file_links, 1))][:file_links]):
+        (outside / f"dir{k}").mkdir()
+        victim.unlink()
+        victim.symlink_to(outside / f"dir{k}", target_is_directory=True)
+    before = _snapshot(outside)
+    out = d / "links.ply"
+    out.unlink(missing_ok=True)
+    code, err = _run(["reconstruct", str(d / "pts.npy"), "-o", str(out), "-q", "--work-dir", str(work), *OPTS,
+                      *(["--dry-run"] if dry_run else [])], capsys)
+    _one_line_or_success(code, err)
+    assert _snapshot(outside) == before
+    if linked:
+        assert code == 2 and " is a link (to " in err, err
+        assert not out.exists()
+    elif code == 6 and not dry_run:  # file links only: replaced, never followed; the same mesh
+        mesh = read_mesh(out)
+        assert np.array_equal(mesh.vertices, reference.vertices) and np.array_equal(mesh.faces, reference.faces)

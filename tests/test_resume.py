@@ -182,6 +182,52 @@ def test_solve_result_reused_only_while_its_field_is_intact(tmp_path, ground):
     assert fourth["reused"] is False and fourth["field_sha256"] != first["field_sha256"]
 
 
+def test_a_result_computed_again_is_reused_afterwards_without_a_word_of_damage(tmp_path, ground):
+    """Once a damaged field has been solved again, later runs reuse it and say nothing about the damage (the
+    record of the redo used to carry ``redone`` into every later reuse, and each rerun warned again)."""
+    paths = JobPaths(tmp_path / "job")
+    _, specs, _ = prepare_job([str(ground)], TILING, paths)
+    s = max(specs, key=lambda t: t.n_points)
+    field, summary = paths.field(s), paths.summary("solve", s)
+    solve_tile_resumable(s, TILING, SOLVER, field, summary)
+    field.write_bytes(field.read_bytes()[:-1] + b"!")
+    redone = solve_tile_resumable(s, TILING, SOLVER, field, summary)
+    assert redone["reused"] is False and "damaged" in redone["redone"]
+    for _ in range(2):
+        later = solve_tile_resumable(s, TILING, SOLVER, field, summary, before_solve=pytest.fail)
+        assert later["reused"] is True and "redone" not in later, later.get("redone")
+
+
+def test_a_result_is_never_reused_through_a_link(tmp_path, ground):
+    """A job decides reuse only from its own files: a field, a summary or a spill file replaced by a symlink to an
+    intact copy outside the job directory is not read to decide reuse; the result is computed again and the
+    link replaced, the copy outside left alone."""
+    import shutil
+
+    paths = JobPaths(tmp_path / "job")
+    _, specs, _ = prepare_job([str(ground)], TILING, paths)
+    s = max(specs, key=lambda t: t.n_points)
+    field, summary = paths.field(s), paths.summary("solve", s)
+    solve_tile_resumable(s, TILING, SOLVER, field, summary)
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    for p in (field, summary):
+        copy = outside / p.name
+        shutil.copy2(p, copy)
+        p.unlink()
+        p.symlink_to(copy)
+        kept = copy.read_bytes()
+        again = solve_tile_resumable(s, TILING, SOLVER, field, summary)
+        assert again["reused"] is False, p.name
+        assert not p.is_symlink() and copy.read_bytes() == kept
+    spill = Path(s.points_path)
+    shutil.copy2(spill, outside / spill.name)
+    spill.unlink()
+    spill.symlink_to(outside / spill.name)
+    assert prepare_job([str(ground)], TILING, paths)[2]["partition_reused"] is False
+    assert not spill.is_symlink()
+
+
 def test_kitti_partition_key_ignores_outputs_written_inside_the_sequence(tmp_path):
     """A job whose mesh, sidecar and job directory lie inside the KITTI sequence directory reuses its partition:
     the key covers the files the reader reads (scans, poses, calib), not whatever else the directory holds."""

@@ -536,3 +536,17 @@ def test_cli_sample_street_with_range_noise(tmp_path, capsys):
         assert main(["sample", *argv, "--points", "200"]) != 0
         assert needle in capsys.readouterr().err
     assert not (tmp_path / "x").exists() and not (tmp_path / "s").exists()
+
+
+def test_sample_street_copc_without_copclib_writes_nothing(tmp_path, monkeypatch, capsys):
+    """``sample street --copc`` without the COPC writer's package stops in one line (exit 4) before any file is
+    written, not after the LAZ, trajectory and ground truth."""
+    from tiled_gridpull.pipeline.cli import main
+
+    monkeypatch.setitem(__import__("sys").modules, "copclib", None)  # import copclib raises ImportError
+    out = tmp_path / "sample"
+    code = main(["sample", "street", str(out), "--copc", "--points", "2000"])
+    err = capsys.readouterr().err
+    assert code == 4 and "copclib" in err, err
+    assert len(err.strip().splitlines()) == 1, err
+    assert not out.exists() or not any(out.iterdir())

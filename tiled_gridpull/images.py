@@ -40,9 +40,17 @@ def save_png(image: np.ndarray, path: str | Path) -> Path:
     from .io.atomic import atomic_path
 
     pil = require("PIL.Image", "writing PNG files")
+    from PIL.PngImagePlugin import PngInfo
+
+    from ._version import __version__
+    from .io.outputs import GENERATOR_PREFIX
+
+    # the generator marker (io.outputs.written_by_us): a rerun may replace the picture a job wrote, not a user's
+    info = PngInfo()
+    info.add_text("Software", f"{GENERATOR_PREFIX}{__version__}")
     path = Path(path)
     with atomic_path(path) as tmp:
-        pil.fromarray(np.asarray(image, dtype=np.uint8)).save(tmp, format="PNG")
+        pil.fromarray(np.asarray(image, dtype=np.uint8)).save(tmp, format="PNG", pnginfo=info)
     return path
 
 

@@ -12,6 +12,9 @@ A job directory holds everything a run produces, so a finished or interrupted jo
 * ``summaries/<step>_<tile>.json``: one JSON per finished tile step, with the key of what produced it;
 * ``report.json`` and ``tiles.png`` once the job finished (:mod:`tiled_gridpull.report`);
 * ``.lock``: held while a job runs (:func:`job_lock`).
+
+A work directory may be one the user chose and keeps files of their own in: :func:`check_job_dir` refuses, before
+a job reads or writes anything there, a fixed-name file this tool did not write and a folder that is a link.
 """
 
 from __future__ import annotations
@@ -25,14 +28,16 @@ from pathlib import Path
 
 import numpy as np
 
+from ._version import __version__
 from .errors import ConfigError, InputError
 from .io.atomic import write_json
+from .io.outputs import GENERATOR_PREFIX, written_by_us
 from .lattice import Lattice
 from .tile_plan import TilePlan, TileSpec
 
-__all__ = ["JobPaths", "job_lock", "SPILL_RECORD", "SPILL_RECORD_SENSOR", "SPILL_RECORD_EXACT",
-           "SPILL_RECORD_EXACT_SENSOR", "spill_record", "neighbors_of",
-           "write_manifest", "read_manifest", "sample_job_points"]
+__all__ = ["JobPaths", "job_lock", "check_job_dir", "JOB_FILES", "JOB_FOLDERS", "REPORT_NAME", "LAYOUT_NAME",
+           "SPILL_RECORD", "SPILL_RECORD_SENSOR", "SPILL_RECORD_EXACT", "SPILL_RECORD_EXACT_SENSOR", "spill_record",
+           "neighbors_of", "write_manifest", "read_manifest", "sample_job_points"]
 
 #: One point of a spill file: float32 coordinates in metres from the block's low corner (tile-local).
 SPILL_RECORD = np.dtype([("xyz", "<f4", (3,))])
@@ -51,6 +56,16 @@ def spill_record(has_sensor: bool, exact: bool = False) -> np.dtype:
     if exact:
         return SPILL_RECORD_EXACT_SENSOR if has_sensor else SPILL_RECORD_EXACT
     return SPILL_RECORD_SENSOR if has_sensor else SPILL_RECORD
+
+
+#: The job's report and its picture (:mod:`tiled_gridpull.report`).
+REPORT_NAME = "report.json"
+LAYOUT_NAME = "tiles.png"
+#: The files a job writes at fixed names in its directory; each carries the generator marker of
+#: :func:`tiled_gridpull.io.outputs.written_by_us` (``.lock`` holds only a PID, and a job never replaces it).
+JOB_FILES = ("manifest.json", REPORT_NAME, LAYOUT_NAME)
+#: The folders a job writes into, and the one a job makes inside one of them (the partition's segments).
+JOB_FOLDERS = ("points", "fields", "pieces", "summaries", "points/.segments")
 
 
 class JobPaths:
@@ -74,6 +89,43 @@ class JobPaths:
 
     def summary(self, step: str, spec: TileSpec) -> Path:
         return self.root / "summaries" / f"{step}_{spec.name}.json"
+
+
+def check_job_dir(root: str | Path) -> None:
+    """Refuse a work directory a job cannot use without harm, before it reads or writes anything there.
+
+    A job replaces its fixed-name files (:data:`JOB_FILES`) only when they carry this tool's generator marker
+    (the rule outputs follow, :func:`~tiled_gridpull.io.outputs.written_by_us`): a user's own ``report.json`` in
+    the directory they chose is theirs. A folder of the job (:data:`JOB_FOLDERS`) that is a symlink would take
+    the job's writes, and the reads that decide what to reuse, to a folder outside the job directory (file
+    symlinks are replaced, never written through, by :mod:`tiled_gridpull.io.atomic`). The work directory itself
+    may be a link: the user named it.
+
+    Raises
+    ------
+    ConfigError
+        The directory is a file; a fixed-name file was not written by this tool; a folder is a link or a file.
+    """
+    root = Path(root)
+    if not root.exists():
+        return
+    if not root.is_dir():
+        raise ConfigError(f"work directory {root} is a file, not a directory")
+    for name in JOB_FILES:
+        p = root / name
+        # a link is nothing this tool writes, and reading the manifest through one would decide reuse
+        if p.is_symlink() or (p.exists() and not written_by_us(p)):
+            what = " (a link)" if p.is_symlink() else ""
+            raise ConfigError(f"work directory {root}: {name}{what} there was not written by tiled-gridpull (a job "
+                              f"writes its own {name}): move it, or choose another work directory")
+    for name in JOB_FOLDERS:
+        p = root / name
+        if p.is_symlink():
+            raise ConfigError(f"work directory {root}: {name} is a link (to {os.readlink(p)}); a job writes only "
+                              "into folders of its own: put a folder there, or choose another work directory")
+        if p.exists() and not p.is_dir():
+            raise ConfigError(f"work directory {root}: {name} is a file where a job keeps a folder: move it, or "
+                              "choose another work directory")
 
 
 @contextlib.contextmanager
@@ -136,7 +188,9 @@ def neighbors_of(spec: TileSpec, solved: dict[tuple, TileSpec]) -> list[TileSpec
 
 def write_manifest(path: str | Path, plan: TilePlan, specs: list[TileSpec], extra: dict | None = None) -> None:
     """Write the tile manifest (plan, per-tile counts and bounds) atomically."""
-    data = {"plan": plan.to_dict(), "tiles": [s.to_dict() for s in specs]}
+    # the generator marks the file as the tool's, so a rerun may replace it (check_job_dir)
+    data = {"generator": f"{GENERATOR_PREFIX}{__version__}", "plan": plan.to_dict(),
+            "tiles": [s.to_dict() for s in specs]}
     if extra:
         data.update(extra)
     write_json(path, data)

@@ -8,12 +8,13 @@ sensor origin of every point when it is known (record layouts: :func:`tiled_grid
 from __future__ import annotations
 
 import hashlib
+import io
 from collections.abc import Iterable
 from pathlib import Path
 
 import numpy as np
 
-from .io.atomic import atomic_open, open_no_follow, replace_file
+from .io.atomic import atomic_open, naming, open_no_follow, replace_file
 from .jobdir import spill_record
 from .kernels import BRICK
 from .tile_plan import TilePlan, TileSpec
@@ -75,7 +76,7 @@ def partition(chunks: Iterable, plan: TilePlan, out_dir: str | Path | None, has_
                     h.update(part.tobytes())
                 continue
             path = tmp_paths.setdefault(key, out / f".{plan.spec(key).name}.points.partial")
-            with open_no_follow(path, "ab") as fh:
+            with naming(out / f"{plan.spec(key).name}.points"), open_no_follow(path, "ab") as fh:
                 for part in parts:
                     data = part.tobytes()
                     h.update(data)
@@ -142,8 +143,7 @@ def partition(chunks: Iterable, plan: TilePlan, out_dir: str | Path | None, has_
             final = out / f"{spec.name}.points"
             replace_file(tmp_paths[t], final)
             path = str(final)
-            with atomic_open(final.with_suffix(".occ.npy")) as fh:
-                np.save(fh, np.packbits(grid.ravel()))
+            write_occupancy(final.with_suffix(".occ.npy"), grid)
         if occupancy is not None:
             occupancy[t] = grid
         specs.append(plan.spec(t, n_points=counts[t], points_path=path, has_sensor=has_sensor,
@@ -197,8 +197,7 @@ def merge_segments(parts: list[list[TileSpec]], plan: TilePlan, out_dir: str | P
                         for block in iter(lambda: src.read(1 << 22), b""):
                             h.update(block)
                             fh.write(block)
-            with atomic_open(final.with_suffix(".occ.npy")) as fh:
-                np.save(fh, np.packbits(grid.ravel()))
+            write_occupancy(final.with_suffix(".occ.npy"), grid)
             path, digest = str(final), h.hexdigest()
             for _, piece in pieces:
                 Path(piece.points_path).unlink(missing_ok=True)
@@ -209,6 +208,19 @@ def merge_segments(parts: list[list[TileSpec]], plan: TilePlan, out_dir: str | P
                                 occupied_bricks=int(grid.sum()),
                                 halo_points=sum(piece.halo_points for _, piece in pieces)))
     return merged
+
+
+def write_occupancy(path: Path, grid: np.ndarray) -> None:
+    """Write a tile's occupied-brick mask (packed bits, ``.npy``) atomically.
+
+    The ``.npy`` is made in memory and written with the file's own ``write``: ``np.save`` into an open file
+    writes through NumPy's C stream, whose short write on a full disk or a file-size limit was silent (a
+    truncated mask committed) or an error without a number.
+    """
+    buf = io.BytesIO()
+    np.save(buf, np.packbits(grid.ravel()))
+    with atomic_open(path) as fh:
+        fh.write(buf.getbuffer())
 
 
 def read_occupancy(spec: TileSpec) -> np.ndarray:

@@ -25,15 +25,13 @@ import numpy as np
 from .config import recorded_settings
 from .errors import InputError
 from .io.atomic import write_json
-from .jobdir import sample_job_points
+from .jobdir import LAYOUT_NAME, REPORT_NAME, sample_job_points
 
 log = logging.getLogger("tiled_gridpull")
 
 __all__ = ["REPORT_NAME", "LAYOUT_NAME", "build_report", "write_report", "read_report", "format_report_table",
            "tile_core_bounds", "TIMING_PHASES"]
 
-REPORT_NAME = "report.json"
-LAYOUT_NAME = "tiles.png"
 REPORT_FORMAT = "tiled_gridpull.report/1"
 
 

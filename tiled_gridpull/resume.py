@@ -21,7 +21,8 @@ atomically (a killed run leaves at most a hidden temporary file, never a result 
 
 A result is reused when its summary's key equals the key the current run computes and its output file is
 still the one the summary describes: same size and the same SHA-256 of its bytes (a file damaged in place, even
-with its size and modification time kept, is recomputed and the summary says why in ``redone``). Spill files
+with its size and modification time kept, is recomputed and that run's summary says why in ``redone``; a later
+run that reuses the new result says nothing of it). Spill files
 are checked against their recorded SHA-256 before a partition is reused. Anything else is recomputed. Solves
 and meshes are deterministic, so a resumed job writes the same mesh, byte for byte, as an uninterrupted one.
 """
@@ -160,8 +161,9 @@ def load_partition(paths: JobPaths, key: str, tiling: TilingConfig):
             spill = paths.points() / f"{spec.name}.points"
             size = spill_record(spec.has_sensor, spec.exact_offsets).itemsize * spec.n_points
             spec = dataclasses.replace(spec, points_path=str(spill))
-            if (not spec.points_sha256 or not spill.is_file() or spill.stat().st_size != size
-                    or not Path(spec.occupancy_path).is_file()):
+            # never through a link: what the job reuses must be its own file
+            if (not spec.points_sha256 or spill.is_symlink() or not spill.is_file() or spill.stat().st_size != size
+                    or Path(spec.occupancy_path).is_symlink() or not Path(spec.occupancy_path).is_file()):
                 return None
             # the spill's content is what every solve key stands on: a damaged one means partitioning again
             if file_sha256(spill) != spec.points_sha256:
@@ -215,6 +217,9 @@ def _reusable(summary_path: Path, key: str, statuses: tuple, output: str | Path)
     """``(summary, None)`` if the recorded summary's key matches and ``output`` (when it records one) is the file
     it describes, byte for byte; else ``(None, why)``, ``why`` naming a damaged or missing output when the
     record itself matched (None when there was nothing to reuse)."""
+    # a link is nothing the job wrote: never read to decide reuse (the result is computed again, the link replaced)
+    if Path(summary_path).is_symlink():
+        return None, None
     try:
         prev = json.loads(Path(summary_path).read_text())
     except (OSError, ValueError):
@@ -223,6 +228,8 @@ def _reusable(summary_path: Path, key: str, statuses: tuple, output: str | Path)
         return None, None
     rec = prev.get("output")
     if rec is not None:
+        if Path(output).is_symlink():
+            return None, f"{output} is a link"
         try:
             if Path(output).stat().st_size != rec["size"]:
                 return None, f"{output} changed size since it was written"
@@ -232,6 +239,9 @@ def _reusable(summary_path: Path, key: str, statuses: tuple, output: str | Path)
             return None, f"{output} is missing or unreadable"
         except (KeyError, TypeError):
             return None, None  # a record of an older layout: recompute quietly
+    # ``redone`` told why the run that wrote this record computed it again; this run computed nothing, and a
+    # reused record that kept it had every later rerun warn of damage long mended
+    prev.pop("redone", None)
     prev["reused"] = True
     return prev, None
 

@@ -28,7 +28,7 @@ from ._version import __version__
 from .config import SolverConfig
 from .errors import InputError, TileFailedError
 from .io import write_mesh, write_mesh_and_sidecar
-from .jobdir import JobPaths, job_lock, neighbors_of
+from .jobdir import JobPaths, check_job_dir, job_lock, neighbors_of
 from .memory import check_memory, peak_rss_mb
 from .mesh import Mesh
 from .prepare import check_registered, check_remote, prepare_job, resolve_units, scan_noise_treatment
@@ -248,6 +248,7 @@ def run_tiled_job(inputs: list[str], output: str | Path | None, tiling: TilingCo
     progress : bool
         Show a progress bar with an ETA.
     """
+    check_job_dir(work_dir)  # a user's own files and linked folders, before anything is read or written
     check_registered(inputs)  # before a KITTI scan's points are read to measure them
     check_remote(inputs, trajectory, tiling)  # before the cell size or the noise reads a URL
     tiling = resolve_units(inputs, tiling, frames)  # auto, or a cell size in metres on data in feet

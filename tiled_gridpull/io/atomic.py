@@ -45,6 +45,22 @@ def replace_file(src: str | os.PathLike, target: str | os.PathLike) -> None:
 
 
 @contextlib.contextmanager
+def naming(path: str | os.PathLike) -> Iterator[None]:
+    """Name ``path`` in an ``OSError`` raised inside without a file name, and raise it again.
+
+    A write the machine refuses (``ENOSPC``, ``EDQUOT``, ``EFBIG``, ``EIO``) fails in ``write`` or ``close``,
+    whose errors carry no file name; the command line's one line for a storage error names the file from it
+    (README, "Exit codes"). The error keeps its type, number and traceback.
+    """
+    try:
+        yield
+    except OSError as exc:
+        if exc.filename is None and exc.errno is not None:
+            exc.filename = os.fspath(path)
+        raise
+
+
+@contextlib.contextmanager
 def atomic_path(target: str | os.PathLike) -> Iterator[Path]:
     """Yield a temporary path to write; on success it replaces ``target`` atomically, on error it is removed."""
     target = Path(target)
@@ -55,8 +71,9 @@ def atomic_path(target: str | os.PathLike) -> Iterator[Path]:
     try:
         # mkstemp makes the file private (0600); outputs get the permissions any new file would
         os.chmod(tmp, 0o666 & ~_UMASK)
-        yield tmp
-        replace_file(tmp, target)
+        with naming(target):  # the file being written, not its temporary name
+            yield tmp
+            replace_file(tmp, target)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             tmp.unlink()

@@ -2,8 +2,9 @@
 write, and say so in one line while there is still nothing to lose.
 
 A file counts as written by this tool when it carries the marker every reconstruction writes: the PLY header's
-``comment generator tiled_gridpull <version>``, the OBJ's first line ``# generator tiled_gridpull <version>``, or a
-JSON sidecar whose ``generator`` is ``tiled_gridpull <version>``. The sample generator's files
+``comment generator tiled_gridpull <version>``, the OBJ's first line ``# generator tiled_gridpull <version>``, a
+JSON sidecar (or job file) whose ``generator`` is ``tiled_gridpull <version>``, or a PNG whose ``Software`` text is
+``tiled_gridpull <version>`` (:func:`tiled_gridpull.images.save_png`). The sample generator's files
 (``tiled_gridpull.synthetic.*``) are not reconstructions and are protected like any other file.
 """
 
@@ -26,7 +27,8 @@ def _resolved(p: str | Path) -> Path:
 
 
 def written_by_us(path: str | Path) -> bool:
-    """True when ``path`` is a mesh or sidecar written by a reconstruction (see the module's docstring)."""
+    """True when ``path`` is a mesh, sidecar, job file or picture written by this tool (see the module's
+    docstring)."""
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix == ".json":
@@ -37,7 +39,8 @@ def written_by_us(path: str | Path) -> bool:
         gen = meta.get("generator") if isinstance(meta, dict) else None
         return isinstance(gen, str) and gen.startswith(GENERATOR_PREFIX)
     marker = {".ply": b"comment generator " + GENERATOR_PREFIX.encode(),
-              ".obj": b"# generator " + GENERATOR_PREFIX.encode()}.get(suffix)
+              ".obj": b"# generator " + GENERATOR_PREFIX.encode(),
+              ".png": b"tEXtSoftware\0" + GENERATOR_PREFIX.encode()}.get(suffix)
     if marker is None:
         return False
     try:
@@ -48,6 +51,8 @@ def written_by_us(path: str | Path) -> bool:
     if suffix == ".ply":
         header = head.split(b"end_header", 1)[0]
         return any(line.strip().startswith(marker) for line in header.splitlines())
+    if suffix == ".png":  # a text chunk before the image data, which save_png writes right after the header
+        return head.startswith(b"\x89PNG") and marker in head.split(b"IDAT", 1)[0]
     return head.startswith(marker)
 
 

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .._optional import require
 from ..io.atomic import write_json
 from ..io.meshes import write_mesh
 from .lidar import SENSOR_HEIGHT_M, grid_passes, scan_street, street_length_for_frames
@@ -94,6 +95,9 @@ def make_street_sample(out_dir: str | Path, n_points: int = 100_000, seed: int =
         raise ValueError("n_points must be >= 1")
     if layout not in LAYOUTS:
         raise ValueError(f"layout must be one of {LAYOUTS}, got {layout!r}")
+    if "copc" in formats:
+        # the one format with an optional writer: refused now, not after the other files are written
+        require("copclib", "writing COPC files")
     out_dir = Path(out_dir)
     if layout == "grid":
         scene = StreetScene(seed=seed, origin=tuple(origin), layout="grid", extent_m=extent_m)
