@@ -375,3 +375,70 @@ def test_executor_map_keeps_order_and_a_failure_leaves_no_task_running(tmp_path)
     finally:
         executor._client.close()
         cluster.close()
+
+
+class _Listener:
+    """Something that is not a Dask scheduler on 127.0.0.1: a TCP listener that accepts and never answers
+    (``silent``), or a web server (``http``) answering every request with a page. It stops by itself after
+    ``life`` seconds, or when the test leaves the ``with``."""
+
+    def __init__(self, kind: str, life: float = 60.0):
+        import threading
+
+        self.kind, self.sock = kind, socket.socket()
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.listen(8)
+        self.sock.settimeout(0.2)
+        self.port = self.sock.getsockname()[1]
+        self.until, self.conns = time.monotonic() + life, []
+        self.thread = threading.Thread(target=self._serve, daemon=True)
+
+    def _serve(self):
+        while time.monotonic() < self.until:
+            try:
+                conn, _ = self.sock.accept()
+            except OSError:
+                continue
+            self.conns.append(conn)
+            if self.kind == "http":
+                conn.settimeout(2)
+                try:
+                    conn.recv(65536)
+                    conn.sendall(b"HTTP/1.1 200 OK\r\nContent-Type: text/html\r\nContent-Length: 13\r\n\r\n"
+                                 b"<h1>hello</h1>")
+                except OSError:
+                    pass
+        self.close()
+
+    def close(self):
+        self.until = 0
+        for c in self.conns:
+            c.close()
+        self.sock.close()
+
+    def __enter__(self):
+        self.thread.start()
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+@pytest.mark.parametrize("kind", ["silent", "http"])
+def test_a_scheduler_address_where_something_else_listens_is_refused_before_any_work(tmp_path, kind):
+    """A silent TCP listener or a web server at --scheduler accepted the connection and the job hung after the
+    partition, with no message: now a handshake timeout, one line, exit 2, nothing written."""
+    np.save(tmp_path / "ground.npy", terrain(12.8, 30))
+    out, work = tmp_path / "out.ply", tmp_path / "out.job"
+    with _Listener(kind) as server:
+        t0 = time.monotonic()
+        proc = subprocess.run([sys.executable, "-m", "tiled_gridpull", "reconstruct", str(tmp_path / "ground.npy"),
+                               "-o", str(out), "--work-dir", str(work), "-q", "--voxel-size", "0.2",
+                               "--scheduler", f"tcp://127.0.0.1:{server.port}"],
+                              capture_output=True, text=True, timeout=90,
+                              env=dict(os.environ, NUMBA_NUM_THREADS="1"))
+    err = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+    assert not out.exists() and not (work.exists() and any(work.iterdir())), sorted(work.rglob("*"))
+    assert proc.returncode == 2 and len(err) == 1, proc.stderr
+    assert err[0].startswith(f"error: --scheduler tcp://127.0.0.1:{server.port}: not a Dask scheduler"), err
+    assert time.monotonic() - t0 < 60
