@@ -389,8 +389,27 @@ class DaskExecutor:
                 if failure is None:
                     submit(1)
         if failure is not None:
-            raise failure
+            raise self._lost_cluster(failure) or failure
         return results
+
+    def _lost_cluster(self, exc: BaseException) -> ClusterError | None:
+        """The error to raise instead of ``exc`` when ``exc`` says the cluster went away under the job (its tasks
+        cancelled because the client lost the scheduler, or the connection closed), else None: a task's own
+        error is the task's to report."""
+        import concurrent.futures
+
+        from distributed.comm.core import CommClosedError
+
+        client = self._client
+        gone = client is not None and getattr(client, "status", "running") not in ("running", "connecting")
+        if isinstance(exc, (concurrent.futures.CancelledError, CommClosedError)) or (isinstance(exc, OSError)
+                                                                                     and gone):
+            where = f"the Dask scheduler {self.options.scheduler}" if self.options.scheduler else "the Dask cluster"
+            why = getattr(exc, "reason", None) or exc.__class__.__name__
+            # one line: a cancelled future's message carries a second line of advice from distributed
+            return ClusterError(f"lost {where} mid-job ({why}): the job stops; rerun to resume from the tiles "
+                                "already done")
+        return None
 
     def run(self, specs: list[TileSpec], tiling: TilingConfig, solver: SolverConfig, paths: JobPaths, centre,
             key_ref) -> Iterator[TileEvent]:
@@ -401,9 +420,15 @@ class DaskExecutor:
             client = self._connect(len(specs), paths.root)
             try:
                 solve_args, mesh_args = task_arguments(specs, tiling, solver, paths, centre, key_ref)
-                yield from run_tiles(client, specs, solve_task, solve_args, mesh_task, mesh_args, options.retries,
-                                     window=options.window, stop=interrupted,
-                                     no_worker_timeout=options.no_worker_timeout)
+                try:
+                    yield from run_tiles(client, specs, solve_task, solve_args, mesh_task, mesh_args,
+                                         options.retries, window=options.window, stop=interrupted,
+                                         no_worker_timeout=options.no_worker_timeout)
+                except Exception as exc:
+                    lost = self._lost_cluster(exc)
+                    if lost is None:
+                        raise
+                    raise lost from None
             finally:
                 self.close()
 

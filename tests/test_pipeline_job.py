@@ -442,3 +442,60 @@ def test_a_scheduler_address_where_something_else_listens_is_refused_before_any_
     assert proc.returncode == 2 and len(err) == 1, proc.stderr
     assert err[0].startswith(f"error: --scheduler tcp://127.0.0.1:{server.port}: not a Dask scheduler"), err
     assert time.monotonic() - t0 < 60
+
+
+@pytest.mark.slow
+def test_an_external_scheduler_that_dies_mid_job_is_exit_7_in_one_line_and_the_rerun_resumes(tmp_path):
+    """The external scheduler killed while tiles are solving: "internal error: FutureCancelledError" (exit 1, two
+    lines) before; now the README's exit code for a lost cluster (7) and one line, and the same command on a
+    cluster of its own resumes from the tiles already done."""
+    import signal
+
+    repo = Path(__file__).resolve().parents[1]
+    np.save(tmp_path / "ground.npy", terrain(19.2, 40))
+    out, work, marks = tmp_path / "g.ply", tmp_path / "g.job", tmp_path / "marks"
+    marks.mkdir()
+    port = _free_port()
+    address = f"tcp://127.0.0.1:{port}"
+    # the workers import this checkout, as the driver does; the first attempt at each tile holds 60 s
+    env = dict(os.environ, TILED_GRIDPULL_THREADS="1", OMP_NUM_THREADS="1", NUMBA_NUM_THREADS="1",
+               PYTHONPATH=os.pathsep.join(filter(None, [str(repo), os.environ.get("PYTHONPATH")])),
+               TILED_GRIDPULL_TEST_HOLD=f"{marks}:60")
+    scheduler = subprocess.Popen([str(BIN / "dask"), "scheduler", "--host", "127.0.0.1", "--port", str(port),
+                                  "--no-dashboard"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
+    procs = [scheduler]
+    opts = ["--voxel-size", "0.2", "--tile-size", "6.4", "--overlap", "1.6", "--set", "m2=8", "--set", "refine_m2=6",
+            "--set", "coarse_iterations=40", "--set", "iterations=40", "--set", "queries=5000"]
+    cmd = [sys.executable, "-m", "tiled_gridpull", "reconstruct", str(tmp_path / "ground.npy"), "-o", str(out),
+           "--work-dir", str(work), *opts]
+    try:
+        time.sleep(2.0)
+        procs.append(subprocess.Popen([str(BIN / "dask"), "worker", address, "--nthreads", "1", "--no-dashboard",
+                                       "--local-directory", str(tmp_path / "w")], stdout=subprocess.DEVNULL,
+                                      stderr=subprocess.DEVNULL, env=env))
+        job = subprocess.Popen(cmd + ["-q", "--scheduler", address], cwd=repo, env=env, stdout=subprocess.PIPE,
+                               stderr=subprocess.PIPE, text=True)
+        procs.append(job)
+        deadline = time.monotonic() + 120
+        while not any(marks.iterdir()) and time.monotonic() < deadline:
+            assert job.poll() is None, job.communicate()
+            time.sleep(0.1)
+        assert any(marks.iterdir()), "no tile started solving"
+        scheduler.send_signal(signal.SIGKILL)
+        _, err = job.communicate(timeout=180)
+    finally:
+        for p in reversed(procs):
+            if p.poll() is None:
+                p.kill()
+            p.wait(timeout=30)
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert job.returncode == 7 and len(lines) == 1, err
+    assert lines[0].startswith("error: ") and "scheduler" in lines[0] and "rerun to resume" in lines[0], err
+    assert not out.exists() and not out.with_suffix(".json").exists()
+    # the same command on a cluster of its own resumes: the partition is reused, and so is every tile recorded
+    done = {p.name for p in (work / "summaries").glob("solve_*.json")}
+    rerun = subprocess.run(cmd + ["--workers", "1", "-v"], cwd=repo, capture_output=True, text=True, timeout=400,
+                           env=dict(os.environ, NUMBA_NUM_THREADS="1"))
+    assert rerun.returncode == 0, rerun.stderr
+    assert "reused the partition" in rerun.stderr, rerun.stderr
+    assert done <= {p.name for p in (work / "summaries").glob("solve_*.json")}
