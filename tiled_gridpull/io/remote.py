@@ -113,10 +113,14 @@ def _request(url: str, start: int | None = None, stop: int | None = None):
                 return r.status, r.headers, body
         except urllib.error.HTTPError as exc:
             exc.close()
+            # urllib's reason for a redirect loop spans three lines: a message is one line
+            reason = (str(exc.reason or "").strip().splitlines() or [""])[0]
             if exc.code == 404:
                 problem = "file not found (HTTP 404)"
+            elif 300 <= exc.code < 400:
+                problem = f"too many redirects, or a redirect loop (HTTP {exc.code})"
             else:
-                problem = f"the server refused the request (HTTP {exc.code} {exc.reason})"
+                problem = f"the server refused the request (HTTP {exc.code} {reason})"
             if exc.code not in _TRANSIENT_STATUS:
                 break
         except urllib.error.URLError as exc:
@@ -126,7 +130,8 @@ def _request(url: str, start: int | None = None, stop: int | None = None):
         except (TimeoutError, ConnectionError, http.client.IncompleteRead) as exc:
             problem = f"the connection failed ({exc.__class__.__name__})"
         except (http.client.HTTPException, ValueError, OSError) as exc:
-            problem = f"cannot read from the server ({exc.__class__.__name__}: {exc})"
+            first = (str(exc).strip().splitlines() or [""])[0]
+            problem = f"cannot read from the server ({exc.__class__.__name__}: {first})"
             break
     raise InputError(f"{shown(url)}: {problem}" + (f" after {attempt + 1} attempts" if attempt else ""))
 
