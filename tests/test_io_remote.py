@@ -438,3 +438,32 @@ def test_a_redirect_loop_is_one_line(odd_server, tmp_path, capsys):
     code = main(["reconstruct", url, "-o", str(tmp_path / "x.ply"), "--dry-run", "--voxel-size", "0.2"])
     err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
     assert code == 3 and len(err) == 1 and "redirect" in err[0], err
+
+
+def test_a_trickling_server_is_refused_at_the_minimum_transfer_rate(odd_server, tmp_path, capsys, monkeypatch):
+    """10 bytes a second never trips the per-read timeout: a job on such a server ran indefinitely. A transfer
+    below the minimum rate (settable: --min-transfer-rate, or the environment a local cluster's workers inherit)
+    after the grace period is a failed attempt, retried, then one line and exit 3."""
+    import time
+
+    from tiled_gridpull.pipeline.cli import main
+
+    monkeypatch.setattr(remote, "RATE_GRACE_S", 1.0, raising=False)  # the default 10 s grace, shortened
+    monkeypatch.setattr(remote, "ATTEMPTS", 2)
+    monkeypatch.setenv("TILED_GRIDPULL_MIN_TRANSFER_RATE", "1000")  # restored after the test (main sets it)
+    url = f"{odd_server}/trickle/area.copc.laz"
+    t0 = time.monotonic()
+    with pytest.raises(InputError, match=r"below the minimum transfer rate of 1000 bytes/s .*after 2 attempts$"):
+        read_index(url)
+    assert time.monotonic() - t0 < 15
+    t0 = time.monotonic()
+    code = main(["reconstruct", url, "-o", str(tmp_path / "x.ply"), "--dry-run", "--voxel-size", "0.2",
+                 "--min-transfer-rate", "500"])
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert code == 3 and len(err) == 1 and "below the minimum transfer rate of 500 bytes/s" in err[0], err
+    assert time.monotonic() - t0 < 15
+    assert not (tmp_path / "x.ply").exists()
+    # a bad setting is the user's: exit 2 before anything is read
+    code = main(["reconstruct", url, "-o", str(tmp_path / "x.ply"), "--dry-run", "--voxel-size", "0.2",
+                 "--min-transfer-rate", "fast"])
+    assert code == 2 and "--min-transfer-rate" in capsys.readouterr().err
