@@ -112,6 +112,10 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--max-memory", metavar="SIZE",
                    help="memory one worker may use for one tile, e.g. 2GB or 1500MB: tiles estimated to need more "
                         "are refused before anything is solved")
+    t.add_argument("--min-transfer-rate", metavar="BYTES_PER_S",
+                   help="URL inputs: a transfer slower than this on average after its first 10 s is a failed "
+                        "attempt (retried, then refused), so a server that trickles bytes cannot keep a job "
+                        "running indefinitely (default 1024; 0: no minimum)")
     t.add_argument("--dry-run", action="store_true",
                    help="print the tile plan, memory and a rough time estimate; solve nothing")
     _add_common(r)
@@ -283,6 +287,7 @@ def cmd_reconstruct(args) -> int:
     if out.suffix.lower() not in (".ply", ".obj"):
         raise ConfigError(f"output {out}: use a .ply or .obj file name")
     cfg, tiling = resolve_settings(args)  # validated before any file is read
+    _set_min_transfer_rate(args)
     if tiling is not None and getattr(args, "band_edges", None) is not None:
         raise ConfigError("--band-edges applies to one-shape mode (tiled mode removes every face farther than "
                           "trim_distance from the points)")
@@ -586,6 +591,24 @@ MAX_WORKERS = 1024
 #: OSError numbers that name a storage problem of the machine (exit 3, one line), not a bug.
 _STORAGE_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM, errno.EIO,
                    errno.ENAMETOOLONG, errno.EMFILE, errno.ENFILE, errno.EFBIG}
+
+
+def _set_min_transfer_rate(args) -> None:
+    """``--min-transfer-rate`` into the environment, where the remote reader looks for it: in this process and in
+    the workers a local cluster starts from it (an external cluster's workers need it in their own environment)."""
+    text = getattr(args, "min_transfer_rate", None)
+    if text is None:
+        return
+    from tiled_gridpull.errors import ConfigError
+    from tiled_gridpull.io.remote import MIN_RATE_ENV
+
+    try:
+        rate = float(text)
+    except ValueError:
+        rate = -1.0
+    if not (0 <= rate < float("inf")):
+        raise ConfigError(f"--min-transfer-rate expects bytes per second, 0 or more, got {text!r}")
+    os.environ[MIN_RATE_ENV] = repr(rate)
 
 
 def main(argv: list[str] | None = None) -> int:

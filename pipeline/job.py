@@ -99,15 +99,24 @@ def _threads_for(workers: int) -> int:
 _SCHEMES = ("tcp", "tls")
 
 
-def check_scheduler_address(address: str, connect_timeout: float = 5.0) -> str:
+#: Seconds a scheduler address has to answer Dask's handshake and an identity request (a busy scheduler answers
+#: in milliseconds; something else listening there never does, and Dask's client would then wait for ever)
+HANDSHAKE_TIMEOUT_S = 10.0
+
+
+def check_scheduler_address(address: str, connect_timeout: float = 5.0,
+                            handshake_timeout: float = HANDSHAKE_TIMEOUT_S) -> str:
     """A Dask scheduler address checked before a client waits on it: ``[tcp|tls://]host:port`` with a port in
-    1-65535, and something listening there. Returns the address with its scheme.
+    1-65535, something listening there, and that something a Dask scheduler (:func:`_scheduler_handshake`).
+    Returns the address with its scheme.
 
     Raises
     ------
     ConfigError
-        Malformed, or nothing accepts a connection within ``connect_timeout`` seconds (Dask's client would wait
-        its whole timeout, then fail as an internal error).
+        Malformed, nothing accepts a connection within ``connect_timeout`` seconds (Dask's client would wait
+        its whole timeout, then fail as an internal error), or what accepts it does not answer as a Dask
+        scheduler within ``handshake_timeout`` seconds (a silent listener or a web server left Dask's client
+        waiting for ever, after the partition was written).
     """
     import re
     import socket
@@ -127,7 +136,56 @@ def check_scheduler_address(address: str, connect_timeout: float = 5.0) -> str:
         why = "nothing listens there" if isinstance(exc, ConnectionRefusedError) else (
             "timed out" if isinstance(exc, (socket.timeout, TimeoutError)) else exc.__class__.__name__)
         raise ConfigError(f"--scheduler {address}: cannot reach a Dask scheduler ({why})") from None
-    return f"{scheme}://{host}:{port}"
+    full = f"{scheme}://{host}:{port}"
+    why = _scheduler_handshake(full, handshake_timeout)
+    if why is not None:
+        raise ConfigError(f"--scheduler {address}: not a Dask scheduler ({why})")
+    return full
+
+
+def _scheduler_handshake(address: str, timeout: float) -> str | None:
+    """None when a Dask scheduler at ``address`` completes the comm handshake and answers an identity request
+    within ``timeout`` seconds; else why not, in a few words.
+
+    Run on a thread of its own with a hard deadline: what a foreign server sends can make distributed's reader
+    wait for more bytes for ever, or size a buffer from an HTTP status line (a MemoryError of exabytes).
+    """
+    import asyncio
+
+    from distributed.comm import connect
+    from distributed.security import Security
+
+    async def probe():
+        comm = await connect(address, timeout=timeout, **Security().get_connection_args("client"))
+        try:
+            await comm.write({"op": "identity", "reply": True})
+            return await comm.read()
+        finally:
+            comm.abort()
+
+    box: dict = {}
+
+    def run() -> None:
+        try:
+            box["reply"] = asyncio.run(asyncio.wait_for(probe(), timeout))
+        except BaseException as exc:  # noqa: BLE001 - whatever a foreign server provokes is reported, not raised
+            box["error"] = exc
+
+    thread = threading.Thread(target=run, name="scheduler-handshake", daemon=True)
+    thread.start()
+    thread.join(timeout + 2.0)
+    if thread.is_alive() or isinstance(box.get("error"), (TimeoutError, asyncio.TimeoutError)):
+        return f"no Dask handshake within {timeout:g} s"
+    if "error" in box:
+        exc = box["error"]
+        if isinstance(exc, OSError) and "timed out" in str(exc).lower():
+            return f"no Dask handshake within {timeout:g} s"
+        return f"its answer is not Dask's: {exc.__class__.__name__}"
+    reply = box.get("reply")
+    if not (isinstance(reply, dict) and reply.get("type") == "Scheduler"):
+        kind = reply.get("type") if isinstance(reply, dict) else None
+        return f"it answers as a Dask {kind}" if kind else "its answer is not a Dask scheduler's identity"
+    return None
 
 
 def make_client(options: JobOptions, n_tiles: int):
@@ -331,8 +389,27 @@ class DaskExecutor:
                 if failure is None:
                     submit(1)
         if failure is not None:
-            raise failure
+            raise self._lost_cluster(failure) or failure
         return results
+
+    def _lost_cluster(self, exc: BaseException) -> ClusterError | None:
+        """The error to raise instead of ``exc`` when ``exc`` says the cluster went away under the job (its tasks
+        cancelled because the client lost the scheduler, or the connection closed), else None: a task's own
+        error is the task's to report."""
+        import concurrent.futures
+
+        from distributed.comm.core import CommClosedError
+
+        client = self._client
+        gone = client is not None and getattr(client, "status", "running") not in ("running", "connecting")
+        if isinstance(exc, (concurrent.futures.CancelledError, CommClosedError)) or (isinstance(exc, OSError)
+                                                                                     and gone):
+            where = f"the Dask scheduler {self.options.scheduler}" if self.options.scheduler else "the Dask cluster"
+            why = getattr(exc, "reason", None) or exc.__class__.__name__
+            # one line: a cancelled future's message carries a second line of advice from distributed
+            return ClusterError(f"lost {where} mid-job ({why}): the job stops; rerun to resume from the tiles "
+                                "already done")
+        return None
 
     def run(self, specs: list[TileSpec], tiling: TilingConfig, solver: SolverConfig, paths: JobPaths, centre,
             key_ref) -> Iterator[TileEvent]:
@@ -343,9 +420,15 @@ class DaskExecutor:
             client = self._connect(len(specs), paths.root)
             try:
                 solve_args, mesh_args = task_arguments(specs, tiling, solver, paths, centre, key_ref)
-                yield from run_tiles(client, specs, solve_task, solve_args, mesh_task, mesh_args, options.retries,
-                                     window=options.window, stop=interrupted,
-                                     no_worker_timeout=options.no_worker_timeout)
+                try:
+                    yield from run_tiles(client, specs, solve_task, solve_args, mesh_task, mesh_args,
+                                         options.retries, window=options.window, stop=interrupted,
+                                         no_worker_timeout=options.no_worker_timeout)
+                except Exception as exc:
+                    lost = self._lost_cluster(exc)
+                    if lost is None:
+                        raise
+                    raise lost from None
             finally:
                 self.close()
 

@@ -297,3 +297,35 @@ def test_collinear_indexed_inputs_are_refused_before_any_tile_is_read(tmp_path, 
     q = write(tmp_path / ("b.copc.laz" if kind == "COPC" else "b"), bent, max_node_points=1000, scale=0.001)
     plan, specs, scan = prepare_job([str(q)], TILING, JobPaths(tmp_path / "k"))
     assert scan["points"] == 6000 and specs
+
+
+@pytest.mark.parametrize("how", ["EPT page lists itself", "EPT pages in a cycle", "EPT span 0",
+                                 "COPC page lists itself"])
+@pytest.mark.parametrize("dry", [True, False])
+def test_a_damaged_index_is_one_line_and_exit_3_from_the_dry_run_and_the_run(inputs, tmp_path, how, dry):
+    """A hierarchy that lists itself or runs in a cycle hung the dry run, and a span of 0 the run: the command
+    line answers in one line, exit 3, within seconds, and writes nothing (a subprocess: a hang fails the test)."""
+    import os
+    import shutil
+    import subprocess
+    import sys
+
+    from test_io_indexed import _copc_damage, _ept_damage
+
+    kind, _, damage = how.partition(" ")
+    if kind == "EPT":
+        shutil.copytree(inputs["EPT"].rsplit("/", 1)[0], tmp_path / "e")
+        _ept_damage(tmp_path / "e", damage)
+        src = tmp_path / "e" / "ept.json"
+    else:
+        src = tmp_path / "d.copc.laz"
+        shutil.copy(inputs["COPC"], src)
+        _copc_damage(src, damage)
+    out, work = tmp_path / "x.ply", tmp_path / "x.job"
+    cmd = [sys.executable, "-m", "tiled_gridpull", "reconstruct", str(src), "-o", str(out), "-q", "--workers", "1",
+           "--work-dir", str(work), "--voxel-size", "0.2", "--tile-size", "6.4", "--overlap", "2.4"]
+    proc = subprocess.run(cmd + (["--dry-run"] if dry else []), capture_output=True, text=True, timeout=90,
+                          env={**os.environ, "NUMBA_NUM_THREADS": "1"})
+    err = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+    assert proc.returncode == 3 and len(err) == 1 and err[0].startswith(f"error: {src}"), proc.stderr
+    assert not out.exists() and not (work / "points").exists()

@@ -165,3 +165,131 @@ def test_absurd_scale_or_offset_of_an_index_is_refused_naming_it(files, tmp_path
     for call in (read_index, read_points) if kind == "COPC" else (read_index, point_count, read_points):
         with pytest.raises(InputError, match=needle):
             call(p)
+
+
+# ------------------------------------------------------------------------------------------ damaged hierarchies
+
+
+def _within(seconds: float, fn):
+    """``fn()``'s exception (or None), failing the test if it has not returned within ``seconds`` (a damaged
+    hierarchy used to send the walk round a cycle for ever; the thread is a daemon, so a hang ends with the run)."""
+    import threading
+
+    box = {}
+
+    def go():
+        try:
+            fn()
+        except BaseException as exc:  # noqa: BLE001 - handed back to the test
+            box["exc"] = exc
+
+    t = threading.Thread(target=go, daemon=True)
+    t.start()
+    t.join(seconds)
+    assert not t.is_alive(), f"still running after {seconds} s"
+    return box.get("exc")
+
+
+def _ept_damage(root, how: str) -> None:
+    """Damage the EPT under ``root`` (its ept.json and hierarchy pages) as ``how`` says."""
+    meta = json.loads((root / "ept.json").read_text())
+    pages = root / "ept-hierarchy"
+    page = json.loads((pages / "0-0-0-0.json").read_text())
+    child = next(k for k in sorted(page) if k.startswith("1-"))
+    if how == "page lists itself":
+        page["0-0-0-0"] = -1
+    elif how == "pages in a cycle":
+        page[child] = -1
+        (pages / f"{child}.json").write_text(json.dumps({"0-0-0-0": -1}))
+    elif how == "page lists its own node again":
+        page[child] = -1
+        (pages / f"{child}.json").write_text(json.dumps({child: -1}))
+    elif how == "absurd depth":
+        page["40-0-0-0"] = 1
+    elif how == "key outside the cube":
+        page["1-2-0-0"] = 1
+    elif how == "absurd count":
+        page[child] = 10 ** 15
+    elif how == "negative count":
+        page[child] = -7
+    elif how == "span 0":
+        meta["span"] = 0
+    elif how == "negative span":
+        meta["span"] = -128
+    elif how == "flat cube":
+        meta["bounds"][5] = meta["bounds"][2]
+    elif how == "inverted cube":
+        meta["bounds"][0], meta["bounds"][3] = meta["bounds"][3], meta["bounds"][0]
+    elif how == "infinite bounds":
+        (root / "ept.json").write_text(json.dumps(meta).replace(str(meta["bounds"][3]), "1e999", 1))
+        return
+    (pages / "0-0-0-0.json").write_text(json.dumps(page))
+    (root / "ept.json").write_text(json.dumps(meta))
+
+
+EPT_DAMAGE = ["page lists itself", "pages in a cycle", "page lists its own node again", "absurd depth",
+              "key outside the cube", "absurd count", "negative count", "span 0", "negative span", "flat cube",
+              "inverted cube", "infinite bounds"]
+
+
+@pytest.mark.parametrize("how", EPT_DAMAGE)
+def test_a_damaged_ept_hierarchy_is_one_line_at_once(files, tmp_path, how):
+    import shutil
+
+    e = tmp_path / "e"
+    shutil.copytree(files["EPT"].parent, e)
+    _ept_damage(e, how)
+    exc = _within(10, lambda: read_index(e / "ept.json"))
+    assert isinstance(exc, InputError), exc
+    assert str(exc).startswith(str(e / "ept.json")) and "\n" not in str(exc), exc
+
+
+def _copc_damage(path, how: str) -> None:
+    """Rewrite one entry of the root hierarchy page of the COPC file at ``path`` in place."""
+    import struct
+
+    import laspy
+
+    with laspy.CopcReader.open(str(path)) as r:
+        root_off, root_size = r.copc_info.hierarchy_root_offset, r.copc_info.hierarchy_root_size
+        info = r.header.vlrs[0]
+    data = bytearray(path.read_bytes())
+    entries = {}
+    for at in range(root_off, root_off + root_size, 32):
+        key = struct.unpack_from("<iiii", data, at)
+        entries[key] = at
+    child = next(k for k in sorted(entries) if k[0] == 1)
+    if how == "page lists itself":
+        struct.pack_into("<Qii", data, entries[(0, 0, 0, 0)] + 16, root_off, root_size, -1)
+    elif how == "pages in a cycle":  # a child's page is the root page, which lists the root again
+        struct.pack_into("<Qii", data, entries[child] + 16, root_off, root_size, -1)
+    elif how == "absurd depth":
+        struct.pack_into("<iiii", data, entries[child], 40, 0, 0, 0)
+    elif how == "negative count":
+        struct.pack_into("<i", data, entries[child] + 28, -9)
+    elif how == "absurd page size":
+        struct.pack_into("<Qii", data, entries[child] + 16, 0, 2**31 - 32, -1)
+    elif how in ("zero halfsize", "zero spacing"):
+        # the COPC info VLR's record: center x, y, z, halfsize, spacing (float64 each), after its 54-byte header
+        vlr = data.find(b"copc") - 2
+        field = 3 if how == "zero halfsize" else 4
+        at = vlr + 54 + 8 * field
+        assert struct.unpack_from("<d", data, at)[0] == pytest.approx(info.halfsize if field == 3 else info.spacing)
+        struct.pack_into("<d", data, at, 0.0)
+    path.write_bytes(bytes(data))
+
+
+COPC_DAMAGE = ["page lists itself", "pages in a cycle", "absurd depth", "negative count", "absurd page size",
+               "zero halfsize", "zero spacing"]
+
+
+@pytest.mark.parametrize("how", COPC_DAMAGE)
+def test_a_damaged_copc_hierarchy_is_one_line_at_once(files, tmp_path, how):
+    import shutil
+
+    c = tmp_path / "d.copc.laz"
+    shutil.copy(files["COPC"], c)
+    _copc_damage(c, how)
+    exc = _within(10, lambda: read_index(c))
+    assert isinstance(exc, InputError), exc
+    assert str(exc).startswith(str(c)) and "\n" not in str(exc), exc

@@ -383,3 +383,87 @@ def test_a_url_input_does_not_clash_with_the_work_directory(served, tmp_path, mo
 
     monkeypatch.chdir(tmp_path)
     check_outputs([served["COPC"][0]], tmp_path / "x.ply", work_dir=".")
+
+
+class _Odd(http.server.BaseHTTPRequestHandler):
+    """A misbehaving server: ``/loop/...`` redirects to itself; ``/trickle/...`` sends a header promising 100 kB,
+    then 10 bytes a second (until the client gives up, or 30 s at most)."""
+
+    def log_message(self, *args):
+        pass
+
+    def do_GET(self):
+        if self.path.startswith("/loop/"):
+            self.send_response(302)
+            self.send_header("Location", self.path)
+            self.send_header("Content-Length", "0")
+            self.end_headers()
+            return
+        size = 100_000
+        rng = self.headers.get("Range")
+        self.send_response(206 if rng else 200)
+        if rng:
+            self.send_header("Content-Range", f"bytes 0-{size - 1}/{size}")
+        self.send_header("Content-Length", str(size))
+        self.end_headers()
+        import time
+
+        end = time.monotonic() + 30
+        try:
+            while time.monotonic() < end:
+                self.wfile.write(b"x" * 10)
+                self.wfile.flush()
+                time.sleep(1.0)
+        except OSError:  # the client hung up
+            pass
+
+
+@pytest.fixture
+def odd_server():
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), _Odd)
+    server.daemon_threads = True
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    yield f"http://127.0.0.1:{server.server_address[1]}"
+    server.shutdown()
+    server.server_close()
+
+
+def test_a_redirect_loop_is_one_line(odd_server, tmp_path, capsys):
+    from tiled_gridpull.pipeline.cli import main
+
+    url = f"{odd_server}/loop/area.copc.laz?sig=secret"
+    with pytest.raises(InputError) as exc:
+        read_index(url)
+    assert "\n" not in str(exc.value) and "redirect" in str(exc.value) and "secret" not in str(exc.value)
+    code = main(["reconstruct", url, "-o", str(tmp_path / "x.ply"), "--dry-run", "--voxel-size", "0.2"])
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert code == 3 and len(err) == 1 and "redirect" in err[0], err
+
+
+def test_a_trickling_server_is_refused_at_the_minimum_transfer_rate(odd_server, tmp_path, capsys, monkeypatch):
+    """10 bytes a second never trips the per-read timeout: a job on such a server ran indefinitely. A transfer
+    below the minimum rate (settable: --min-transfer-rate, or the environment a local cluster's workers inherit)
+    after the grace period is a failed attempt, retried, then one line and exit 3."""
+    import time
+
+    from tiled_gridpull.pipeline.cli import main
+
+    monkeypatch.setattr(remote, "RATE_GRACE_S", 1.0, raising=False)  # the default 10 s grace, shortened
+    monkeypatch.setattr(remote, "ATTEMPTS", 2)
+    monkeypatch.setenv("TILED_GRIDPULL_MIN_TRANSFER_RATE", "1000")  # restored after the test (main sets it)
+    url = f"{odd_server}/trickle/area.copc.laz"
+    t0 = time.monotonic()
+    with pytest.raises(InputError, match=r"below the minimum transfer rate of 1000 bytes/s .*after 2 attempts$"):
+        read_index(url)
+    assert time.monotonic() - t0 < 15
+    t0 = time.monotonic()
+    code = main(["reconstruct", url, "-o", str(tmp_path / "x.ply"), "--dry-run", "--voxel-size", "0.2",
+                 "--min-transfer-rate", "500"])
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert code == 3 and len(err) == 1 and "below the minimum transfer rate of 500 bytes/s" in err[0], err
+    assert time.monotonic() - t0 < 15
+    assert not (tmp_path / "x.ply").exists()
+    # a bad setting is the user's: exit 2 before anything is read
+    code = main(["reconstruct", url, "-o", str(tmp_path / "x.ply"), "--dry-run", "--voxel-size", "0.2",
+                 "--min-transfer-rate", "fast"])
+    assert code == 2 and "--min-transfer-rate" in capsys.readouterr().err

@@ -218,3 +218,66 @@ def test_linked_job_folders_are_never_written_or_read_through(finished_job, caps
     elif code == 6 and not dry_run:  # file links only: replaced, never followed; the same mesh
         mesh = read_mesh(out)
         assert np.array_equal(mesh.vertices, reference.vertices) and np.array_equal(mesh.faces, reference.faces)
+
+
+# ------------------------------------------------------------------------------------------------ damaged indexes
+
+
+@pytest.fixture(scope="module")
+def ept_index(tmp_path_factory):
+    from tiled_gridpull.io.indexed_write import write_ept
+
+    d = tmp_path_factory.mktemp("fuzz_ept")
+    write_ept(d / "ref", scene_points(), max_node_points=1500)
+    return d
+
+
+_index_junk = st.one_of(st.integers(min_value=-(1 << 66), max_value=1 << 66), st.sampled_from([-1, 0, -2]),
+                        st.floats(allow_nan=True, allow_infinity=True), st.text(max_size=6), st.none(),
+                        st.booleans(), st.lists(st.integers(), max_size=3))
+_node_keys = st.one_of(st.tuples(st.integers(-2, 70), st.integers(-2, 9), st.integers(-2, 9), st.integers(-2, 9))
+                       .map(lambda k: "-".join(map(str, k))), st.text(max_size=8))
+
+
+@settings(max_examples=max(10, EXAMPLES // 2), deadline=None, derandomize=DERANDOMIZE,
+          suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
+@given(edits=st.lists(st.one_of(
+    st.tuples(st.just("entry"), st.integers(0, 10 ** 6), _index_junk),    # an existing node's count
+    st.tuples(st.just("add"), _node_keys, _index_junk),                   # a node or page entry added
+    st.tuples(st.just("page"), _node_keys, st.dictionaries(_node_keys, _index_junk, max_size=3)),  # a sub-page
+    st.tuples(st.just("meta"), st.sampled_from(["span", "points", "bounds", "boundsConforming", "schema"]),
+              _index_junk),
+    st.tuples(st.just("bound"), st.integers(0, 11), st.one_of(st.floats(allow_nan=True, allow_infinity=True),
+                                                              st.integers(-(1 << 66), 1 << 66))),
+), min_size=1, max_size=3))
+def test_a_damaged_index_gives_a_plan_or_one_line(ept_index, capsys, edits):
+    """Damage an EPT's hierarchy pages and ept.json (counts, keys, pages that list themselves or their ancestors,
+    junk values, bounds and spans of no extent) and dry-run it: a plan or one line with a documented exit code,
+    never a hang (a damaged hierarchy once sent the walk round a cycle for ever) or an internal error."""
+    d = ept_index / "fuzz"
+    shutil.rmtree(d, ignore_errors=True)
+    shutil.copytree(ept_index / "ref", d)
+    meta = json.loads((d / "ept.json").read_text())
+    root = json.loads((d / "ept-hierarchy" / "0-0-0-0.json").read_text())
+    for what, a, b in edits:
+        if what == "entry":
+            root[sorted(root)[a % len(root)]] = b
+        elif what == "add":
+            root[a] = b
+        elif what == "page":
+            root.setdefault(a, -1)
+            if all(c.isalnum() or c == "-" for c in a) and a:  # a file name the page can have
+                (d / "ept-hierarchy" / f"{a}.json").write_text(json.dumps(b))
+        elif what == "meta":
+            meta[a] = b
+        else:
+            cube = meta.get("bounds" if a < 6 else "boundsConforming")
+            if isinstance(cube, list) and len(cube) == 6:
+                cube[a % 6] = b
+    (d / "ept-hierarchy" / "0-0-0-0.json").write_text(json.dumps(root))
+    (d / "ept.json").write_text(json.dumps(meta))
+    out = ept_index / "out.ply"
+    code, err = _run(["reconstruct", str(d / "ept.json"), "-o", str(out), "--dry-run", "-q", "--voxel-size", "0.2",
+                      "--tile-size", "6.4", "--overlap", "1.6", "--set", "m2=6", "--set", "refine_m2=6"], capsys)
+    _one_line_or_success(code, err)
+    assert not out.exists()

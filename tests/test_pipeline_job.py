@@ -375,3 +375,127 @@ def test_executor_map_keeps_order_and_a_failure_leaves_no_task_running(tmp_path)
     finally:
         executor._client.close()
         cluster.close()
+
+
+class _Listener:
+    """Something that is not a Dask scheduler on 127.0.0.1: a TCP listener that accepts and never answers
+    (``silent``), or a web server (``http``) answering every request with a page. It stops by itself after
+    ``life`` seconds, or when the test leaves the ``with``."""
+
+    def __init__(self, kind: str, life: float = 60.0):
+        import threading
+
+        self.kind, self.sock = kind, socket.socket()
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.listen(8)
+        self.sock.settimeout(0.2)
+        self.port = self.sock.getsockname()[1]
+        self.until, self.conns = time.monotonic() + life, []
+        self.thread = threading.Thread(target=self._serve, daemon=True)
+
+    def _serve(self):
+        while time.monotonic() < self.until:
+            try:
+                conn, _ = self.sock.accept()
+            except OSError:
+                continue
+            self.conns.append(conn)
+            if self.kind == "http":
+                conn.settimeout(2)
+                try:
+                    conn.recv(65536)
+                    conn.sendall(b"HTTP/1.1 200 OK\r\nContent-Type: text/html\r\nContent-Length: 13\r\n\r\n"
+                                 b"<h1>hello</h1>")
+                except OSError:
+                    pass
+        self.close()
+
+    def close(self):
+        self.until = 0
+        for c in self.conns:
+            c.close()
+        self.sock.close()
+
+    def __enter__(self):
+        self.thread.start()
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+@pytest.mark.parametrize("kind", ["silent", "http"])
+def test_a_scheduler_address_where_something_else_listens_is_refused_before_any_work(tmp_path, kind):
+    """A silent TCP listener or a web server at --scheduler accepted the connection and the job hung after the
+    partition, with no message: now a handshake timeout, one line, exit 2, nothing written."""
+    np.save(tmp_path / "ground.npy", terrain(12.8, 30))
+    out, work = tmp_path / "out.ply", tmp_path / "out.job"
+    with _Listener(kind) as server:
+        t0 = time.monotonic()
+        proc = subprocess.run([sys.executable, "-m", "tiled_gridpull", "reconstruct", str(tmp_path / "ground.npy"),
+                               "-o", str(out), "--work-dir", str(work), "-q", "--voxel-size", "0.2",
+                               "--scheduler", f"tcp://127.0.0.1:{server.port}"],
+                              capture_output=True, text=True, timeout=90,
+                              env=dict(os.environ, NUMBA_NUM_THREADS="1"))
+    err = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+    assert not out.exists() and not (work.exists() and any(work.iterdir())), sorted(work.rglob("*"))
+    assert proc.returncode == 2 and len(err) == 1, proc.stderr
+    assert err[0].startswith(f"error: --scheduler tcp://127.0.0.1:{server.port}: not a Dask scheduler"), err
+    assert time.monotonic() - t0 < 60
+
+
+@pytest.mark.slow
+def test_an_external_scheduler_that_dies_mid_job_is_exit_7_in_one_line_and_the_rerun_resumes(tmp_path):
+    """The external scheduler killed while tiles are solving: "internal error: FutureCancelledError" (exit 1, two
+    lines) before; now the README's exit code for a lost cluster (7) and one line, and the same command on a
+    cluster of its own resumes from the tiles already done."""
+    import signal
+
+    repo = Path(__file__).resolve().parents[1]
+    np.save(tmp_path / "ground.npy", terrain(19.2, 40))
+    out, work, marks = tmp_path / "g.ply", tmp_path / "g.job", tmp_path / "marks"
+    marks.mkdir()
+    port = _free_port()
+    address = f"tcp://127.0.0.1:{port}"
+    # the workers import this checkout, as the driver does; the first attempt at each tile holds 60 s
+    env = dict(os.environ, TILED_GRIDPULL_THREADS="1", OMP_NUM_THREADS="1", NUMBA_NUM_THREADS="1",
+               PYTHONPATH=os.pathsep.join(filter(None, [str(repo), os.environ.get("PYTHONPATH")])),
+               TILED_GRIDPULL_TEST_HOLD=f"{marks}:60")
+    scheduler = subprocess.Popen([str(BIN / "dask"), "scheduler", "--host", "127.0.0.1", "--port", str(port),
+                                  "--no-dashboard"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
+    procs = [scheduler]
+    opts = ["--voxel-size", "0.2", "--tile-size", "6.4", "--overlap", "1.6", "--set", "m2=8", "--set", "refine_m2=6",
+            "--set", "coarse_iterations=40", "--set", "iterations=40", "--set", "queries=5000"]
+    cmd = [sys.executable, "-m", "tiled_gridpull", "reconstruct", str(tmp_path / "ground.npy"), "-o", str(out),
+           "--work-dir", str(work), *opts]
+    try:
+        time.sleep(2.0)
+        procs.append(subprocess.Popen([str(BIN / "dask"), "worker", address, "--nthreads", "1", "--no-dashboard",
+                                       "--local-directory", str(tmp_path / "w")], stdout=subprocess.DEVNULL,
+                                      stderr=subprocess.DEVNULL, env=env))
+        job = subprocess.Popen(cmd + ["-q", "--scheduler", address], cwd=repo, env=env, stdout=subprocess.PIPE,
+                               stderr=subprocess.PIPE, text=True)
+        procs.append(job)
+        deadline = time.monotonic() + 120
+        while not any(marks.iterdir()) and time.monotonic() < deadline:
+            assert job.poll() is None, job.communicate()
+            time.sleep(0.1)
+        assert any(marks.iterdir()), "no tile started solving"
+        scheduler.send_signal(signal.SIGKILL)
+        _, err = job.communicate(timeout=180)
+    finally:
+        for p in reversed(procs):
+            if p.poll() is None:
+                p.kill()
+            p.wait(timeout=30)
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert job.returncode == 7 and len(lines) == 1, err
+    assert lines[0].startswith("error: ") and "scheduler" in lines[0] and "rerun to resume" in lines[0], err
+    assert not out.exists() and not out.with_suffix(".json").exists()
+    # the same command on a cluster of its own resumes: the partition is reused, and so is every tile recorded
+    done = {p.name for p in (work / "summaries").glob("solve_*.json")}
+    rerun = subprocess.run(cmd + ["--workers", "1", "-v"], cwd=repo, capture_output=True, text=True, timeout=400,
+                           env=dict(os.environ, NUMBA_NUM_THREADS="1"))
+    assert rerun.returncode == 0, rerun.stderr
+    assert "reused the partition" in rerun.stderr, rerun.stderr
+    assert done <= {p.name for p in (work / "summaries").glob("solve_*.json")}

@@ -11,7 +11,8 @@ URL's query is a credential, so it is never written to a message, a manifest or 
 
 Only the standard library is used (``urllib``), so remote inputs need no extra package. Only GET requests are
 sent (a URL pre-signed for GET refuses HEAD); transient failures (a dropped connection, a timeout, HTTP 5xx or
-429) are retried :data:`ATTEMPTS` times with a growing pause.
+429, a transfer slower than :data:`MIN_TRANSFER_RATE` on average) are retried :data:`ATTEMPTS` times with a growing
+pause.
 """
 
 from __future__ import annotations
@@ -29,12 +30,21 @@ from collections import OrderedDict
 from ..errors import InputError
 
 __all__ = ["is_url", "url_name", "url_join", "shown", "resolved", "recorded", "RemoteFile", "fetch", "validators",
-           "TIMEOUT_S", "ATTEMPTS"]
+           "TIMEOUT_S", "ATTEMPTS", "MIN_TRANSFER_RATE", "RATE_GRACE_S", "MIN_RATE_ENV", "min_transfer_rate"]
 
 #: seconds a request may wait for the server before it counts as a failed attempt
 TIMEOUT_S = 60.0
 #: attempts at a request that failed transiently (connection, timeout, HTTP 5xx or 429)
 ATTEMPTS = 4
+#: bytes per second a transfer must average, counted from the start of its request once it has run
+#: :data:`RATE_GRACE_S` seconds: a server that trickles bytes (10 a second) never trips the per-read timeout and
+#: would keep a job running indefinitely. ``TILED_GRIDPULL_MIN_TRANSFER_RATE`` in the environment overrides it
+#: (the command line's ``--min-transfer-rate`` sets it, so a local cluster's workers inherit it); 0 turns it off.
+MIN_TRANSFER_RATE = 1024
+#: seconds a transfer runs before its rate counts (connection set-up and a slow start are not a trickle)
+RATE_GRACE_S = 10.0
+#: the environment variable that sets the minimum transfer rate (bytes per second) in this process and its workers
+MIN_RATE_ENV = "TILED_GRIDPULL_MIN_TRANSFER_RATE"
 #: bytes a small read fetches at once (a LAS header is read field by field: one request each would be hundreds)
 BLOCK = 1 << 16
 #: blocks kept per open file
@@ -92,6 +102,49 @@ def recorded(source) -> str:
 _TRANSIENT_STATUS = {429, 500, 502, 503, 504}
 
 
+def min_transfer_rate() -> float:
+    """The minimum transfer rate in force, bytes per second (0: none): ``TILED_GRIDPULL_MIN_TRANSFER_RATE`` when
+    set, else :data:`MIN_TRANSFER_RATE`."""
+    import os
+
+    text = os.environ.get(MIN_RATE_ENV, "").strip()
+    if not text:
+        return float(MIN_TRANSFER_RATE)
+    try:
+        rate = float(text)
+    except ValueError:
+        rate = -1.0
+    if not (rate >= 0 and rate != float("inf")):
+        from ..errors import ConfigError
+
+        raise ConfigError(f"{MIN_RATE_ENV}={text!r}: expected bytes per second, 0 or more")
+    return rate
+
+
+class _Trickle(Exception):
+    """A transfer below the minimum rate (raised inside a request: counted as a failed attempt)."""
+
+
+def _read_body(r, rate: float) -> bytes:
+    """The body of the response ``r``, read as it comes, refused (:class:`_Trickle`) once it has run
+    :data:`RATE_GRACE_S` seconds at less than ``rate`` bytes per second on average (0: never)."""
+    start = time.monotonic()
+    parts, got = [], 0
+    while True:
+        chunk = r.read1(1 << 16)
+        if not chunk:
+            break
+        parts.append(chunk)
+        got += len(chunk)
+        elapsed = time.monotonic() - start
+        if rate > 0 and elapsed > RATE_GRACE_S and got < rate * elapsed:
+            raise _Trickle(f"the server sends {got / elapsed:.0f} bytes/s, below the minimum transfer rate of "
+                           f"{rate:g} bytes/s (--min-transfer-rate)")
+    if r.length:  # the connection closed before the promised length
+        raise http.client.IncompleteRead(b"".join(parts), r.length)
+    return b"".join(parts)
+
+
 def _request(url: str, start: int | None = None, stop: int | None = None):
     """(status, headers, body) of a GET of ``url`` or of its range ``[start, stop)``; retried when transient.
     InputError (one line, no chained exception: it may cross a process boundary, and an HTTP error holds its
@@ -100,12 +153,13 @@ def _request(url: str, start: int | None = None, stop: int | None = None):
     if start is not None:
         headers["Range"] = f"bytes={start}-{stop - 1}"
     problem = None
+    rate = min_transfer_rate()  # a bad setting is the user's, not the server's: asked before the first attempt
     for attempt in range(ATTEMPTS):
         if attempt:
             time.sleep(0.5 * 2 ** (attempt - 1))
         try:
             with urllib.request.urlopen(urllib.request.Request(url, headers=headers), timeout=TIMEOUT_S) as r:
-                body = r.read()
+                body = _read_body(r, rate)
                 if start is None and (r.headers.get("Content-Encoding") or "").lower() == "gzip":
                     import gzip  # a server may compress a whole file though asked for it as it is
 
@@ -113,10 +167,14 @@ def _request(url: str, start: int | None = None, stop: int | None = None):
                 return r.status, r.headers, body
         except urllib.error.HTTPError as exc:
             exc.close()
+            # urllib's reason for a redirect loop spans three lines: a message is one line
+            reason = (str(exc.reason or "").strip().splitlines() or [""])[0]
             if exc.code == 404:
                 problem = "file not found (HTTP 404)"
+            elif 300 <= exc.code < 400:
+                problem = f"too many redirects, or a redirect loop (HTTP {exc.code})"
             else:
-                problem = f"the server refused the request (HTTP {exc.code} {exc.reason})"
+                problem = f"the server refused the request (HTTP {exc.code} {reason})"
             if exc.code not in _TRANSIENT_STATUS:
                 break
         except urllib.error.URLError as exc:
@@ -125,8 +183,11 @@ def _request(url: str, start: int | None = None, stop: int | None = None):
                 break
         except (TimeoutError, ConnectionError, http.client.IncompleteRead) as exc:
             problem = f"the connection failed ({exc.__class__.__name__})"
+        except _Trickle as exc:  # retried: a congested link may recover
+            problem = str(exc)
         except (http.client.HTTPException, ValueError, OSError) as exc:
-            problem = f"cannot read from the server ({exc.__class__.__name__}: {exc})"
+            first = (str(exc).strip().splitlines() or [""])[0]
+            problem = f"cannot read from the server ({exc.__class__.__name__}: {first})"
             break
     raise InputError(f"{shown(url)}: {problem}" + (f" after {attempt + 1} attempts" if attempt else ""))
 
