@@ -62,6 +62,9 @@ class BridgeRule:
         Distance from the nearest point (any point) over which the solved field hands over to the bridge.
     half_height : int
         Vertices bridged above and below the plane in each column.
+    open_width : int
+        Bridged columns are opened (eroded, then dilated) by this many columns: specks and one-column spurs,
+        which would be pieces and ragged edges of their own, go.
     """
 
     radius: float = 24.0
@@ -75,6 +78,23 @@ class BridgeRule:
     blend_from: float = 1.5
     blend_to: float = 3.0
     half_height: int = 3
+    open_width: int = 1
+
+
+def _opened(mask: np.ndarray, width: int) -> np.ndarray:
+    """Morphological opening of a 2D mask by a square of side ``2 width + 1`` (outside the mask counts as set,
+    so the tile's edge does not erode what a neighbour's overlap continues)."""
+    out = mask
+    for grow in (False, True):
+        for _ in range(width):
+            pad = np.pad(out, 1, constant_values=not grow)
+            acc = pad[1:-1, 1:-1].copy()
+            for dx in (-1, 0, 1):
+                for dy in (-1, 0, 1):
+                    view = pad[1 + dx:pad.shape[0] - 1 + dx, 1 + dy:pad.shape[1] - 1 + dy]
+                    acc = (acc | view) if grow else (acc & view)
+            out = acc
+    return out
 
 
 def bridged_cells(fld: Field, cells: np.ndarray) -> np.ndarray:
@@ -127,7 +147,10 @@ def bridge_field(fld: Field, points: np.ndarray, rule: BridgeRule) -> tuple[Fiel
     max_gap = int(math.floor(rule.max_gap_deg / (360.0 / kb.SECTORS)))
     fit = kb.fit_columns(rep, float(rule.pixel), cols, float(rule.radius), float(rule.skip), max_gap,
                          float(rule.rms_tol), float(rule.step_tol), float(rule.max_slope))
-    hit = np.flatnonzero(np.isfinite(fit[:, 0]))
+    mask = np.isfinite(fit[:, 0]).reshape(X, Y)
+    if rule.open_width > 0:
+        mask = _opened(mask, rule.open_width)
+    hit = np.flatnonzero(mask.reshape(-1))
     if len(hit) == 0:
         return fld, {"bridged_columns": 0, "bridged_cells": 0}
     h, gx, gy = fit[hit, 0], fit[hit, 1], fit[hit, 2]
