@@ -255,3 +255,32 @@ def test_a_folder_of_the_job_directory_linked_elsewhere_is_refused_and_nothing_o
     assert f"{folder} is a link" in err, err
     assert (_tree(outside), _tree(work)) == before
     assert not out.exists()
+
+
+def test_a_job_directory_of_an_earlier_version_is_resumed_not_refused(finished_job, tmp_path):
+    """Versions before the generator marker wrote manifest.json and tiles.png without one: their directories are
+    the tool's own, recognised by the manifest's structure, and a rerun resumes them; a foreign manifest that
+    merely names a plan is still refused."""
+    import json
+    import shutil
+
+    from tiled_gridpull.config import SolverConfig
+    from tiled_gridpull.jobdir import check_job_dir
+    from tiled_gridpull.tiled_job import reconstruct_scene
+
+    job = tmp_path / "old.job"
+    shutil.copytree(finished_job / "ref.job", job)
+    man = json.loads((job / "manifest.json").read_text())
+    del man["generator"]
+    (job / "manifest.json").write_text(json.dumps(man))
+    png = job / "tiles.png"
+    if png.exists():
+        png.write_bytes(b"\x89PNG\r\n\x1a\n" + b"\0" * 64)  # a picture without the marker
+    check_job_dir(job)
+    mesh = reconstruct_scene([str(finished_job / "p.npy")], tmp_path / "again.ply",
+                             TilingConfig(voxel_size=0.2, tile_size=6.4, overlap=3.2, min_points=5),
+                             SolverConfig(m2=6, refine_m2=6, iterations=30, coarse_iterations=30), job)
+    assert mesh.metadata["reused"]["partition"] is True
+    (job / "manifest.json").write_text(json.dumps({"plan": {"name": "mine"}, "tiles": []}))
+    with pytest.raises(ConfigError, match="manifest.json there was not written by tiled-gridpull"):
+        check_job_dir(job)

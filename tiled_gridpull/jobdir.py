@@ -111,10 +111,11 @@ def check_job_dir(root: str | Path) -> None:
         return
     if not root.is_dir():
         raise ConfigError(f"work directory {root} is a file, not a directory")
+    legacy = _legacy_job(root)
     for name in JOB_FILES:
         p = root / name
         # a link is nothing this tool writes, and reading the manifest through one would decide reuse
-        if p.is_symlink() or (p.exists() and not written_by_us(p)):
+        if p.is_symlink() or (p.exists() and not legacy and not written_by_us(p)):
             what = " (a link)" if p.is_symlink() else ""
             raise ConfigError(f"work directory {root}: {name}{what} there was not written by tiled-gridpull (a job "
                               f"writes its own {name}): move it, or choose another work directory")
@@ -126,6 +127,23 @@ def check_job_dir(root: str | Path) -> None:
         if p.exists() and not p.is_dir():
             raise ConfigError(f"work directory {root}: {name} is a file where a job keeps a folder: move it, or "
                               "choose another work directory")
+
+
+def _legacy_job(root: Path) -> bool:
+    """Whether ``root`` is a job directory of a version that wrote no generator into its manifest and picture
+    (those before the marker was recorded): a manifest holding a plan with a lattice and a config, and a list of
+    tiles. Its
+    rerun resumes instead of being refused as someone else's directory."""
+    p = root / "manifest.json"
+    if p.is_symlink() or not p.is_file():
+        return False
+    try:
+        meta = json.loads(p.read_text())
+    except (OSError, ValueError):
+        return False
+    plan = meta.get("plan") if isinstance(meta, dict) else None
+    return ("generator" not in meta and isinstance(plan, dict) and isinstance(plan.get("lattice"), dict)
+            and isinstance(plan.get("config"), dict) and isinstance(meta.get("tiles"), list))
 
 
 @contextlib.contextmanager
