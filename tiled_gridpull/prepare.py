@@ -460,12 +460,6 @@ def plan_inputs(inputs: list[str], tiling: TilingConfig, *, chunk_size: int = 2_
             warnings.warn(f"drop_outliers: {describe(n_far, scan['points'], box, example)}: dropped",
                           stacklevel=2)
             scan["bounds"], scan["points"] = inside, scan["points"] - n_far
-    # one-shape mode's rule (coplanar points are a legal scene: a flat parking lot); a sample that is not
-    # degenerate settles it, so only a degenerate-looking input is read again
-    kind = stream_degeneracy(lambda: (c.xyz for c in chunks()), reject_planar=False,
-                             sample=None if scan.get("far_points_dropped") else sample)  # it holds them
-    if kind is not None:
-        raise degenerate_error(", ".join(map(shown, inputs)), scan["points"], kind)
     try:
         plan = plan_tiles(scan["bounds"], scan["points"], tiling)
     except LatticeSpanError as exc:
@@ -476,6 +470,13 @@ def plan_inputs(inputs: list[str], tiling: TilingConfig, *, chunk_size: int = 2_
         span = str(exc).split(": stray points")[0]
         raise LatticeSpanError(f"{span}: {describe(n_far, scan['points'], box, example)}; drop them with "
                                "--drop-outliers (drop_outliers: true)") from None
+    # one-shape mode's rule (coplanar points are a legal scene: a flat parking lot); a sample that is not
+    # degenerate settles it, so only a degenerate-looking input is read again. After the span: a stray point
+    # far away makes the rest look collinear, and the span's refusal names it
+    kind = stream_degeneracy(lambda: (c.xyz for c in chunks()), reject_planar=False,
+                             sample=None if scan.get("far_points_dropped") else sample)  # it holds them
+    if kind is not None:
+        raise degenerate_error(", ".join(map(shown, inputs)), scan["points"], kind)
     return plan, scan, chunks
 
 
