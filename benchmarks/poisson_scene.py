@@ -4,7 +4,8 @@ The peer a user would otherwise pick, measured the way a user would run it: read
 normals (Open3D, 30 nearest neighbours) and orient them up (the same information GridPull's "up" rule has for a
 LAS file without sensor positions), screened Poisson at ``depth``, then drop the vertices whose Poisson density
 lies in the lowest ``trim_quantile`` (the usual trim of the surface Poisson invents where there is no data),
-and write a PLY. Coordinates are shifted to the cloud's low corner first and back on writing (float64
+and write a PLY (``"sensor": [x, y, z]`` orients the normals towards a scanner's position instead of up).
+Coordinates are shifted to the cloud's low corner first and back on writing (float64
 throughout), so georeferenced inputs lose nothing.
 
 Usage: ``python -m benchmarks.poisson_scene '{"input": "street.laz", "output": "poisson.ply", "depth": 11}'``;
@@ -32,7 +33,10 @@ def main(args: dict) -> dict:
     t1 = time.perf_counter()
     pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(xyz - low))
     pc.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(30))
-    pc.orient_normals_to_align_with_direction(np.array([0.0, 0.0, 1.0]))
+    if args.get("sensor") is not None:  # one scan from a known place (a KITTI frame): normals face the sensor
+        pc.orient_normals_towards_camera_location(np.asarray(args["sensor"], np.float64) - low)
+    else:
+        pc.orient_normals_to_align_with_direction(np.array([0.0, 0.0, 1.0]))
     t2 = time.perf_counter()
     mesh, density = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(pc, depth=int(args.get("depth", 11)))
     t3 = time.perf_counter()

@@ -18,6 +18,9 @@ Usage::
     python -m benchmarks.scenes classes --points 300000 --variants default
         # the demo street scored per kind of object (poles, cars, ...), beside Poisson in the same run
     python -m benchmarks.scenes thin                               # a wall 0.05-0.3 m thick seen from both sides
+    python -m benchmarks.scenes footprint [--grid]                 # bridging scan-line gaps: footprint recall
+        # and precision on synthetic streets, held-out points on a KITTI frame and the airborne files, beside
+        # trimmed Poisson, GridPull with and without bridging, same run
 
 ``wide`` runs, per cloud, Poisson once (:mod:`benchmarks.poisson_scene`: its normal estimation included, file in
 -> mesh out, its own process) and GridPull once per variant: ``default`` is configs/scene.yaml as shipped,
@@ -192,7 +195,7 @@ TODAY = {"queries_per_point": 0, "iterations": 800, "coarse_iterations": 800, "m
          "lr_step": 400, "refine_lr_step": 200, "m2": 25}
 #: Tiled denoising as measured on the noisy demo street (docs/solver.md, "Denoising tiles").
 DENOISE = {"denoise": 2, "denoise_neighbors": 32, "denoise_radius": 2.0}
-VARIANTS = {"default": {}, "today": TODAY, "denoise": DENOISE}
+VARIANTS = {"default": {}, "today": TODAY, "denoise": DENOISE, "no bridge": {"bridge": 0}}
 
 
 def variant_settings(variant: str) -> str:
@@ -204,11 +207,13 @@ def variant_settings(variant: str) -> str:
     return "configs/scene.yaml + " + ", ".join(f"{k} {v:g}" for k, v in VARIANTS.get(variant, {}).items())
 
 
-def poisson_scene(src: Path, out: Path, depth: int = 11) -> dict:
-    """Open3D screened Poisson on ``src`` in a fresh process (:mod:`benchmarks.poisson_scene`)."""
+def poisson_scene(src: Path, out: Path, depth: int = 11, sensor=None) -> dict:
+    """Open3D screened Poisson on ``src`` in a fresh process (:mod:`benchmarks.poisson_scene`); ``sensor``
+    (x, y, z) orients its normals towards a scanner instead of up."""
     from benchmarks.common import run_isolated
 
-    return run_isolated("benchmarks.poisson_scene", {"input": str(src), "output": str(out), "depth": depth})
+    return run_isolated("benchmarks.poisson_scene", {"input": str(src), "output": str(out), "depth": depth,
+                                                     "sensor": sensor})
 
 
 def wide(n_points: int, workers: int, work: Path, variants: list[str], depth: int = 11) -> None:
@@ -305,15 +310,97 @@ def gridpull_row(row: dict, base: dict, poisson: dict, variant: str, **extra) ->
             "x_poisson_memory": (row["peak_rss_mb"] or 0.0) / poisson["peak_rss_mb"]}
 
 
-def holdout(workers: int, work: Path, variants: list[str], depth: int = 10, fraction: float = 0.1) -> None:
-    """Real scans without a ground truth: hold out ``fraction`` of each shared LiDAR file's points (seeded), run
-    Poisson and each GridPull variant on the rest, and score the distance of the held-out points to each mesh
-    (mean, median, 90th percentile, share within one cell), same run."""
+def footprint_scores_of(mesh: Path, gt: Path, laz: Path) -> dict:
+    """The footprint yardstick (:func:`tiled_gridpull.metrics.footprint_scores`, R = 1.5 and 3 m, tau 0.1 m) and
+    the observed-region scores (:func:`evaluate`) of a scene mesh."""
+    from tiled_gridpull.io import read_mesh, read_points
+    from tiled_gridpull.metrics import footprint_scores
+
+    fp = footprint_scores(read_mesh(mesh), read_mesh(gt), read_points(laz).xyz)
+    return {**evaluate(mesh, gt, laz), **{k: v for k, v in fp.items() if k != "tau"}}
+
+
+def footprint(workers: int, work: Path, grid: bool = False) -> None:
+    """Gaps between scan lines (issue 36): on synthetic streets the footprint recall (truth within 1.5 and 3 m of
+    a point, hits within 0.1 m), the mesh's precision, boundary edges and pieces, the observed-region scores; on
+    a real KITTI frame (sensor at the origin, 0.3 m cells) and the airborne files the held-out points' distance.
+    Trimmed Poisson (depth 11 synthetic, 10 real; sensor-oriented normals on the KITTI frame), GridPull with the
+    shipped configs and with ``bridge 0``, same run."""
     import numpy as np
 
-    from tiled_gridpull.io import read_mesh, read_points
+    from tiled_gridpull.io import read_points
+    from tiled_gridpull.synthetic.street_sample import make_street_sample
+
+    scenes = [("demo street (4 frames)", {"n_points": 300_000}), ("drive (16 frames 1 m apart)",
+                                                                   {"n_points": 300_000, "frames": 16})]
+    if grid:
+        scenes.append(("grid of streets", {"n_points": 1_000_000, "layout": "grid"}))
+    for name, kw in scenes:
+        d = work / name.split()[0]
+        sample = make_street_sample(d, origin=(500000.0, 4000000.0, 100.0), **kw)
+        base = {"scene": name, "suite": "footprint", "points": sample["n_points"], "workers": workers, "cell": 0.1}
+        pout = d / "poisson.ply"
+        poisson = poisson_scene(sample["laz"], pout, 11)
+        record(poisson_row(base, poisson, 11, **footprint_scores_of(pout, sample["gt_mesh"], sample["laz"])))
+        for v in ("default", "no bridge"):
+            out = d / f"gridpull_{v.replace(' ', '_')}.ply"
+            row = reconstruct(sample["laz"], out, workers, scene_args(VARIANTS[v]))
+            record(gridpull_row(row, base, poisson, v, **footprint_scores_of(out, sample["gt_mesh"], sample["laz"])))
+    kitti = REPO.parent / "shared" / "data" / "kitti" / "000000.bin"
+    if kitti.exists():
+        scan = np.fromfile(kitti, np.float32).reshape(-1, 4)
+        held = np.random.default_rng(0).random(len(scan)) < 0.1
+        (work / "kitti").mkdir(exist_ok=True)
+        train = work / "kitti" / "000000.bin"
+        scan[~held].tofile(train)
+        test = scan[held, :3].astype(np.float64)
+        base = {"scene": "KITTI 00 frame 0", "suite": "footprint", "points": int((~held).sum()),
+                "held_out": int(held.sum()), "workers": workers, "cell": 0.3}
+        pout = work / "kitti" / "poisson.ply"
+        poisson = poisson_scene(train, pout, 10, sensor=[0.0, 0.0, 0.0])
+        record(poisson_row(base, poisson, 10, **holdout_scores(pout, test, read_points(train).xyz, 0.3)))
+        for v in ("default", "no bridge"):
+            out = work / "kitti" / f"gridpull_{v.replace(' ', '_')}.ply"
+            row = reconstruct(train, out, workers, ["--config", str(REPO / "configs" / "kitti.yaml"),
+                                                    "--voxel-size", "0.3",
+                                                    *[a for k, val in VARIANTS[v].items()
+                                                      for a in ("--set", f"{k}={json.dumps(val)}")]])
+            record(gridpull_row(row, base, poisson, v, **holdout_scores(out, test, read_points(train).xyz, 0.3)))
+    else:
+        print("skip KITTI: ../shared/data/kitti/000000.bin absent", flush=True)
+    holdout(workers, work, ["default", "no bridge"], 10, suite="footprint")
+
+
+def holdout_scores(mesh_path: Path, test, train, cell: float) -> dict:
+    """Distance of held-out points to a mesh (mean, median, 90th percentile, share within one cell), its boundary
+    edges and pieces, and the share of its area farther than 2 cells from every point it was made from."""
+    import numpy as np
+
+    from tiled_gridpull.io import read_mesh
     from tiled_gridpull.metrics import point_to_mesh
     from tiled_gridpull.nearest import distances_to_cloud
+
+    mesh = read_mesh(mesh_path)
+    d, _ = point_to_mesh(test, mesh)
+    topo = mesh.topology
+    # mesh area farther than 2 cells from every meshed point: surface the data does not support
+    tri = mesh.vertices[mesh.faces]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    far = distances_to_cloud(tri.mean(axis=1), train, 2 * cell) > 2 * cell
+    return {"holdout_mean": float(d.mean()), "holdout_median": float(np.median(d)),
+            "holdout_p90": float(np.quantile(d, 0.9)), "holdout_within_cell": float(np.mean(d <= cell)),
+            "boundary_edges": int(topo.boundary_edges), "components": int(topo.components),
+            "area_far_share": float(area[far].sum() / area.sum())}
+
+
+def holdout(workers: int, work: Path, variants: list[str], depth: int = 10, fraction: float = 0.1,
+            suite: str = "holdout") -> None:
+    """Real scans without a ground truth: hold out ``fraction`` of each shared LiDAR file's points (seeded), run
+    Poisson and each GridPull variant on the rest, and score the distance of the held-out points to each mesh
+    (:func:`holdout_scores`), same run; rows are recorded under ``suite``."""
+    import numpy as np
+
+    from tiled_gridpull.io import read_points
     from tiled_gridpull.synthetic.lidar_files import write_las
 
     for name, cell, src in shared_lidar_files():
@@ -321,31 +408,17 @@ def holdout(workers: int, work: Path, variants: list[str], depth: int = 10, frac
         held = np.random.default_rng(0).random(len(xyz)) < fraction
         train = write_las(work / f"{src.stem}_train.laz", xyz[~held])
         test = xyz[held]
-        base = {"scene": name, "suite": "holdout", "points": int((~held).sum()), "held_out": int(held.sum()),
+        base = {"scene": name, "suite": suite, "points": int((~held).sum()), "held_out": int(held.sum()),
                 "workers": workers, "cell": cell}
-
-        def score(mesh_path: Path) -> dict:
-            mesh = read_mesh(mesh_path)
-            d, _ = point_to_mesh(test, mesh)
-            topo = mesh.topology
-            # mesh area farther than 2 cells from every meshed point: surface the data does not support
-            tri = mesh.vertices[mesh.faces]
-            area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-            far = distances_to_cloud(tri.mean(axis=1), xyz[~held], 2 * cell) > 2 * cell
-            return {"holdout_mean": float(d.mean()), "holdout_median": float(np.median(d)),
-                    "holdout_p90": float(np.quantile(d, 0.9)), "holdout_within_cell": float(np.mean(d <= cell)),
-                    "boundary_edges": int(topo.boundary_edges), "components": int(topo.components),
-                    "area_far_share": float(area[far].sum() / area.sum())}
-
         pout = work / f"{src.stem}_poisson.ply"
         poisson = poisson_scene(train, pout, depth)
-        record(poisson_row(base, poisson, depth, **score(pout)))
+        record(poisson_row(base, poisson, depth, **holdout_scores(pout, test, xyz[~held], cell)))
         for v in variants:
-            out = work / f"{src.stem}_{v}.ply"
+            out = work / f"{src.stem}_{v.replace(' ', '_')}.ply"
             row = reconstruct(train, out, workers, [*scene_args(VARIANTS[v]),
                                                     "--voxel-size", str(cell), "--tile-size", str(256 * cell),
                                                     "--overlap", str(32 * cell)])
-            record(gridpull_row(row, base, poisson, v, **score(out)))
+            record(gridpull_row(row, base, poisson, v, **holdout_scores(out, test, xyz[~held], cell)))
 
 
 def tile_costs(mesh: Path) -> list[dict]:
@@ -357,7 +430,9 @@ def tile_costs(mesh: Path) -> list[dict]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("suite", choices=("street", "workers", "lidar", "tiles", "wide", "holdout", "classes", "thin"))
+    ap.add_argument("suite", choices=("street", "workers", "lidar", "tiles", "wide", "holdout", "classes", "thin",
+                                      "footprint"))
+    ap.add_argument("--grid", action="store_true", help="footprint: also the 1M-point grid of streets")
     ap.add_argument("--variants", nargs="+", choices=sorted(VARIANTS), default=["today", "default"],
                     help="wide: GridPull settings to run beside Poisson")
     ap.add_argument("--depth", type=int, default=None,
@@ -388,6 +463,8 @@ def main() -> None:
             holdout(a.workers, work, a.variants, a.depth or 10)
         elif a.suite == "thin":
             thin_walls(a.workers, work)
+        elif a.suite == "footprint":
+            footprint(a.workers, work, a.grid)
         elif a.suite == "classes":
             classes(a.points[0], a.workers, work, a.variants, a.depth or 11)
         elif a.suite == "wide":
@@ -410,7 +487,7 @@ def main() -> None:
 def render(rows: list[dict]) -> str:
     """Markdown table of every scene run (newest last)."""
     runs = [r for r in rows if r.get("scene") not in (None, "machine")
-            and r.get("suite") not in ("tiles", "wide", "holdout", "classes", "thin")]
+            and r.get("suite") not in ("tiles", "wide", "holdout", "classes", "thin", "footprint")]
     if not runs:
         return ""
     out = ["| date | scene | coarse thinning | query pool | points | workers | tiles | wall s | points/s | "

@@ -61,8 +61,11 @@ def test_one_sided_far_stepped_and_steep_gaps_stay_open():
     assert np.isfinite(_fit(_reps([(10.0, steep), (30.0, steep)]), [(40.0, 20.0)], max_slope=1.0)).all()
 
 
-def test_columns_near_a_sample_are_left_to_the_solved_field():
+def test_densely_sampled_columns_are_left_to_the_solved_field():
     flat = lambda x, y: np.full_like(x, 5.0)  # noqa: E731
-    rep = _reps([(10.0, flat), (30.0, flat)])
-    assert np.isnan(_fit(rep, [(40.0, 11.0)])).all()
-    assert np.isfinite(_fit(rep, [(40.0, 12.5)], skip=2.0)).all()
+    # beside a lone line with another 20 cells away: bridged, the line's own field has no slope across it
+    assert np.isfinite(_fit(_reps([(10.0, flat), (30.0, flat)]), [(40.0, 11.0)], skip=4.0)).all()
+    # amid lines 2 cells apart (dense ground): the solved field's
+    dense = [(y, flat) for y in np.arange(2.0, 60.0, 2.0)]
+    assert np.isnan(_fit(_reps(dense), [(40.0, 21.0)], skip=4.0)).all()
+    assert np.isfinite(_fit(_reps(dense), [(40.0, 21.0)], skip=1.0)).all()

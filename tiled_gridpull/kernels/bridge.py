@@ -82,7 +82,8 @@ def fit_columns(rep, pixel, cols, radius, skip, max_gap, rms_tol, step_tol, max_
     radius : float
         Representatives farther than this (cells, horizontally) are not used.
     skip : float
-        Columns with a representative closer than this are left to the solved field (NaN).
+        Columns with a representative within this distance on every side (each occupied sector) are densely
+        sampled: they are left to the solved field (NaN). A column beside a lone scan line is not.
     max_gap : int
         Widest run of empty sectors (of ``SECTORS``) that still counts as surrounded.
     rms_tol, step_tol : float
@@ -126,7 +127,7 @@ def fit_columns(rep, pixel, cols, radius, skip, max_gap, rms_tol, step_tol, max_
                     near_d[s] = d2
                     near_i[s] = i
                     near_j[s] = j
-        if not nearest < r2 or nearest < skip * skip:
+        if not nearest < r2:
             continue
         # widest run of empty sectors, wrapping around
         run = 0
@@ -140,9 +141,17 @@ def fit_columns(rep, pixel, cols, radius, skip, max_gap, rms_tol, step_tol, max_
                 run = 0
         if widest > max_gap:
             continue
+        farthest = 0.0
+        for s in range(SECTORS):
+            if near_i[s] >= 0 and near_d[s] > farthest:
+                farthest = near_d[s]
+        if farthest <= skip * skip:
+            continue
         # weighted plane z = h + gx (x - cx) + gy (y - cy): Gaussian weights as wide as the gap, so the nearest
-        # samples on every side shape the plane and far ones only steady it
-        sigma = max(1.5 * math.sqrt(nearest), pixel)
+        # samples on every side shape the plane and far ones only steady it; at least as wide as the farthest
+        # side's nearest sample, or a column on a scan line would see only its own line, which has no slope
+        # across itself
+        sigma = max(1.5 * math.sqrt(nearest), 0.7 * math.sqrt(farthest), pixel)
         inv = 1.0 / (sigma * sigma)
         A = np.zeros((3, 3))
         b = np.zeros(3)
