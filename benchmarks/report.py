@@ -325,6 +325,18 @@ def main() -> None:
                   "The denoise rows (`--set denoise=2`) show why denoising stays off for scans: the airborne "
                   "files got 25 % (AHN3) and 4 % (Autzen) farther from their held-out points (docs/solver.md, "
                   "\"Denoising tiles\").", ""]
+    footprint_table = scenes.render_footprint(load("scenes"))
+    if footprint_table:
+        parts += ["## Gaps between scan lines: the footprint (`benchmarks/scenes.py footprint`)", "",
+                  "Synthetic streets scored by the footprint yardstick (`metrics.footprint_scores`): the share of "
+                  "the ground truth within R of any input point that lies within 0.1 m of the mesh (a hole is a "
+                  "miss, a bridge within 0.1 m a hit), the share of the mesh within 0.1 m of the truth, boundary "
+                  "edges and pieces, and the observed-region scores as elsewhere. Real scans (a KITTI frame at 0.3 m "
+                  "cells, sensor at the origin, Poisson's normals facing it; AHN3 and Autzen as above) by 10 % of "
+                  "their points held out. GridPull `default` is the shipped config (bridge 24 cells), `no bridge` "
+                  "the same with `bridge 0`; Poisson depth 11 (synthetic) or 10 (real), 5 % density trim, same "
+                  "run. docs/solver.md, \"Bridging scan-line gaps\", reads them.", "",
+                  footprint_table, ""]
     classes_table = scenes.render_classes(load("scenes"))
     if classes_table:
         parts += ["## Thin objects in a scene: scores per class (`benchmarks/scenes.py classes`)", "",

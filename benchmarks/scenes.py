@@ -584,6 +584,35 @@ def render_holdout(rows: list[dict]) -> str:
                                   ("boundary_edges", "boundary edges", ""), ("components", "pieces", "")])
 
 
+def render_footprint(rows: list[dict]) -> str:
+    """Markdown tables of the ``footprint`` suite: the synthetic scenes (footprint recall, precision, observed
+    region) and the real ones (held-out points), each method beside Poisson in the same run."""
+    runs = [r for r in rows if r.get("suite") == "footprint"]
+    if not runs:
+        return ""
+    table = [{**r, "what": "Poisson (trimmed)" if r["method"] == "poisson" else f"GridPull {r['variant']}"}
+             for r in runs]
+    synth = [r for r in table if "footprint_recall@1.5" in r]
+    real = [r for r in table if "holdout_mean" in r]
+    out = []
+    if synth:
+        out.append(markdown_table(synth, [
+            ("date", "date", ""), ("scene", "scene", ""), ("points", "points", ""), ("what", "method", ""),
+            ("wall_s", "wall s", ".1f"), ("footprint_recall@1.5", "footprint recall@0.1, R 1.5 m", ".3f"),
+            ("footprint_recall@3", "R 3 m", ".3f"), ("precision@0.1", "precision@0.1", ".3f"),
+            ("boundary_edges", "boundary edges", ""), ("components", "pieces", ""),
+            ("chamfer_l1_m", "observed CD-L1 m", ".4f"), ("normal_consistency", "NC", ".4f"),
+            ("fscore_0.1m", "F@0.1", ".3f")]))
+    if real:
+        out.append(markdown_table(real, [
+            ("date", "date", ""), ("scene", "file", ""), ("cell", "cell", "g"), ("points", "points in", ""),
+            ("what", "method", ""), ("wall_s", "wall s", ".1f"), ("holdout_mean", "held-out mean", ".4f"),
+            ("holdout_median", "median", ".4f"), ("holdout_within_cell", "within 1 cell", ".3f"),
+            ("area_far_share", "area > 2 cells from points", ".3f"), ("boundary_edges", "boundary edges", ""),
+            ("components", "pieces", "")]))
+    return "\n\n".join(out)
+
+
 def render_classes(rows: list[dict]) -> str:
     """Markdown table of the latest ``classes`` run: each class of the street's ground truth, GridPull beside
     Poisson."""

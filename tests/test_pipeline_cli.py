@@ -334,3 +334,12 @@ def test_collinear_points_are_refused_in_tiled_mode_too(tmp_path, capsys, dry_ru
     assert "collinear" in err and str(src) in err
     assert not out.exists() and not out.with_suffix(".json").exists()
     assert not (out.with_suffix(".job") / "manifest.json").exists()
+
+
+@pytest.mark.parametrize("args", [["street", "--frames", "0"], ["street", "--frames", "16", "--layout", "grid"],
+                                  ["sphere", "--frames", "4"]])
+def test_sample_frames_is_checked_before_anything_is_written(tmp_path, capsys, args):
+    out = tmp_path / "s"
+    code, _, err = run(["sample", args[0], str(out), *args[1:]], capsys)
+    assert code == 2 and "--frames" in err and len(err.strip().splitlines()) == 1
+    assert not out.exists()

@@ -550,3 +550,15 @@ def test_sample_street_copc_without_copclib_writes_nothing(tmp_path, monkeypatch
     assert code == 4 and "copclib" in err, err
     assert len(err.strip().splitlines()) == 1, err
     assert not out.exists() or not any(out.iterdir())
+
+
+def test_make_street_sample_as_a_drive(tmp_path):
+    """``frames``: a drive of frames 1 m apart (a 10 Hz scanner at 36 km/h), the street long enough for them and
+    the points shared among them; the trajectory moves 1 m a frame."""
+    out = make_street_sample(tmp_path, n_points=30_000, seed=3, origin=UTM, frames=12)
+    assert out["n_frames"] == 12 and 0.85 * 30_000 < out["n_points"] < 1.15 * 30_000
+    assert json.loads(out["meta"].read_text())["scene"]["length_m"] == pytest.approx(11 + 80)
+    traj = np.loadtxt(out["trajectory"], delimiter=",", skiprows=1)
+    assert len(traj) == 12 and np.allclose(np.diff(traj[:, 1]), 1.0)  # 1 m along the street a frame
+    with pytest.raises(ValueError, match="frames"):
+        make_street_sample(tmp_path / "none", n_points=1000, frames=0)
