@@ -102,14 +102,14 @@ def fit_columns(rep, pixel, cols, radius, skip, max_gap, rms_tol, step_tol, max_
     out = np.full((m, 3), np.nan)
     reach = int(math.ceil(radius / pixel)) + 1
     r2 = radius * radius
+    cap = (2 * reach + 1) * (2 * reach + 1)
     for c in prange(m):
         cx, cy = cols[c, 0], cols[c, 1]
         ic = int(math.floor(cx / pixel))
         jc = int(math.floor(cy / pixel))
-        near_d = np.full(SECTORS, np.inf)
-        near_i = np.full(SECTORS, -1, np.int64)
-        near_j = np.full(SECTORS, -1, np.int64)
-        nearest = np.inf
+        # the representatives within reach, gathered once (offsets from the column, height, squared distance)
+        nb = np.empty((cap, 4))
+        k = 0
         for i in range(max(0, ic - reach), min(nx, ic + reach + 1)):
             for j in range(max(0, jc - reach), min(ny, jc + reach + 1)):
                 if math.isnan(rep[i, j, 2]):
@@ -117,23 +117,29 @@ def fit_columns(rep, pixel, cols, radius, skip, max_gap, rms_tol, step_tol, max_
                 dx = rep[i, j, 0] - cx
                 dy = rep[i, j, 1] - cy
                 d2 = dx * dx + dy * dy
-                if d2 > r2:
-                    continue
-                if d2 < nearest:
-                    nearest = d2
-                a = math.atan2(dy, dx)
-                s = int((a + math.pi) / (2.0 * math.pi) * SECTORS) % SECTORS
-                if d2 < near_d[s]:
-                    near_d[s] = d2
-                    near_i[s] = i
-                    near_j[s] = j
-        if not nearest < r2:
+                if d2 <= r2:
+                    nb[k, 0] = dx
+                    nb[k, 1] = dy
+                    nb[k, 2] = rep[i, j, 2]
+                    nb[k, 3] = d2
+                    k += 1
+        if k == 0:
             continue
+        near_d = np.full(SECTORS, np.inf)
+        near_k = np.full(SECTORS, -1, np.int64)
+        nearest = np.inf
+        for t in range(k):
+            d2 = nb[t, 3]
+            nearest = min(nearest, d2)
+            s = int((math.atan2(nb[t, 1], nb[t, 0]) + math.pi) / (2.0 * math.pi) * SECTORS) % SECTORS
+            if d2 < near_d[s]:
+                near_d[s] = d2
+                near_k[s] = t
         # widest run of empty sectors, wrapping around
         run = 0
         widest = 0
         for t in range(2 * SECTORS):
-            if near_i[t % SECTORS] < 0:
+            if near_k[t % SECTORS] < 0:
                 run += 1
                 if run > widest:
                     widest = run
@@ -143,7 +149,7 @@ def fit_columns(rep, pixel, cols, radius, skip, max_gap, rms_tol, step_tol, max_
             continue
         farthest = 0.0
         for s in range(SECTORS):
-            if near_i[s] >= 0 and near_d[s] > farthest:
+            if near_k[s] >= 0 and near_d[s] > farthest:
                 farthest = near_d[s]
         if farthest <= skip * skip:
             continue
@@ -155,27 +161,18 @@ def fit_columns(rep, pixel, cols, radius, skip, max_gap, rms_tol, step_tol, max_
         inv = 1.0 / (sigma * sigma)
         A = np.zeros((3, 3))
         b = np.zeros(3)
-        for i in range(max(0, ic - reach), min(nx, ic + reach + 1)):
-            for j in range(max(0, jc - reach), min(ny, jc + reach + 1)):
-                if math.isnan(rep[i, j, 2]):
-                    continue
-                dx = rep[i, j, 0] - cx
-                dy = rep[i, j, 1] - cy
-                d2 = dx * dx + dy * dy
-                if d2 > r2:
-                    continue
-                w = math.exp(-d2 * inv)
-                v0, v1, v2 = 1.0, dx, dy
-                zz = rep[i, j, 2]
-                A[0, 0] += w * v0 * v0
-                A[0, 1] += w * v0 * v1
-                A[0, 2] += w * v0 * v2
-                A[1, 1] += w * v1 * v1
-                A[1, 2] += w * v1 * v2
-                A[2, 2] += w * v2 * v2
-                b[0] += w * zz
-                b[1] += w * v1 * zz
-                b[2] += w * v2 * zz
+        for t in range(k):
+            w = math.exp(-nb[t, 3] * inv)
+            dx, dy, zz = nb[t, 0], nb[t, 1], nb[t, 2]
+            A[0, 0] += w
+            A[0, 1] += w * dx
+            A[0, 2] += w * dy
+            A[1, 1] += w * dx * dx
+            A[1, 2] += w * dx * dy
+            A[2, 2] += w * dy * dy
+            b[0] += w * zz
+            b[1] += w * dx * zz
+            b[2] += w * dy * zz
         A[1, 0] = A[0, 1]
         A[2, 0] = A[0, 2]
         A[2, 1] = A[1, 2]
@@ -188,28 +185,18 @@ def fit_columns(rep, pixel, cols, radius, skip, max_gap, rms_tol, step_tol, max_
             continue
         ss = 0.0
         sw = 0.0
-        for i in range(max(0, ic - reach), min(nx, ic + reach + 1)):
-            for j in range(max(0, jc - reach), min(ny, jc + reach + 1)):
-                if math.isnan(rep[i, j, 2]):
-                    continue
-                dx = rep[i, j, 0] - cx
-                dy = rep[i, j, 1] - cy
-                d2 = dx * dx + dy * dy
-                if d2 > r2:
-                    continue
-                w = math.exp(-d2 * inv)
-                e = rep[i, j, 2] - (h + gx * dx + gy * dy)
-                ss += w * e * e
-                sw += w
+        for t in range(k):
+            w = math.exp(-nb[t, 3] * inv)
+            e = nb[t, 2] - (h + gx * nb[t, 0] + gy * nb[t, 1])
+            ss += w * e * e
+            sw += w
         if not ss <= rms_tol * rms_tol * sw:
             continue
         worst = 0.0
         for s in range(SECTORS):
-            if near_i[s] >= 0:
-                i, j = near_i[s], near_j[s]
-                e = abs(rep[i, j, 2] - (h + gx * (rep[i, j, 0] - cx) + gy * (rep[i, j, 1] - cy)))
-                if e > worst:
-                    worst = e
+            t = near_k[s]
+            if t >= 0:
+                worst = max(worst, abs(nb[t, 2] - (h + gx * nb[t, 0] + gy * nb[t, 1])))
         if worst > step_tol:
             continue
         out[c, 0] = h
