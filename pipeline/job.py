@@ -228,7 +228,10 @@ def _set_dask_log_level(level: int) -> None:
     (``distributed.client``, ``distributed.scheduler``, ...) with levels of their own, so the parent's is not
     enough."""
     names = [n for n in logging.root.manager.loggerDict if n == "distributed" or n.startswith("distributed.")]
-    for name in ["distributed", *names]:
+    # and tornado's, whose loop runs distributed's coroutines: one that dies with its connection (a result
+    # fetch cut by the client's close) is logged there as "Exception in callback ..." with a traceback, which
+    # reached our stderr handler (distributed's own defaults for them are critical and error)
+    for name in ["distributed", *names, "tornado", "tornado.application"]:
         logging.getLogger(name).setLevel(level)
 
 
@@ -538,47 +541,69 @@ def run_tiles(client, specs: list[TileSpec], solve_fn, solve_args, mesh_fn, mesh
             kinds[fut.key] = (kind, i)
         pending.update(futs)
 
-    while next_solve < n or ready or in_flight:
-        room = window - in_flight
-        if room > 0 and ready:  # meshes first: they finish tiles and let summaries go
-            take = [ready.popleft() for _ in range(min(room, len(ready)))]
-            submit("mesh", mesh_fn, [(specs[i], summaries[i], neighbours[i], [summaries[j] for j in needs[i][1:]],
-                                      *mesh_args(specs[i])) for i in take], take)
-            for i in take:
-                for j in needs[i]:
-                    readers[j] -= 1
-                    if readers[j] == 0:
-                        summaries[j] = None
-            room -= len(take)
-            in_flight += len(take)
-        if room > 0 and next_solve < n:
-            take = solve_order[next_solve:min(n, next_solve + room)]
-            submit("solve", solve_fn, [(specs[i], *solve_args(specs[i])) for i in take], take)
-            next_solve += len(take)
-            in_flight += len(take)
-        watch.wait_for(pending, stop)
-        for fut, result in pending.next_batch(block=False):
-            kind, i = kinds.pop(fut.key)
-            if fut.status == "error":
-                if not _killed_worker(result[1]):
-                    raise result[1].with_traceback(result[2])
-                # the task took its worker down every time it ran (out of memory, a crash in native code):
-                # a failed tile, reported by name; the rest of the job goes on
-                result = {"tile": specs[i].name, "index": list(specs[i].index), "points": specs[i].block_points,
-                          "status": "failed", "faces": 0,
-                          "reason": f"its {kind} killed the worker process on every attempt (out of memory?)"}
-            if isinstance(result, BaseException):  # cancelled (e.g. the cluster went away)
-                raise result
-            in_flight -= 1
-            if kind == "solve":
-                summaries[i] = result
-                for j in needs[i]:
-                    waiting[j] -= 1
-                    if waiting[j] == 0:
-                        ready.append(j)
-            yield kind, specs[i].index, result
-        if stop is not None and stop.is_set():
-            raise KeyboardInterrupt
+    try:
+        while next_solve < n or ready or in_flight:
+            room = window - in_flight
+            if room > 0 and ready:  # meshes first: they finish tiles and let summaries go
+                take = [ready.popleft() for _ in range(min(room, len(ready)))]
+                submit("mesh", mesh_fn, [(specs[i], summaries[i], neighbours[i], [summaries[j] for j in needs[i][1:]],
+                                          *mesh_args(specs[i])) for i in take], take)
+                for i in take:
+                    for j in needs[i]:
+                        readers[j] -= 1
+                        if readers[j] == 0:
+                            summaries[j] = None
+                room -= len(take)
+                in_flight += len(take)
+            if room > 0 and next_solve < n:
+                take = solve_order[next_solve:min(n, next_solve + room)]
+                submit("solve", solve_fn, [(specs[i], *solve_args(specs[i])) for i in take], take)
+                next_solve += len(take)
+                in_flight += len(take)
+            watch.wait_for(pending, stop)
+            for fut, result in pending.next_batch(block=False):
+                kind, i = kinds.pop(fut.key)
+                if fut.status == "error":
+                    if not _killed_worker(result[1]):
+                        raise result[1].with_traceback(result[2])
+                    # the task took its worker down every time it ran (out of memory, a crash in native code):
+                    # a failed tile, reported by name; the rest of the job goes on
+                    result = {"tile": specs[i].name, "index": list(specs[i].index), "points": specs[i].block_points,
+                              "status": "failed", "faces": 0,
+                              "reason": f"its {kind} killed the worker process on every attempt (out of memory?)"}
+                if isinstance(result, BaseException):  # cancelled (e.g. the cluster went away)
+                    raise result
+                in_flight -= 1
+                if kind == "solve":
+                    summaries[i] = result
+                    for j in needs[i]:
+                        waiting[j] -= 1
+                        if waiting[j] == 0:
+                            ready.append(j)
+                yield kind, specs[i].index, result
+            if stop is not None and stop.is_set():
+                raise KeyboardInterrupt
+    except BaseException:
+        # stopping early (Ctrl-C, a task's error, the cluster lost): the caller closes the client next, so first
+        # let the result fetches already under way end; cut by the close, they died on the event loop with a
+        # logged traceback ("Exception in callback ... CommClosedError" after Ctrl-C, now and then)
+        _settle_result_fetches(pending)
+        raise
+
+
+def _settle_result_fetches(pending, timeout: float = 5.0) -> None:
+    """Wait (at most ``timeout`` s) until no future of the ``as_completed(with_results=True)`` queue ``pending``
+    has finished without its result having arrived: for each such future distributed's loop is fetching the
+    result from the cluster, a request that must not be cut by closing the client. Unfinished futures need no
+    wait: closing the client cancels them, and their trackers end without a request."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        with pending.lock:
+            fetching = any(f.done() for f in pending.futures)
+        if not fetching:
+            return
+        with pending.thread_condition:  # notified as each result arrives
+            pending.thread_condition.wait(timeout=0.05)
 
 
 def check_workers_see(client, root: Path, timeout: float) -> None:
