@@ -467,3 +467,71 @@ def test_a_trickling_server_is_refused_at_the_minimum_transfer_rate(odd_server, 
     code = main(["reconstruct", url, "-o", str(tmp_path / "x.ply"), "--dry-run", "--voxel-size", "0.2",
                  "--min-transfer-rate", "fast"])
     assert code == 2 and "--min-transfer-rate" in capsys.readouterr().err
+
+
+@pytest.fixture
+def dribbling_server():
+    """A raw server that trickles one byte a second: ``/header/...`` inside its headers (``X-Slow: aaa...``),
+    ``/chunk/...`` inside the first chunk-size line of a chunked body. It stops by itself after 30 s."""
+    import socket
+    import time
+
+    end = time.monotonic() + 30
+    listener = socket.socket()
+    listener.bind(("127.0.0.1", 0))
+    listener.listen(8)
+    listener.settimeout(0.5)
+
+    def answer(conn):
+        try:
+            request = conn.recv(65536)
+            if b" /header/" in request:
+                conn.sendall(b"HTTP/1.1 206 Partial Content\r\nX-Slow: ")
+            else:
+                conn.sendall(b"HTTP/1.1 206 Partial Content\r\nContent-Range: bytes 0-0/100000\r\n"
+                             b"Transfer-Encoding: chunked\r\n\r\n")
+            while time.monotonic() < end:
+                conn.sendall(b"0" if b" /chunk/" in request else b"a")
+                time.sleep(1.0)
+        except OSError:  # the client hung up
+            pass
+        finally:
+            conn.close()
+
+    def serve():
+        while time.monotonic() < end:
+            try:
+                conn, _ = listener.accept()
+            except OSError:  # the accept timed out
+                continue
+            threading.Thread(target=answer, args=(conn,), daemon=True).start()
+        listener.close()
+
+    threading.Thread(target=serve, daemon=True).start()
+    yield f"http://127.0.0.1:{listener.getsockname()[1]}"
+
+
+@pytest.mark.parametrize("where", ["header", "chunk"])
+def test_a_server_trickling_its_headers_or_a_chunk_size_is_refused(dribbling_server, tmp_path, capsys,
+                                                                     monkeypatch, where):
+    """One byte a second inside the headers or a chunk-size line held one blocking read of http.client: neither
+    the socket's timeout nor the check between body reads fired, and the job hung. The minimum rate holds for
+    the whole request: a watchdog shuts the socket down, the attempt fails, then one line and exit 3."""
+    import time
+
+    from tiled_gridpull.pipeline.cli import main
+
+    monkeypatch.setattr(remote, "RATE_GRACE_S", 1.0)  # the default 10 s grace, shortened
+    monkeypatch.setattr(remote, "ATTEMPTS", 2)
+    monkeypatch.setenv("TILED_GRIDPULL_MIN_TRANSFER_RATE", "1000")
+    url = f"{dribbling_server}/{where}/area.copc.laz"
+    t0 = time.monotonic()
+    with pytest.raises(InputError, match=r"below the minimum transfer rate of 1000 bytes/s .*after 2 attempts$"):
+        read_index(url)
+    assert time.monotonic() - t0 < 10
+    t0 = time.monotonic()
+    code = main(["reconstruct", url, "-o", str(tmp_path / "x.ply"), "--dry-run", "--voxel-size", "0.2"])
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert code == 3 and len(err) == 1 and "below the minimum transfer rate" in err[0], err
+    assert time.monotonic() - t0 < 10
+    assert not (tmp_path / "x.ply").exists()

@@ -125,10 +125,110 @@ class _Trickle(Exception):
     """A transfer below the minimum rate (raised inside a request: counted as a failed attempt)."""
 
 
-def _read_body(r, rate: float) -> bytes:
+class _Watch:
+    """The minimum transfer rate, enforced on a whole request: connection, headers and body.
+
+    A server that trickles its status line, its headers or a chunk-size line holds a single blocking read (in
+    ``http.client``) for as long as bytes keep coming: the socket's timeout never fires and a check between body
+    reads is never reached. A watchdog thread therefore holds the request to the rule of :func:`_read_body` (after
+    :data:`RATE_GRACE_S` seconds from the request's start, the body bytes received must average ``rate`` bytes per
+    second): it sleeps until the moment the bytes counted so far stop being enough, and then shuts the request's
+    socket down, which ends any read blocked on it. The request then counts as a failed attempt (:class:`_Trickle`).
+
+    Parameters
+    ----------
+    rate : float
+        Bytes per second (0: no watchdog; the socket's timeout alone bounds each read).
+    """
+
+    def __init__(self, rate: float):
+        import threading
+
+        self.rate = rate
+        self.start = time.monotonic()
+        self.got = 0
+        self.tripped: str | None = None
+        self._sock = None
+        self._lock = threading.Lock()
+        self._done = threading.Event()
+        if rate > 0:
+            threading.Thread(target=self._run, name="tiled-gridpull-transfer-watch", daemon=True).start()
+
+    def attach(self, sock):
+        """Record the request's (raw, unencrypted) socket; one of a tripped request is shut down at once."""
+        with self._lock:
+            self._sock = sock
+            if self.tripped:
+                self._shut(sock)
+        return sock
+
+    @staticmethod
+    def _shut(sock) -> None:
+        import socket
+
+        try:
+            sock.shutdown(socket.SHUT_RDWR)
+        except OSError:
+            pass
+
+    def _run(self) -> None:
+        while True:
+            elapsed = time.monotonic() - self.start
+            due = max(RATE_GRACE_S, self.got / self.rate)  # when the bytes counted so far stop being enough
+            if self._done.wait(max(due - elapsed, 0.0) + 0.05):
+                return
+            elapsed = time.monotonic() - self.start
+            if elapsed > RATE_GRACE_S and self.got < self.rate * elapsed:
+                with self._lock:
+                    if self._done.is_set():
+                        return
+                    self.tripped = (f"the server sends {self.got / elapsed:.0f} bytes/s, below the minimum "
+                                    f"transfer rate of {self.rate:g} bytes/s (--min-transfer-rate)")
+                    if self._sock is not None:
+                        self._shut(self._sock)
+                return
+
+    def finish(self) -> None:
+        """End the watch; :class:`_Trickle` when it had tripped (what was read may have been cut short)."""
+        with self._lock:
+            self._done.set()
+        if self.tripped:
+            raise _Trickle(self.tripped)
+
+
+def _opener(watch: _Watch):
+    """A urllib opener whose connections hand their sockets to ``watch`` (redirects open new ones: each is
+    handed over in turn)."""
+
+    def watched(cls):
+        def connection(*args, **kwargs):
+            conn = cls(*args, **kwargs)
+            create = conn._create_connection
+            conn._create_connection = lambda *a, **k: watch.attach(create(*a, **k))
+            return conn
+
+        return connection
+
+    class Http(urllib.request.HTTPHandler):
+        def http_open(self, req):
+            return self.do_open(watched(http.client.HTTPConnection), req)
+
+    handlers = [Http()]
+    if hasattr(http.client, "HTTPSConnection"):
+        class Https(urllib.request.HTTPSHandler):
+            def https_open(self, req):
+                return self.do_open(watched(http.client.HTTPSConnection), req, context=self._context)
+
+        handlers.append(Https())
+    return urllib.request.build_opener(*handlers)
+
+
+def _read_body(r, rate: float, watch: _Watch | None = None) -> bytes:
     """The body of the response ``r``, read as it comes, refused (:class:`_Trickle`) once it has run
-    :data:`RATE_GRACE_S` seconds at less than ``rate`` bytes per second on average (0: never)."""
-    start = time.monotonic()
+    :data:`RATE_GRACE_S` seconds at less than ``rate`` bytes per second on average (0: never). The bytes read
+    are counted on ``watch``, whose watchdog ends a read that blocks (a trickled chunk-size line) in the same
+    event; its clock, started with the request, is the one used."""
+    start = watch.start if watch is not None else time.monotonic()
     parts, got = [], 0
     while True:
         chunk = r.read1(1 << 16)
@@ -136,6 +236,8 @@ def _read_body(r, rate: float) -> bytes:
             break
         parts.append(chunk)
         got += len(chunk)
+        if watch is not None:
+            watch.got = got
         elapsed = time.monotonic() - start
         if rate > 0 and elapsed > RATE_GRACE_S and got < rate * elapsed:
             raise _Trickle(f"the server sends {got / elapsed:.0f} bytes/s, below the minimum transfer rate of "
@@ -157,14 +259,18 @@ def _request(url: str, start: int | None = None, stop: int | None = None):
     for attempt in range(ATTEMPTS):
         if attempt:
             time.sleep(0.5 * 2 ** (attempt - 1))
+        watch = _Watch(rate)
         try:
-            with urllib.request.urlopen(urllib.request.Request(url, headers=headers), timeout=TIMEOUT_S) as r:
-                body = _read_body(r, rate)
-                if start is None and (r.headers.get("Content-Encoding") or "").lower() == "gzip":
-                    import gzip  # a server may compress a whole file though asked for it as it is
+            try:
+                with _opener(watch).open(urllib.request.Request(url, headers=headers), timeout=TIMEOUT_S) as r:
+                    body = _read_body(r, rate, watch)
+            finally:
+                watch.finish()  # a read cut by the watchdog fails as whatever it hit: the rate is the cause
+            if start is None and (r.headers.get("Content-Encoding") or "").lower() == "gzip":
+                import gzip  # a server may compress a whole file though asked for it as it is
 
-                    body = gzip.decompress(body)
-                return r.status, r.headers, body
+                body = gzip.decompress(body)
+            return r.status, r.headers, body
         except urllib.error.HTTPError as exc:
             exc.close()
             # urllib's reason for a redirect loop spans three lines: a message is one line
