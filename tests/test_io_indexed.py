@@ -223,13 +223,21 @@ def _ept_damage(root, how: str) -> None:
     elif how == "infinite bounds":
         (root / "ept.json").write_text(json.dumps(meta).replace(str(meta["bounds"][3]), "1e999", 1))
         return
+    elif how == "bounds of 1e308":  # each corner finite, the extent is not
+        meta["bounds"] = [-1e308] * 3 + [1e308] * 3
+    elif how == "bounds beyond the coordinate limit":
+        meta["bounds"] = [-1e200] * 3 + [1e200] * 3
+    elif how == "a cube of 1e-300":
+        meta["bounds"] = [0.0] * 3 + [1e-300] * 3
+        meta.pop("boundsConforming", None)
     (pages / "0-0-0-0.json").write_text(json.dumps(page))
     (root / "ept.json").write_text(json.dumps(meta))
 
 
 EPT_DAMAGE = ["page lists itself", "pages in a cycle", "page lists its own node again", "absurd depth",
               "key outside the cube", "absurd count", "negative count", "span 0", "negative span", "flat cube",
-              "inverted cube", "infinite bounds"]
+              "inverted cube", "infinite bounds", "bounds of 1e308", "bounds beyond the coordinate limit",
+              "a cube of 1e-300"]
 
 
 @pytest.mark.parametrize("how", EPT_DAMAGE)
@@ -276,11 +284,15 @@ def _copc_damage(path, how: str) -> None:
         at = vlr + 54 + 8 * field
         assert struct.unpack_from("<d", data, at)[0] == pytest.approx(info.halfsize if field == 3 else info.spacing)
         struct.pack_into("<d", data, at, 0.0)
+    elif how.startswith("halfsize "):
+        at = data.find(b"copc") - 2 + 54 + 8 * 3
+        assert struct.unpack_from("<d", data, at)[0] == pytest.approx(info.halfsize)
+        struct.pack_into("<d", data, at, float(how.split()[1]))
     path.write_bytes(bytes(data))
 
 
 COPC_DAMAGE = ["page lists itself", "pages in a cycle", "absurd depth", "negative count", "absurd page size",
-               "zero halfsize", "zero spacing"]
+               "zero halfsize", "zero spacing", "halfsize 1e308", "halfsize 8.9e307",]
 
 
 @pytest.mark.parametrize("how", COPC_DAMAGE)
@@ -293,3 +305,44 @@ def test_a_damaged_copc_hierarchy_is_one_line_at_once(files, tmp_path, how):
     exc = _within(10, lambda: read_index(c))
     assert isinstance(exc, InputError), exc
     assert str(exc).startswith(str(c)) and "\n" not in str(exc), exc
+
+
+def _damaged(files, tmp_path, kind: str, how: str) -> str:
+    """A copy of the test's EPT or COPC file, damaged as ``how`` says; its path."""
+    import shutil
+
+    if kind == "EPT":
+        shutil.copytree(files["EPT"].parent, tmp_path / "e")
+        _ept_damage(tmp_path / "e", how)
+        return str(tmp_path / "e" / "ept.json")
+    shutil.copy(files["COPC"], tmp_path / "d.copc.laz")
+    _copc_damage(tmp_path / "d.copc.laz", how)
+    return str(tmp_path / "d.copc.laz")
+
+
+def _cli(capsys, *args) -> tuple[int, list[str]]:
+    from tiled_gridpull.pipeline.cli import main
+
+    code = main(["reconstruct", *args])
+    return code, [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+
+
+@pytest.mark.parametrize("kind, how, says", [
+    ("EPT", "bounds of 1e308", "beyond +-1e+150"),
+    ("EPT", "bounds beyond the coordinate limit", "beyond +-1e+150"),
+    ("EPT", "a cube of 1e-300", "spans 1e-300 units"),
+    ("COPC", "halfsize 1e308", "beyond +-1e+150"),
+    ("COPC", "halfsize 8.9e307", "beyond +-1e+150"),
+])
+def test_a_damaged_index_is_refused_alike_by_the_dry_run_and_the_run(files, tmp_path, capsys, kind, how, says):
+    """Each of these passed the header checks: the dry run planned (an extent of 1e308 - -1e308 with numpy's
+    overflow warnings, a cube of 1e-300) and the run failed with several lines; a chunk shared with a sibling and
+    a non-string WKT (written into the PLY as a Python list) went through. Now: one line, exit 3, nothing written,
+    in the dry run and the run alike."""
+    src = _damaged(files, tmp_path, kind, how)
+    out = tmp_path / "x.ply"
+    for extra in (["--dry-run"], ["-q", "--workers", "1"]):
+        code, err = _cli(capsys, src, "-o", str(out), "--voxel-size", "0.5", *extra)
+        assert code == 3 and len(err) == 1 and says in err[0], (extra, err)
+        assert not out.exists() and not list(tmp_path.glob("x.*"))
+
