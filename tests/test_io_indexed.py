@@ -230,6 +230,8 @@ def _ept_damage(root, how: str) -> None:
     elif how == "a cube of 1e-300":
         meta["bounds"] = [0.0] * 3 + [1e-300] * 3
         meta.pop("boundsConforming", None)
+    elif how == "srs wkt a list":
+        meta["srs"] = {"wkt": ["not", "a", "string"]}
     (pages / "0-0-0-0.json").write_text(json.dumps(page))
     (root / "ept.json").write_text(json.dumps(meta))
 
@@ -237,7 +239,7 @@ def _ept_damage(root, how: str) -> None:
 EPT_DAMAGE = ["page lists itself", "pages in a cycle", "page lists its own node again", "absurd depth",
               "key outside the cube", "absurd count", "negative count", "span 0", "negative span", "flat cube",
               "inverted cube", "infinite bounds", "bounds of 1e308", "bounds beyond the coordinate limit",
-              "a cube of 1e-300"]
+              "a cube of 1e-300", "srs wkt a list"]
 
 
 @pytest.mark.parametrize("how", EPT_DAMAGE)
@@ -331,6 +333,7 @@ def _cli(capsys, *args) -> tuple[int, list[str]]:
     ("EPT", "bounds of 1e308", "beyond +-1e+150"),
     ("EPT", "bounds beyond the coordinate limit", "beyond +-1e+150"),
     ("EPT", "a cube of 1e-300", "spans 1e-300 units"),
+    ("EPT", "srs wkt a list", "'wkt' is a JSON list, not a string"),
     ("COPC", "halfsize 1e308", "beyond +-1e+150"),
     ("COPC", "halfsize 8.9e307", "beyond +-1e+150"),
 ])
@@ -345,4 +348,11 @@ def test_a_damaged_index_is_refused_alike_by_the_dry_run_and_the_run(files, tmp_
         code, err = _cli(capsys, src, "-o", str(out), "--voxel-size", "0.5", *extra)
         assert code == 3 and len(err) == 1 and says in err[0], (extra, err)
         assert not out.exists() and not list(tmp_path.glob("x.*"))
+
+
+def test_a_non_string_wkt_beside_another_input_is_one_line(files, tmp_path, capsys):
+    """Two inputs compare their CRS: a WKT that is a JSON list made it an internal error (TypeError, exit 1)."""
+    src = _damaged(files, tmp_path, "EPT", "srs wkt a list")
+    code, err = _cli(capsys, str(files["EPT"]), src, "-o", str(tmp_path / "x.ply"), "--voxel-size", "0.5", "--dry-run")
+    assert code == 3 and len(err) == 1 and "'wkt' is a JSON list" in err[0], err
 

@@ -386,6 +386,12 @@ def _ept_meta(p) -> dict:
             raise InputError(f"{where}: damaged EPT ('span' is {meta['span']!r}: a positive integer is needed)")
     if not isinstance(meta["schema"], list) or not all(isinstance(d, dict) for d in meta["schema"]):
         raise InputError(f"{where}: damaged EPT ('schema' is not a list of dimensions)")
+    # the WKT names the CRS a mesh is written in and inputs are compared by: one that is not text is damage, not a
+    # CRS (it reached the PLY's comment as a Python list, and a comparison of two inputs as a TypeError)
+    srs = meta.get("srs")
+    wkt = srs.get("wkt") if isinstance(srs, dict) else None
+    if wkt is not None and not isinstance(wkt, str):
+        raise InputError(f"{where}: damaged EPT ('srs' 'wkt' is a JSON {type(wkt).__name__}, not a string)")
     _ept_schema_frame(p, meta)
     return meta
 
@@ -474,9 +480,7 @@ def _ept_index(p) -> PointIndex:
     if counts.sum() != declared:
         raise InputError(f"{shown(p)}: corrupted EPT (its hierarchy holds {int(counts.sum())} points, ept.json "
                          f"declares {declared})")
-    srs = meta.get("srs") or {}
-    crs = (srs.get("wkt") or None) if isinstance(srs, dict) else None
-    return PointIndex(str(p), "EPT", conforming.reshape(2, 3), declared, crs, keys, lo, hi, counts)
+    return PointIndex(str(p), "EPT", conforming.reshape(2, 3), declared, _ept_crs(meta), keys, lo, hi, counts)
 
 
 def _ept_node(p, meta: dict, key: np.ndarray, count: int) -> np.ndarray:
@@ -588,7 +592,12 @@ def count(p: Path) -> int:
 
 def crs(p: Path) -> str | None:
     """The WKT of ``ept.json``'s ``srs``, or None."""
-    srs = _ept_meta(p).get("srs") or {}
+    return _ept_crs(_ept_meta(p))
+
+
+def _ept_crs(meta: dict) -> str | None:
+    """The WKT of an (already checked) ``ept.json``'s ``srs``, or None when it has none."""
+    srs = meta.get("srs") or {}
     return (srs.get("wkt") or None) if isinstance(srs, dict) else None
 
 
