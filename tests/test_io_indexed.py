@@ -290,11 +290,23 @@ def _copc_damage(path, how: str) -> None:
         at = data.find(b"copc") - 2 + 54 + 8 * 3
         assert struct.unpack_from("<d", data, at)[0] == pytest.approx(info.halfsize)
         struct.pack_into("<d", data, at, float(how.split()[1]))
+    elif how == "a chunk of a sibling":  # another node's offset and size: its points meshed twice, silently
+        # (the sibling holds at least as many points, so the chunk decompresses without an error)
+        nodes = sorted((struct.unpack_from("<i", data, at + 28)[0], k) for k, at in entries.items()
+                       if k[0] == 1 and struct.unpack_from("<i", data, at + 28)[0] > 0)
+        (_, victim), (_, other) = nodes[0], nodes[-1]
+        offset, size, _ = struct.unpack_from("<Qii", data, entries[other] + 16)
+        struct.pack_into("<Qi", data, entries[victim] + 16, offset, size)
+    elif how == "a chunk in the header":
+        struct.pack_into("<Q", data, entries[child] + 16, 100)
+    elif how == "a chunk past the file":
+        struct.pack_into("<Q", data, entries[child] + 16, len(data) - 10)
     path.write_bytes(bytes(data))
 
 
 COPC_DAMAGE = ["page lists itself", "pages in a cycle", "absurd depth", "negative count", "absurd page size",
-               "zero halfsize", "zero spacing", "halfsize 1e308", "halfsize 8.9e307",]
+               "zero halfsize", "zero spacing", "halfsize 1e308", "halfsize 8.9e307", "a chunk of a sibling",
+               "a chunk in the header", "a chunk past the file"]
 
 
 @pytest.mark.parametrize("how", COPC_DAMAGE)
@@ -336,6 +348,9 @@ def _cli(capsys, *args) -> tuple[int, list[str]]:
     ("EPT", "srs wkt a list", "'wkt' is a JSON list, not a string"),
     ("COPC", "halfsize 1e308", "beyond +-1e+150"),
     ("COPC", "halfsize 8.9e307", "beyond +-1e+150"),
+    ("COPC", "a chunk of a sibling", "overlap"),
+    ("COPC", "a chunk in the header", "not within the point data"),
+    ("COPC", "a chunk past the file", "not within the point data"),
 ])
 def test_a_damaged_index_is_refused_alike_by_the_dry_run_and_the_run(files, tmp_path, capsys, kind, how, says):
     """Each of these passed the header checks: the dry run planned (an extent of 1e308 - -1e308 with numpy's

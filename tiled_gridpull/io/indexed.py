@@ -194,6 +194,7 @@ def _copc_index_read(p, crs: str | None, stream) -> PointIndex:
         keys = np.array([n[0] for n in nodes], np.int64).reshape(-1, 4)
         counts = np.array([n[3] for n in nodes], np.int64)
         chunks = np.array([n[1:3] for n in nodes], np.int64).reshape(-1, 2)
+        _check_chunks(where, keys, chunks, int(header.offset_to_point_data), _stream_size(reader.source))
         lo, hi = _cubes(keys, center - half, 2 * half)
         # applied to every point, as a LAS header's: refused at planning, before a tile is read
         check_frame(f"{where}: the COPC header's", header.offsets, header.scales, reach=2.0 ** 31)
@@ -202,6 +203,39 @@ def _copc_index_read(p, crs: str | None, stream) -> PointIndex:
         raise InputError(f"{shown(p)}: corrupted COPC file (its hierarchy holds {int(counts.sum())} points, its header "
                          f"declares {declared})")
     return PointIndex(str(p), "COPC", bounds, declared, crs, keys, lo, hi, counts, chunks)
+
+
+def _stream_size(source) -> int:
+    """The length of the open file ``source`` (its position kept)."""
+    at = source.tell()
+    try:
+        return int(source.seek(0, os.SEEK_END))
+    finally:
+        source.seek(at)
+
+
+def _check_chunks(where: str, keys: np.ndarray, chunks: np.ndarray, data_start: int, file_size: int) -> None:
+    """Refuse point chunks (byte offset, size; sorted by offset) that are empty, start before the point data,
+    end past the file or overlap each other.
+
+    Every node's points are compressed into a chunk of its own: a hierarchy entry that points at a sibling's
+    chunk (or into the header, or past the end) would be read as that node's points, and a job would mesh the
+    wrong points, or the same points twice, without a word.
+    """
+    if not len(chunks):
+        return
+    offset, size = chunks[:, 0], chunks[:, 1]
+    name = lambda i: "-".join(str(int(v)) for v in keys[i])  # noqa: E731
+    bad = np.flatnonzero((size <= 0) | (offset < data_start) | (offset + size > file_size))
+    if len(bad):
+        i = int(bad[0])
+        raise InputError(f"{where}: damaged COPC hierarchy (the chunk of node {name(i)}, {int(size[i])} bytes at "
+                         f"byte {int(offset[i])}, is not within the point data, bytes {data_start} to {file_size})")
+    clash = np.flatnonzero(offset[1:] < offset[:-1] + size[:-1])
+    if len(clash):
+        i = int(clash[0])
+        raise InputError(f"{where}: damaged COPC hierarchy (the chunks of nodes {name(i)} and {name(i + 1)} "
+                         f"overlap, at bytes {int(offset[i])} and {int(offset[i + 1])})")
 
 
 #: largest COPC hierarchy page read (bytes; 32 a node): real pages hold a few thousand nodes
