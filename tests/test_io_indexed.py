@@ -230,6 +230,8 @@ def _ept_damage(root, how: str) -> None:
     elif how == "a cube of 1e-300":
         meta["bounds"] = [0.0] * 3 + [1e-300] * 3
         meta.pop("boundsConforming", None)
+    elif how == "boundsConforming outside the cube":
+        meta["boundsConforming"] = [0.0] * 3 + [1e-300] * 3
     elif how == "srs wkt a list":
         meta["srs"] = {"wkt": ["not", "a", "string"]}
     (pages / "0-0-0-0.json").write_text(json.dumps(page))
@@ -239,7 +241,7 @@ def _ept_damage(root, how: str) -> None:
 EPT_DAMAGE = ["page lists itself", "pages in a cycle", "page lists its own node again", "absurd depth",
               "key outside the cube", "absurd count", "negative count", "span 0", "negative span", "flat cube",
               "inverted cube", "infinite bounds", "bounds of 1e308", "bounds beyond the coordinate limit",
-              "a cube of 1e-300", "srs wkt a list"]
+              "a cube of 1e-300", "boundsConforming outside the cube", "srs wkt a list"]
 
 
 @pytest.mark.parametrize("how", EPT_DAMAGE)
@@ -345,6 +347,7 @@ def _cli(capsys, *args) -> tuple[int, list[str]]:
     ("EPT", "bounds of 1e308", "beyond +-1e+150"),
     ("EPT", "bounds beyond the coordinate limit", "beyond +-1e+150"),
     ("EPT", "a cube of 1e-300", "spans 1e-300 units"),
+    ("EPT", "boundsConforming outside the cube", "'boundsConforming' reaches outside the cube"),
     ("EPT", "srs wkt a list", "'wkt' is a JSON list, not a string"),
     ("COPC", "halfsize 1e308", "beyond +-1e+150"),
     ("COPC", "halfsize 8.9e307", "beyond +-1e+150"),
@@ -371,3 +374,27 @@ def test_a_non_string_wkt_beside_another_input_is_one_line(files, tmp_path, caps
     code, err = _cli(capsys, str(files["EPT"]), src, "-o", str(tmp_path / "x.ply"), "--voxel-size", "0.5", "--dry-run")
     assert code == 3 and len(err) == 1 and "'wkt' is a JSON list" in err[0], err
 
+
+def test_points_outside_the_declared_bounds_are_refused(files, tmp_path, capsys):
+    """An EPT's boundsConforming is the extent of its points, and a plan is made from it: shrunk to a tiny box
+    inside the cube while the points span 60 m, the dry run and the run both exited 0 and the mesh was cut to
+    the tiles around that box. Points read beyond the declared bounds (by more than the coordinates' step) are a
+    damaged index: one line, exit 3."""
+    import shutil
+
+    e = tmp_path / "e"
+    shutil.copytree(files["EPT"].parent, e)
+    meta = json.loads((e / "ept.json").read_text())
+    c = [(a + b) / 2 for a, b in zip(meta["boundsConforming"][:3], meta["boundsConforming"][3:])]
+    meta["boundsConforming"] = c + [v + 1e-300 for v in c]
+    (e / "ept.json").write_text(json.dumps(meta))
+    read_index(e / "ept.json")  # the header alone is consistent
+    out = tmp_path / "x.ply"
+    for extra in (["--dry-run"], ["-q", "--workers", "1"]):
+        code, err = _cli(capsys, str(e / "ept.json"), "-o", str(out), "--voxel-size", "0.5", *extra)
+        assert code == 3 and len(err) == 1 and "lies outside the bounds its header declares" in err[0], (extra, err)
+        assert not out.exists()
+    # the points of an intact index are all within its bounds, to the step of its coordinates
+    for kind in ("EPT", "EPT binary", "COPC"):
+        ix = read_index(files[kind])
+        assert sum(len(p) for p in read_box(ix, ix.bounds[0] - 1, ix.bounds[1] + 1)) == ix.points

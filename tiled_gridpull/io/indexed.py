@@ -110,6 +110,8 @@ class PointIndex:
     chunks : (M, 2) int64 or None
         COPC: each node's compressed chunk (byte offset, size), from the checked walk of its hierarchy, so reading
         a region does not walk the file's pages again. None for an EPT.
+    step : (3,) float64 or None
+        The scale of the stored coordinates (X Y Z): how far a point may lie outside ``bounds`` by rounding.
     """
 
     path: str
@@ -122,6 +124,7 @@ class PointIndex:
     hi: np.ndarray
     counts: np.ndarray
     chunks: np.ndarray | None = None
+    step: np.ndarray | None = None
 
     def overlapping(self, lo, hi) -> np.ndarray:
         """Rows of the nodes whose cube overlaps the box [lo, hi] (closed), in stream order."""
@@ -199,10 +202,11 @@ def _copc_index_read(p, crs: str | None, stream) -> PointIndex:
         # applied to every point, as a LAS header's: refused at planning, before a tile is read
         check_frame(f"{where}: the COPC header's", header.offsets, header.scales, reach=2.0 ** 31)
         bounds = np.stack([np.asarray(header.mins, np.float64), np.asarray(header.maxs, np.float64)])
+        step = np.abs(np.asarray(header.scales, np.float64))
     if counts.sum() != declared:
         raise InputError(f"{shown(p)}: corrupted COPC file (its hierarchy holds {int(counts.sum())} points, its header "
                          f"declares {declared})")
-    return PointIndex(str(p), "COPC", bounds, declared, crs, keys, lo, hi, counts, chunks)
+    return PointIndex(str(p), "COPC", bounds, declared, crs, keys, lo, hi, counts, chunks, step)
 
 
 def _stream_size(source) -> int:
@@ -414,6 +418,11 @@ def _ept_meta(p) -> dict:
     points = _count(meta["points"])
     if points is None or points < 0:
         raise InputError(f"{where}: damaged EPT ('points' is {meta['points']!r}, not a count)")
+    # the points' extent lies in the octree's cube (written from the same points; a little slack for rounding).
+    # An empty EPT's is anything (writers put zeros there)
+    slack = 1e-9 * float((cube[3:] - cube[:3]).max())
+    if points and (np.any(conforming[:3] < cube[:3] - slack) or np.any(conforming[3:] > cube[3:] + slack)):
+        raise InputError(f"{where}: damaged EPT ('boundsConforming' reaches outside the cube of 'bounds')")
     if "span" in meta:  # the grid of a node, per axis: 0 or less is no grid at all
         span = _count(meta["span"])
         if span is None or span <= 0:
@@ -514,7 +523,8 @@ def _ept_index(p) -> PointIndex:
     if counts.sum() != declared:
         raise InputError(f"{shown(p)}: corrupted EPT (its hierarchy holds {int(counts.sum())} points, ept.json "
                          f"declares {declared})")
-    return PointIndex(str(p), "EPT", conforming.reshape(2, 3), declared, _ept_crs(meta), keys, lo, hi, counts)
+    return PointIndex(str(p), "EPT", conforming.reshape(2, 3), declared, _ept_crs(meta), keys, lo, hi, counts,
+                      step=_ept_steps(meta))
 
 
 def _ept_node(p, meta: dict, key: np.ndarray, count: int) -> np.ndarray:
@@ -560,9 +570,30 @@ def _ept_points(index: PointIndex, rows: np.ndarray) -> Iterator[np.ndarray]:
 # ---------------------------------------------------------------- reading
 
 
+def _check_inside(index: PointIndex, xyz: np.ndarray) -> None:
+    """Refuse points read from ``index`` that lie outside the bounds its header declares by more than the step of
+    its coordinates (plus float rounding).
+
+    The header's bounds (an EPT's ``boundsConforming``, a COPC header's minimum and maximum) are the extent of
+    the points, and a job plans its tiles from them: points beyond them are an index that does not describe its
+    points, and a plan over it cuts them off the mesh without a word (a ``boundsConforming`` shrunk to a point
+    lost a 10 m survey but for one tile). Both the dry run (which reads the shallow levels) and a tile read check.
+    """
+    lo, hi = index.bounds
+    pad = (index.step if index.step is not None else 0.0) + 1e-12 * np.maximum(np.abs(lo), np.abs(hi)) + 1e-300
+    out = np.any((xyz < lo - pad) | (xyz > hi + pad), axis=1)
+    if out.any():
+        at = xyz[np.argmax(out)]
+        raise InputError(f"{shown(index.path)}: damaged {index.kind} (a point at ({at[0]:.9g}, {at[1]:.9g}, "
+                         f"{at[2]:.9g}) lies outside the bounds its header declares, ({lo[0]:.9g}, {lo[1]:.9g}, "
+                         f"{lo[2]:.9g}) to ({hi[0]:.9g}, {hi[1]:.9g}, {hi[2]:.9g}): the index does not describe its "
+                         "points)")
+
+
 def _clouds(index: PointIndex, parts) -> Iterator[PointCloud]:
     with input_errors(index.path, index.kind, f"damaged {index.kind}"):
         for xyz in parts:
+            _check_inside(index, xyz)
             if len(xyz):
                 yield PointCloud(xyz, crs=index.crs, source=index.path, report={"points_read": len(xyz)})
 
@@ -633,6 +664,12 @@ def _ept_crs(meta: dict) -> str | None:
     """The WKT of an (already checked) ``ept.json``'s ``srs``, or None when it has none."""
     srs = meta.get("srs") or {}
     return (srs.get("wkt") or None) if isinstance(srs, dict) else None
+
+
+def _ept_steps(meta: dict) -> np.ndarray:
+    """The X Y Z scale of an (already checked) ``ept.json``'s schema: the step of its stored coordinates."""
+    dims = {d.get("name"): d for d in meta["schema"]}
+    return np.abs(np.array([float(dims[a].get("scale", 1.0)) for a in "XYZ"]))
 
 
 def ept_files(p: Path) -> list[Path]:
