@@ -292,6 +292,9 @@ def _copc_damage(path, how: str) -> None:
         at = data.find(b"copc") - 2 + 54 + 8 * 3
         assert struct.unpack_from("<d", data, at)[0] == pytest.approx(info.halfsize)
         struct.pack_into("<d", data, at, float(how.split()[1]))
+    elif how == "centre and halfsize 1e308":  # centre + halfsize is inf
+        at = data.find(b"copc") - 2 + 54
+        struct.pack_into("<dddd", data, at, 1e308, 0.0, 0.0, 1e308)
     elif how == "a chunk of a sibling":  # another node's offset and size: its points meshed twice, silently
         # (the sibling holds at least as many points, so the chunk decompresses without an error)
         nodes = sorted((struct.unpack_from("<i", data, at + 28)[0], k) for k, at in entries.items()
@@ -351,6 +354,7 @@ def _cli(capsys, *args) -> tuple[int, list[str]]:
     ("EPT", "srs wkt a list", "'wkt' is a JSON list, not a string"),
     ("COPC", "halfsize 1e308", "beyond +-1e+150"),
     ("COPC", "halfsize 8.9e307", "beyond +-1e+150"),
+    ("COPC", "centre and halfsize 1e308", "not finite"),
     ("COPC", "a chunk of a sibling", "overlap"),
     ("COPC", "a chunk in the header", "not within the point data"),
     ("COPC", "a chunk past the file", "not within the point data"),
@@ -362,8 +366,13 @@ def test_a_damaged_index_is_refused_alike_by_the_dry_run_and_the_run(files, tmp_
     in the dry run and the run alike."""
     src = _damaged(files, tmp_path, kind, how)
     out = tmp_path / "x.ply"
+    import warnings
+
     for extra in (["--dry-run"], ["-q", "--workers", "1"]):
-        code, err = _cli(capsys, src, "-o", str(out), "--voxel-size", "0.5", *extra)
+        with warnings.catch_warnings(record=True) as seen:  # numpy's overflow warnings are lines on stderr
+            warnings.simplefilter("always")
+            code, err = _cli(capsys, src, "-o", str(out), "--voxel-size", "0.5", *extra)
+        assert not [w for w in seen if issubclass(w.category, RuntimeWarning)], [str(w.message) for w in seen]
         assert code == 3 and len(err) == 1 and says in err[0], (extra, err)
         assert not out.exists() and not list(tmp_path.glob("x.*"))
 

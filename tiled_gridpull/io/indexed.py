@@ -188,7 +188,9 @@ def _copc_index_read(p, crs: str | None, stream) -> PointIndex:
         half = float(info.halfsize)
         center = np.asarray(info.center, np.float64)
         where = shown(p)
-        _check_cube(where, center - half, center + half, "COPC octree cube (center and halfsize)")
+        with np.errstate(all="ignore"):  # a centre and halfsize of 1e308 overflow: refused, with no warning first
+            corners = center - half, center + half
+        _check_cube(where, *corners, "COPC octree cube (center and halfsize)")
         if not (np.isfinite(float(info.spacing)) and float(info.spacing) > 0):
             raise InputError(f"{where}: damaged COPC info (spacing {float(info.spacing)!r}: a positive number is "
                              "needed)")
