@@ -469,13 +469,27 @@ def test_a_trickling_server_is_refused_at_the_minimum_transfer_rate(odd_server, 
     assert code == 2 and "--min-transfer-rate" in capsys.readouterr().err
 
 
-@pytest.fixture
-def dribbling_server():
+@pytest.fixture(params=["http", "https"])
+def dribbling_server(request, tmp_path, monkeypatch):
     """A raw server that trickles one byte a second: ``/header/...`` inside its headers (``X-Slow: aaa...``),
-    ``/chunk/...`` inside the first chunk-size line of a chunked body. It stops by itself after 30 s."""
+    ``/chunk/...`` inside the first chunk-size line of a chunked body; over TLS too (a self-signed certificate,
+    trusted through ``SSL_CERT_FILE``: TLS takes over the connection's socket). It stops by itself after 30 s."""
+    import shutil
     import socket
+    import ssl
+    import subprocess
     import time
 
+    tls = None
+    if request.param == "https":
+        if not shutil.which("openssl"):
+            pytest.skip("no openssl to make a certificate")
+        subprocess.run(["openssl", "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-subj", "/CN=127.0.0.1",
+                        "-addext", "subjectAltName=IP:127.0.0.1", "-days", "1", "-keyout", str(tmp_path / "k.pem"),
+                        "-out", str(tmp_path / "c.pem")], check=True, capture_output=True, timeout=60)
+        tls = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
+        tls.load_cert_chain(tmp_path / "c.pem", tmp_path / "k.pem")
+        monkeypatch.setenv("SSL_CERT_FILE", str(tmp_path / "c.pem"))
     end = time.monotonic() + 30
     listener = socket.socket()
     listener.bind(("127.0.0.1", 0))
@@ -484,6 +498,8 @@ def dribbling_server():
 
     def answer(conn):
         try:
+            if tls is not None:
+                conn = tls.wrap_socket(conn, server_side=True)
             request = conn.recv(65536)
             if b" /header/" in request:
                 conn.sendall(b"HTTP/1.1 206 Partial Content\r\nX-Slow: ")
@@ -508,7 +524,7 @@ def dribbling_server():
         listener.close()
 
     threading.Thread(target=serve, daemon=True).start()
-    yield f"http://127.0.0.1:{listener.getsockname()[1]}"
+    yield f"{request.param}://127.0.0.1:{listener.getsockname()[1]}"
 
 
 @pytest.mark.parametrize("where", ["header", "chunk"])

@@ -155,12 +155,19 @@ class _Watch:
             threading.Thread(target=self._run, name="tiled-gridpull-transfer-watch", daemon=True).start()
 
     def attach(self, sock):
-        """Record the request's (raw, unencrypted) socket; one of a tripped request is shut down at once."""
+        """Keep a duplicate of the request's socket, fresh from its connection (TLS then takes the socket over and
+        detaches the object this one was), to shut the connection down through; a tripped request's at once."""
         with self._lock:
-            self._sock = sock
+            self._close()
+            self._sock = sock.dup()
             if self.tripped:
-                self._shut(sock)
+                self._shut(self._sock)
         return sock
+
+    def _close(self) -> None:
+        if self._sock is not None:
+            self._sock.close()
+            self._sock = None
 
     @staticmethod
     def _shut(sock) -> None:
@@ -192,6 +199,7 @@ class _Watch:
         """End the watch; :class:`_Trickle` when it had tripped (what was read may have been cut short)."""
         with self._lock:
             self._done.set()
+            self._close()
         if self.tripped:
             raise _Trickle(self.tripped)
 
@@ -210,16 +218,14 @@ def _opener(watch: _Watch):
         return connection
 
     class Http(urllib.request.HTTPHandler):
-        def http_open(self, req):
-            return self.do_open(watched(http.client.HTTPConnection), req)
+        def do_open(self, http_class, req, **kwargs):
+            return super().do_open(watched(http_class), req, **kwargs)
 
-    handlers = [Http()]
-    if hasattr(http.client, "HTTPSConnection"):
-        class Https(urllib.request.HTTPSHandler):
-            def https_open(self, req):
-                return self.do_open(watched(http.client.HTTPSConnection), req, context=self._context)
+    class Https(urllib.request.HTTPSHandler):
+        def do_open(self, http_class, req, **kwargs):
+            return super().do_open(watched(http_class), req, **kwargs)
 
-        handlers.append(Https())
+    handlers = [Http(), Https()] if hasattr(http.client, "HTTPSConnection") else [Http()]
     return urllib.request.build_opener(*handlers)
 
 
