@@ -717,6 +717,39 @@ def test_kitti_sequence_without_calib_is_refused_not_merged_with_identity(tmp_pa
     assert not out.exists()
 
 
+@pytest.mark.parametrize("how", ["scaled", "rank-deficient", "reflection"])
+def test_kitti_calib_whose_tr_is_not_rigid_is_refused(tmp_path, capsys, how):
+    """KITTI's Tr is a rigid velodyne-to-camera transform; one with its rotation scaled by 0.001 or with two
+    equal rows (rank-deficient) was accepted and shrank or flattened every scan without a word. Refused in one
+    line naming calib.txt's Tr, exit 3, when its 3x3 part is not orthonormal within 1e-3 (or mirrors)."""
+    from tiled_gridpull.pipeline.cli import main
+
+    make_sequence(tmp_path / "seq")
+    tr = np.array([[0, -1, 0, 0.25], [0, 0, -1, -0.5], [1, 0, 0, 1.0]], dtype=np.float64)
+    if how == "scaled":
+        tr[:, :3] *= 0.001
+    elif how == "rank-deficient":
+        tr[1] = tr[0]
+    else:
+        tr[0, :3] *= -1
+    (tmp_path / "seq" / "calib.txt").write_text("P0: " + " ".join(["0"] * 12) + "\nTr: "
+                                                + " ".join(repr(float(v)) for v in tr.ravel()) + "\n")
+    with pytest.raises(InputError, match=r"calib\.txt: line 2: Tr is not a rigid transform"):
+        read_kitti_sequence(tmp_path / "seq")
+    out = tmp_path / "o.ply"
+    code = main(["reconstruct", str(tmp_path / "seq"), "-o", str(out), "-q", "--voxel-size", "1"])
+    err = capsys.readouterr().err
+    lines = [ln for ln in err.strip().splitlines() if ln.strip()]
+    assert code == 3 and len(lines) == 1 and "calib.txt" in lines[0] and "Tr is not a rigid" in lines[0], err
+    assert not out.exists()
+    # a real calibration's Tr (sequence 00), given to 1e-12: rigid within its digits
+    (tmp_path / "seq" / "calib.txt").write_text(
+        "Tr: 4.276802385584e-04 -9.999672484946e-01 -8.084491683471e-03 -1.198459927713e-02 "
+        "-7.210626507497e-03 8.081198471645e-03 -9.999413164504e-01 -5.403984729748e-02 "
+        "9.999738645903e-01 4.859485810390e-04 -7.206933692422e-03 -2.921968648686e-01\n")
+    read_kitti_sequence(tmp_path / "seq")
+
+
 def test_kitti_malformed_files(tmp_path):
     make_sequence(tmp_path / "seq")
     poses = tmp_path / "seq" / "poses.txt"

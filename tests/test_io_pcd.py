@@ -102,6 +102,35 @@ def test_viewpoint_that_is_not_7_finite_numbers_is_refused_naming_it(tmp_path, c
     assert not (tmp_path / "o.ply").exists()
 
 
+@pytest.mark.parametrize("viewpoint", ["1e39 0 0 1 0 0 0", "0 1e300 0 1 0 0 0", "1e149 1e149 1e149 1 0 0 0",
+                                       "0 0 -2e37 1 0 0 0"])
+def test_a_viewpoint_too_far_for_the_sensor_storage_is_refused_naming_it(tmp_path, capsys, viewpoint):
+    """A finite but huge VIEWPOINT (1e39, even 1e149 below the coordinate limit of 1e150) was accepted: a tiled
+    job stores sensor origins as float32 offsets from a tile's corner, where it became infinite (overflow
+    warnings, a degraded mesh). Refused beyond SENSOR_LIMIT (1e37) in one line naming VIEWPOINT, exit 3; a
+    viewpoint at the limit still makes finite float32 offsets."""
+    header = ["VERSION 0.7", "FIELDS x y z", "SIZE 4 4 4", "TYPE F F F", "COUNT 1 1 1", "WIDTH 500", "HEIGHT 1",
+              f"VIEWPOINT {viewpoint}", "POINTS 500", "DATA ascii"]
+    p = tmp_path / "c.pcd"
+    rows = [" ".join(map(repr, row)) for row in cloud().tolist()]
+    p.write_text("\n".join(header + rows) + "\n")
+    for read in (read_points, lambda q: next(iter_point_chunks([q]))):
+        with pytest.raises(InputError, match=f"c.pcd: PCD header's VIEWPOINT '{viewpoint}' places the sensor"):
+            read(p)
+    code = main(["reconstruct", str(p), "-o", str(tmp_path / "o.ply"), "-q", "--voxel-size", "0.2", "--dry-run"])
+    err = capsys.readouterr().err
+    lines = [ln for ln in err.strip().splitlines() if ln.strip()]
+    assert code == 3 and len(lines) == 1 and "VIEWPOINT" in lines[0] and "Traceback" not in err, err
+    from tiled_gridpull.io.pcd import SENSOR_LIMIT
+
+    header[7] = f"VIEWPOINT {-SENSOR_LIMIT!r} {SENSOR_LIMIT!r} 0 1 0 0 0"
+    p.write_text("\n".join(header + rows) + "\n")
+    c = read_points(p)
+    with np.errstate(over="raise"):
+        offsets = (c.sensor - c.xyz.min(axis=0)).astype(np.float32)
+    assert np.all(np.isfinite(offsets))
+
+
 @pytest.mark.parametrize("damage,needle", [
     (lambda b: b[: len(b) // 2], "truncated or corrupted PCD"),
     (lambda b: b.replace(b"FIELDS x y z", b"FIELDS a b c"), "without x y z fields"),

@@ -1,6 +1,7 @@
 """The job directory and the outputs: writes never follow a planted symlink, mesh and sidecar are committed
 together, and one job at a time holds a work directory."""
 
+import contextlib
 import os
 
 import numpy as np
@@ -260,7 +261,8 @@ def test_a_folder_of_the_job_directory_linked_elsewhere_is_refused_and_nothing_o
 def test_a_job_directory_of_an_earlier_version_is_resumed_not_refused(finished_job, tmp_path):
     """Versions before the generator marker wrote manifest.json and tiles.png without one: their directories are
     the tool's own, recognised by the manifest's structure, and a rerun resumes them; a foreign manifest that
-    merely names a plan is still refused."""
+    merely names a plan is still refused, and so are a foreign report.json (it always carried the marker) and a
+    tiles.png that is no PNG in such a directory."""
     import json
     import shutil
 
@@ -274,13 +276,185 @@ def test_a_job_directory_of_an_earlier_version_is_resumed_not_refused(finished_j
     del man["generator"]
     (job / "manifest.json").write_text(json.dumps(man))
     png = job / "tiles.png"
-    if png.exists():
-        png.write_bytes(b"\x89PNG\r\n\x1a\n" + b"\0" * 64)  # a picture without the marker
+    png.write_bytes(b"\x89PNG\r\n\x1a\n" + b"\0" * 64)  # a picture without the marker
     check_job_dir(job)
     mesh = reconstruct_scene([str(finished_job / "p.npy")], tmp_path / "again.ply",
                              TilingConfig(voxel_size=0.2, tile_size=6.4, overlap=3.2, min_points=5),
                              SolverConfig(m2=6, refine_m2=6, iterations=30, coarse_iterations=30), job)
     assert mesh.metadata["reused"]["partition"] is True
+    # the exemption is the manifest's and the picture's only: report.json carried the marker in every version
+    # (a user's own one in such a directory was replaced silently), and a picture must at least be a PNG
+    man = json.loads((job / "manifest.json").read_text())
+    man.pop("generator", None)  # the reused partition's manifest is the old one
+    (job / "manifest.json").write_text(json.dumps(man))
+    report, picture = (job / "report.json").read_bytes(), png.read_bytes()
+    for name, foreign in (("report.json", b'{"mine": 1}'), ("tiles.png", b"my own notes")):
+        (job / name).write_bytes(foreign)
+        with pytest.raises(ConfigError, match=f"{name} there was not written by tiled-gridpull"):
+            check_job_dir(job)
+        assert (job / name).read_bytes() == foreign
+        (job / "report.json").write_bytes(report)
+        png.write_bytes(picture)
+    check_job_dir(job)
     (job / "manifest.json").write_text(json.dumps({"plan": {"name": "mine"}, "tiles": []}))
     with pytest.raises(ConfigError, match="manifest.json there was not written by tiled-gridpull"):
         check_job_dir(job)
+
+
+# ------------------------------------------------------- a job directory's fixed names: not regular, unparseable
+
+
+def _without_hanging(fn, fifos, seconds=30.0):
+    """``fn()`` in a thread; when it is still running after ``seconds`` (blocked opening or reading one of
+    ``fifos``), each FIFO is opened for writing and closed, so the reader sees its end and the thread ends, and the
+    test fails. Returns what ``fn`` returned or raised (an exception instance)."""
+    import threading
+
+    box = {}
+
+    def target():
+        try:
+            box["out"] = fn()
+        except BaseException as exc:  # noqa: BLE001 - handed to the test
+            box["out"] = exc
+
+    t = threading.Thread(target=target, daemon=True)
+    t.start()
+    t.join(seconds)
+    if t.is_alive():
+        for f in fifos:
+            with contextlib.suppress(OSError):
+                os.close(os.open(f, os.O_WRONLY | os.O_NONBLOCK))
+        t.join(seconds)
+        pytest.fail(f"blocked on a FIFO among {[str(f) for f in fifos]}")
+    return box.get("out")
+
+
+@pytest.mark.parametrize("name", ["manifest.json", "report.json", "tiles.png", ".lock"])
+def test_a_fifo_at_a_fixed_name_of_the_job_directory_is_refused_without_being_opened(finished_job, tmp_path,
+                                                                                    capsys, name):
+    """A FIFO at a fixed name (manifest.json, tiles.png) made the dry run wait for a writer for good: deciding
+    whether the tool wrote it opened it for reading. Any non-regular file there is refused in one line, exit 2,
+    and never opened."""
+    import shutil
+
+    work = tmp_path / "job"
+    shutil.copytree(finished_job / "ref.job", work)
+    (work / name).unlink(missing_ok=True)
+    os.mkfifo(work / name)
+    code = _without_hanging(lambda: main(["reconstruct", str(finished_job / "p.npy"), "-o", str(tmp_path / "m.ply"),
+                                          "--work-dir", str(work), *JOB, "--dry-run"]), [work / name])
+    err = capsys.readouterr().err
+    assert code == 2 and len(err.strip().splitlines()) == 1 and f"{name} there is a FIFO" in err, err
+    assert "Traceback" not in err
+
+
+@pytest.mark.parametrize("kind", ["symlink", "directory", "fifo"])
+def test_a_damaged_lock_file_is_one_line_not_an_internal_error(tmp_path, kind):
+    """``.lock`` as a symlink (ELOOP), a directory (EISDIR) or a FIFO (flock's EINVAL) was an internal error
+    (exit 1): now a ConfigError (exit 2, one line), from job_lock itself and from check_job_dir before it."""
+    from tiled_gridpull.jobdir import check_job_dir
+
+    work = tmp_path / "job"
+    work.mkdir()
+    lock = work / ".lock"
+    if kind == "symlink":
+        (tmp_path / "elsewhere").write_text("1")
+        lock.symlink_to(tmp_path / "elsewhere")
+    elif kind == "directory":
+        lock.mkdir()
+    else:
+        os.mkfifo(lock)
+    for fn in (lambda: job_lock(work).__enter__(), lambda: check_job_dir(work)):
+        out = _without_hanging(fn, [lock] if kind == "fifo" else [])
+        assert isinstance(out, ConfigError) and ".lock" in str(out), repr(out)
+    assert os.path.islink(lock) or not lock.is_file()  # left as it was
+
+
+def test_a_fifo_where_a_tile_summary_or_manifest_is_read_counts_as_absent(finished_job, tmp_path):
+    """A FIFO at ``summaries/solve_tile_0_0_0.json`` blocked the run for good (read to decide reuse): the reads
+    that decide reuse (resume._reusable, load_partition, read_manifest) take a non-regular file as absent or
+    damaged, without opening it, and the rerun computes that tile again and replaces the FIFO."""
+    import shutil
+
+    from tiled_gridpull.config import SolverConfig
+    from tiled_gridpull.jobdir import JobPaths, read_manifest
+    from tiled_gridpull.resume import _reusable, load_partition
+    from tiled_gridpull.tiled_job import reconstruct_scene
+
+    work = tmp_path / "job"
+    shutil.copytree(finished_job / "ref.job", work)
+    summary = sorted((work / "summaries").glob("solve_*.json"))[0]
+    summary.unlink()
+    os.mkfifo(summary)
+    assert _without_hanging(lambda: _reusable(summary, "k", ("solved",), work / "x"), [summary]) == (None, None)
+    man = work / "manifest.json"
+    saved = man.read_bytes()
+    man.unlink()
+    os.mkfifo(man)
+    assert _without_hanging(lambda: load_partition(JobPaths(work), "k", TilingConfig()), [man]) is None
+    assert isinstance(_without_hanging(lambda: read_manifest(man), [man]), InputError)
+    man.unlink()
+    man.write_bytes(saved)
+    mesh = _without_hanging(lambda: reconstruct_scene(
+        [str(finished_job / "p.npy")], tmp_path / "again.ply",
+        TilingConfig(voxel_size=0.2, tile_size=6.4, overlap=3.2, min_points=5),
+        SolverConfig(m2=6, refine_m2=6, iterations=30, coarse_iterations=30), work), [summary], seconds=300)
+    assert not isinstance(mesh, BaseException), repr(mesh)
+    assert summary.is_file()  # the FIFO replaced by the tile's summary
+    solves = mesh.metadata["reused"]
+    assert solves["partition"] is True, solves
+
+
+DEEP = "[" * 200_000 + "]" * 200_000
+
+
+@pytest.mark.parametrize("dry_run", [True, False])
+def test_a_deeply_nested_or_huge_report_json_in_the_work_directory_is_not_ours(tmp_path, capsys, dry_run):
+    """A report.json nested 200,000 deep made the check of its marker raise RecursionError (internal error,
+    exit 1), and a 64 GiB sparse one was read whole (out of memory, exit 5): neither is a file this tool wrote,
+    refused in one line, exit 2. Nothing over MAX_OWN_FILE bytes is read to decide."""
+    np.save(tmp_path / "p.npy", np.random.default_rng(1).uniform(0, 5, size=(2000, 3)))
+    for how in ("deep", "huge"):
+        work = tmp_path / f"{how}.job"
+        work.mkdir()
+        if how == "deep":
+            (work / "report.json").write_text(DEEP)
+        else:
+            with open(work / "report.json", "wb") as fh:
+                fh.truncate(64 << 30)
+        code = main(["reconstruct", str(tmp_path / "p.npy"), "-o", str(tmp_path / "m.ply"), "--work-dir",
+                     str(work), *JOB, *(["--dry-run"] if dry_run else [])])
+        err = capsys.readouterr().err
+        assert code == 2 and len(err.strip().splitlines()) == 1, (how, err)
+        assert "report.json there was not written by tiled-gridpull" in err, (how, err)
+        assert not (tmp_path / "m.ply").exists()
+
+
+def test_a_deeply_nested_or_huge_sidecar_or_report_is_refused_in_one_line(tmp_path, capsys):
+    """The ``-o`` mesh's sidecar nested too deeply to parse is not ours (exit 2, not RecursionError's exit 1);
+    ``tiled-gridpull report DIR`` on such a report.json, a huge one or a FIFO says so in one line, exit 3."""
+    from tiled_gridpull.io.outputs import written_by_us
+
+    np.save(tmp_path / "p.npy", np.random.default_rng(1).uniform(0, 5, size=(500, 3)))
+    (tmp_path / "side.json").write_text(DEEP)
+    assert written_by_us(tmp_path / "side.json") is False
+    code = main(["reconstruct", str(tmp_path / "p.npy"), "-o", str(tmp_path / "side.ply"), "--resolution", "32",
+                 "-q"])
+    err = capsys.readouterr().err
+    assert code == 2 and len(err.strip().splitlines()) == 1 and "side.json exists and was not written" in err, err
+    assert not (tmp_path / "side.ply").exists()
+    for how in ("deep", "huge", "fifo"):
+        job = tmp_path / f"{how}.job"
+        job.mkdir()
+        if how == "deep":
+            (job / "report.json").write_text(DEEP)
+        elif how == "huge":
+            with open(job / "report.json", "wb") as fh:
+                fh.truncate(64 << 30)
+        else:
+            os.mkfifo(job / "report.json")
+        code = _without_hanging(lambda: main(["report", str(job)]), [job / "report.json"])
+        err = capsys.readouterr().err
+        assert code == 3 and len(err.strip().splitlines()) == 1 and "report.json" in err, (how, err)
+        assert "Traceback" not in err and "internal error" not in err, (how, err)

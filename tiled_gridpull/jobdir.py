@@ -20,9 +20,10 @@ a job reads or writes anything there, a fixed-name file this tool did not write 
 from __future__ import annotations
 
 import contextlib
-import json
+import errno
 import math
 import os
+import stat
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -31,7 +32,7 @@ import numpy as np
 from ._version import __version__
 from .errors import ConfigError, InputError
 from .io.atomic import write_json
-from .io.outputs import GENERATOR_PREFIX, written_by_us
+from .io.outputs import GENERATOR_PREFIX, load_json_file, read_regular, written_by_us
 from .lattice import Lattice
 from .tile_plan import TilePlan, TileSpec
 
@@ -64,6 +65,8 @@ LAYOUT_NAME = "tiles.png"
 #: The files a job writes at fixed names in its directory; each carries the generator marker of
 #: :func:`tiled_gridpull.io.outputs.written_by_us` (``.lock`` holds only a PID, and a job never replaces it).
 JOB_FILES = ("manifest.json", REPORT_NAME, LAYOUT_NAME)
+#: The file :func:`job_lock` holds.
+LOCK_NAME = ".lock"
 #: The folders a job writes into, and the one a job makes inside one of them (the partition's segments).
 JOB_FOLDERS = ("points", "fields", "pieces", "summaries", "points/.segments")
 
@@ -101,23 +104,27 @@ def check_job_dir(root: str | Path) -> None:
     symlinks are replaced, never written through, by :mod:`tiled_gridpull.io.atomic`). The work directory itself
     may be a link: the user named it.
 
+    A fixed-name file (or the ``.lock``) that is not a regular file (a FIFO, a directory, a device) is refused
+    without being opened: reading a FIFO would block the job for good.
+
     Raises
     ------
     ConfigError
-        The directory is a file; a fixed-name file was not written by this tool; a folder is a link or a file.
+        The directory is a file; a fixed-name file is a link, not a regular file, or was not written by this tool;
+        a folder is a link or a file.
     """
     root = Path(root)
     if not root.exists():
         return
     if not root.is_dir():
         raise ConfigError(f"work directory {root} is a file, not a directory")
+    for name in (*JOB_FILES, LOCK_NAME):
+        _check_not_special(root, name)
     legacy = _legacy_job(root)
     for name in JOB_FILES:
         p = root / name
-        # a link is nothing this tool writes, and reading the manifest through one would decide reuse
-        if p.is_symlink() or (p.exists() and not legacy and not written_by_us(p)):
-            what = " (a link)" if p.is_symlink() else ""
-            raise ConfigError(f"work directory {root}: {name}{what} there was not written by tiled-gridpull (a job "
+        if p.exists() and not written_by_us(p) and not (legacy and _legacy_file(p)):
+            raise ConfigError(f"work directory {root}: {name} there was not written by tiled-gridpull (a job "
                               f"writes its own {name}): move it, or choose another work directory")
     for name in JOB_FOLDERS:
         p = root / name
@@ -129,20 +136,50 @@ def check_job_dir(root: str | Path) -> None:
                               "choose another work directory")
 
 
+def _check_not_special(root: Path, name: str) -> None:
+    """Refuse a link, or anything but a regular file, at a fixed name of the job directory (absent is fine)."""
+    p = root / name
+    try:
+        mode = p.lstat().st_mode
+    except FileNotFoundError:
+        return
+    except OSError as exc:  # e.g. permission: reading it later would fail the same way
+        raise ConfigError(f"work directory {root}: {name} cannot be examined ({exc.strerror}): move it, or "
+                          "choose another work directory") from None
+    if stat.S_ISLNK(mode):
+        # a link is nothing this tool writes, and reading the manifest through one would decide reuse
+        raise ConfigError(f"work directory {root}: {name} (a link) there was not written by tiled-gridpull (a job "
+                          f"writes its own {name}): move it, or choose another work directory")
+    if not stat.S_ISREG(mode):
+        what = "a directory" if stat.S_ISDIR(mode) else "a FIFO" if stat.S_ISFIFO(mode) else "not a regular file"
+        raise ConfigError(f"work directory {root}: {name} there is {what}, where a job keeps a file of its own: "
+                          "move it, or choose another work directory")
+
+
+def _legacy_file(p: Path) -> bool:
+    """Whether the fixed-name file ``p`` of an earlier version's job directory (:func:`_legacy_job`) may be
+    replaced without the generator marker: its manifest, and its picture when it is a PNG (the versions before the
+    marker wrote ``tiles.png`` without one). ``report.json`` carried ``generator`` in every version: never
+    exempt."""
+    if p.name == "manifest.json":
+        return True
+    if p.name == LAYOUT_NAME:
+        head = read_regular(p, 8, head=True)
+        return head is not None and head.startswith(b"\x89PNG\r\n\x1a\n")
+    return False
+
+
 def _legacy_job(root: Path) -> bool:
     """Whether ``root`` is a job directory of a version that wrote no generator into its manifest and picture
     (those before the marker was recorded): a manifest holding a plan with a lattice and a config, and a list of
-    tiles. Its
-    rerun resumes instead of being refused as someone else's directory."""
+    tiles. Its rerun resumes instead of being refused as someone else's directory; the files it exempts from the
+    marker are :func:`_legacy_file`'s."""
     p = root / "manifest.json"
-    if p.is_symlink() or not p.is_file():
+    if p.is_symlink():
         return False
-    try:
-        meta = json.loads(p.read_text())
-    except (OSError, ValueError):
-        return False
+    meta = load_json_file(p)  # None for a FIFO, a huge or a too deeply nested file: not a job's manifest
     plan = meta.get("plan") if isinstance(meta, dict) else None
-    return ("generator" not in meta and isinstance(plan, dict) and isinstance(plan.get("lattice"), dict)
+    return (isinstance(plan, dict) and "generator" not in meta and isinstance(plan.get("lattice"), dict)
             and isinstance(plan.get("config"), dict) and isinstance(meta.get("tiles"), list))
 
 
@@ -162,8 +199,20 @@ def job_lock(root: str | Path) -> Iterator[None]:
     root = Path(root)
     created = not root.exists()
     root.mkdir(parents=True, exist_ok=True)
-    fd = os.open(root / ".lock", os.O_RDWR | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0), 0o666)
+    _check_not_special(root, LOCK_NAME)  # a link, a directory or a FIFO: one line, not an OSError
     try:
+        # O_NONBLOCK: a FIFO put there after the check does not block the open
+        fd = os.open(root / LOCK_NAME, os.O_RDWR | os.O_CREAT | os.O_NONBLOCK | getattr(os, "O_NOFOLLOW", 0),
+                     0o666)
+    except OSError as exc:
+        if exc.errno in (errno.ELOOP, errno.EISDIR, errno.ENXIO):  # became a link, a directory, a socket
+            raise ConfigError(f"work directory {root}: {LOCK_NAME} there is not a regular file: move it, or "
+                              "choose another work directory") from None
+        raise
+    try:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            raise ConfigError(f"work directory {root}: {LOCK_NAME} there is not a regular file: move it, or "
+                              "choose another work directory")
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
@@ -215,9 +264,20 @@ def write_manifest(path: str | Path, plan: TilePlan, specs: list[TileSpec], extr
 
 
 def read_manifest(path: str | Path) -> tuple[dict, list[TileSpec]]:
-    """Read a tile manifest: the raw dict and the tile specs."""
-    data = json.loads(Path(path).read_text())
-    return data, [TileSpec.from_dict(d) for d in data["tiles"]]
+    """Read a tile manifest: the raw dict and the tile specs.
+
+    Raises
+    ------
+    InputError
+        Not a regular file (a FIFO is never opened), larger than
+        :data:`~tiled_gridpull.io.outputs.MAX_OWN_FILE`, unreadable, or not a manifest.
+    """
+    data = load_json_file(path)
+    try:
+        return data, [TileSpec.from_dict(d) for d in data["tiles"]]
+    except (KeyError, TypeError, ValueError):
+        raise InputError(f"{path}: not a readable tile manifest (missing, not a regular file, damaged or not "
+                         "written by tiled-gridpull)") from None
 
 
 def sample_job_points(job_dir: str | Path, max_points: int = 50_000) -> np.ndarray:

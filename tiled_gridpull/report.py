@@ -25,6 +25,7 @@ import numpy as np
 from .config import recorded_settings
 from .errors import InputError
 from .io.atomic import write_json
+from .io.outputs import MAX_OWN_FILE
 from .jobdir import LAYOUT_NAME, REPORT_NAME, sample_job_points
 
 log = logging.getLogger("tiled_gridpull")
@@ -227,20 +228,28 @@ def read_report(path: str | Path) -> dict:
     Raises
     ------
     InputError
-        No report there, or not a report.
+        No report there, or not a report: not a regular file (never opened then), larger than
+        :data:`~tiled_gridpull.io.outputs.MAX_OWN_FILE`, not JSON or nested too deeply to parse.
     """
     p = Path(path)
     if p.is_dir():
         p = p / REPORT_NAME
-        if not p.is_file():
+        if not p.exists():
             raise InputError(f"{path}: no {REPORT_NAME} in this directory (is it the job directory of a finished "
                              "tiled run? by default OUTPUT with a .job suffix)")
-    elif not p.is_file():
+    elif not p.exists():
         raise InputError(f"{path}: not found")
+    if not p.is_file():  # a FIFO is never opened: reading it would wait for a writer for good
+        raise InputError(f"{p}: not a regular file, so not a job report")
     try:
-        data = json.loads(p.read_text())
+        if p.stat().st_size > MAX_OWN_FILE:
+            raise InputError(f"{p}: larger than {MAX_OWN_FILE >> 20} MiB, so not a job report")
+        with open(p, "rb") as fh:
+            data = json.loads(fh.read(MAX_OWN_FILE + 1))
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise InputError(f"{p}: cannot read report ({exc.__class__.__name__})") from None
+    except RecursionError:
+        raise InputError(f"{p}: cannot read report (nested too deeply to be a job report)") from None
     if not isinstance(data, dict) or data.get("format") != REPORT_FORMAT or not isinstance(data.get("tiles"), list):
         raise InputError(f"{p}: not a tiled_gridpull job report")
     return data

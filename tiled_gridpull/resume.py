@@ -34,6 +34,7 @@ import dataclasses
 import hashlib
 import json
 import os
+import stat
 from pathlib import Path
 
 import numpy as np
@@ -42,6 +43,7 @@ from ._version import __version__
 from .config import SolverConfig
 from .errors import ConfigError, InputError
 from .io.atomic import json_default, write_json
+from .io.outputs import load_json_file
 from .io.remote import is_url, validators
 from .jobdir import JobPaths, spill_record
 from .stitch import mesh_tile
@@ -143,10 +145,8 @@ def load_partition(paths: JobPaths, key: str, tiling: TilingConfig):
 
     Each tile's spill file must exist with the size its point count implies, and its occupancy mask must exist.
     """
-    try:
-        data = json.loads(paths.manifest.read_text())
-    except (OSError, ValueError):
-        return None
+    # never through a link, never a FIFO or a file too large or too deeply nested to be the job's own
+    data = None if paths.manifest.is_symlink() else load_json_file(paths.manifest)
     if not isinstance(data, dict) or data.get("partition_key") != key or "scan" not in data:
         return None
     try:
@@ -218,12 +218,10 @@ def _reusable(summary_path: Path, key: str, statuses: tuple, output: str | Path)
     it describes, byte for byte; else ``(None, why)``, ``why`` naming a damaged or missing output when the
     record itself matched (None when there was nothing to reuse)."""
     # a link is nothing the job wrote: never read to decide reuse (the result is computed again, the link replaced)
+    # nor anything but a regular file: a FIFO there blocked the run for good (load_json_file never opens one)
     if Path(summary_path).is_symlink():
         return None, None
-    try:
-        prev = json.loads(Path(summary_path).read_text())
-    except (OSError, ValueError):
-        return None, None
+    prev = load_json_file(summary_path)
     if not isinstance(prev, dict) or prev.get("key") != key or prev.get("status") not in statuses:
         return None, None
     rec = prev.get("output")
@@ -231,7 +229,10 @@ def _reusable(summary_path: Path, key: str, statuses: tuple, output: str | Path)
         if Path(output).is_symlink():
             return None, f"{output} is a link"
         try:
-            if Path(output).stat().st_size != rec["size"]:
+            st = Path(output).stat()
+            if not stat.S_ISREG(st.st_mode):  # a FIFO's checksum would never end
+                return None, f"{output} is not a regular file"
+            if st.st_size != rec["size"]:
                 return None, f"{output} changed size since it was written"
             if file_sha256(output) != rec["sha256"]:
                 return None, f"{output} is damaged (SHA-256 differs from the one recorded)"

@@ -145,12 +145,33 @@ def _twelve_numbers(tokens: list[str], p: Path, lineno: int) -> list[float]:
     return values
 
 
+#: Largest deviation of Tr's 3x3 part from an orthonormal matrix (``max |R^T R - I|``): KITTI's Tr is a rigid
+#: transform, given to about 1e-9; a scaled or rank-deficient one would distort every scan without a word.
+RIGID_TOLERANCE = 1e-3
+
+
 def _read_calib(p: Path) -> np.ndarray:
-    """Tr (velodyne -> camera 0) as 4x4 from calib.txt."""
+    """Tr (velodyne -> camera 0) as 4x4 from calib.txt.
+
+    Raises
+    ------
+    InputError
+        No Tr line, a malformed one, or a Tr that is not rigid (its rotation part not orthonormal within
+        :data:`RIGID_TOLERANCE`, or a reflection).
+    """
     for lineno, line in enumerate(p.read_text(encoding="latin-1").splitlines(), start=1):
         key, sep, rest = line.partition(":")
         if sep and key.strip() in ("Tr", "Tr_velo_to_cam"):
-            return _to4x4(np.array(_twelve_numbers(rest.split(), p, lineno)))
+            tr = _to4x4(np.array(_twelve_numbers(rest.split(), p, lineno)))
+            rot = tr[:3, :3]
+            with np.errstate(over="ignore", invalid="ignore"):  # 1e200 entries: inf, refused below
+                err = float(np.abs(rot.T @ rot - np.eye(3)).max())
+                det = float(np.linalg.det(rot))
+            if not (err <= RIGID_TOLERANCE and det > 0):  # NaN fails too
+                raise InputError(f"{p}: line {lineno}: {key.strip()} is not a rigid transform (its 3x3 part is "
+                                 f"not a rotation: |R^T R - I| = {err:.3g}, det {det:.3g}); "
+                                 "KITTI's Tr places the velodyne in the camera frame by a rotation and a shift")
+            return tr
     raise InputError(f"{p}: no 'Tr:' line (the velodyne-to-camera transform)")
 
 

@@ -6,12 +6,17 @@ A file counts as written by this tool when it carries the marker every reconstru
 JSON sidecar (or job file) whose ``generator`` is ``tiled_gridpull <version>``, or a PNG whose ``Software`` text is
 ``tiled_gridpull <version>`` (:func:`tiled_gridpull.images.save_png`). The sample generator's files
 (``tiled_gridpull.synthetic.*``) are not reconstructions and are protected like any other file.
+
+Deciding whether a file is ours never opens one that is not a regular file (a FIFO would block the reader, a
+device could be endless), never reads more than :data:`MAX_OWN_FILE` bytes of a JSON document, and takes a
+document nested too deeply to parse (``RecursionError``) as not ours (:func:`read_regular`, :func:`load_json_file`).
 """
 
 from __future__ import annotations
 
 import json
 import os
+import stat
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -22,8 +27,64 @@ from .meshes import sidecar_path
 GENERATOR_PREFIX = "tiled_gridpull "
 
 
+#: The most bytes of a JSON file read to decide whether this tool wrote it (or to reuse what it records): a
+#: larger one is not ours. A job's manifest and report hold about 1 kB per tile, so this is some 250,000 tiles.
+MAX_OWN_FILE = 256 << 20
+
+
 def _resolved(p: str | Path) -> Path:
     return Path(os.path.realpath(p))
+
+
+def read_regular(path: str | Path, limit: int = MAX_OWN_FILE, *, head: bool = False) -> bytes | None:
+    """The bytes of ``path`` when it is a regular file (a symlink is followed), else None; never opens a FIFO,
+    device, socket or directory.
+
+    Parameters
+    ----------
+    path : str or Path
+    limit : int
+        Bytes read at most.
+    head : bool
+        Return the first ``limit`` bytes of a larger file; without it a file over ``limit`` bytes gives None.
+
+    Returns
+    -------
+    bytes or None
+        None also when the file is missing or cannot be opened or read.
+    """
+    try:
+        if not stat.S_ISREG(os.stat(path).st_mode):
+            return None
+        # O_NONBLOCK: a regular file swapped for a FIFO after the stat does not block the open
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
+    except (OSError, ValueError):
+        return None
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode) or (st.st_size > limit and not head):
+            return None
+        with os.fdopen(os.dup(fd), "rb") as fh:
+            data = fh.read(limit + 1)
+    except OSError:
+        return None
+    finally:
+        os.close(fd)
+    if len(data) > limit:
+        return data[:limit] if head else None
+    return data
+
+
+def load_json_file(path: str | Path, limit: int = MAX_OWN_FILE):
+    """The JSON document in ``path`` (:func:`read_regular`), or None when it is not a regular file, larger than
+    ``limit`` bytes, unreadable, not JSON, or nested too deeply to parse."""
+    data = read_regular(path, limit)
+    if data is None:
+        return None
+    try:
+        return json.loads(data)
+    except (ValueError, RecursionError):  # UnicodeDecodeError is a ValueError
+        return None
 
 
 def written_by_us(path: str | Path) -> bool:
@@ -32,10 +93,7 @@ def written_by_us(path: str | Path) -> bool:
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix == ".json":
-        try:
-            meta = json.loads(path.read_text())
-        except (OSError, ValueError):
-            return False
+        meta = load_json_file(path)
         gen = meta.get("generator") if isinstance(meta, dict) else None
         return isinstance(gen, str) and gen.startswith(GENERATOR_PREFIX)
     marker = {".ply": b"comment generator " + GENERATOR_PREFIX.encode(),
@@ -43,10 +101,8 @@ def written_by_us(path: str | Path) -> bool:
               ".png": b"tEXtSoftware\0" + GENERATOR_PREFIX.encode()}.get(suffix)
     if marker is None:
         return False
-    try:
-        with open(path, "rb") as fh:
-            head = fh.read(4096)
-    except OSError:
+    head = read_regular(path, 4096, head=True)
+    if head is None:
         return False
     if suffix == ".ply":
         header = head.split(b"end_header", 1)[0]

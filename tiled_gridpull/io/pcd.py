@@ -5,7 +5,9 @@ header's ``VIEWPOINT`` is where the sensor stood (translation, then orientation)
 as its sensor origin, so tiled mode's ``orientation: auto`` faces the outside towards the sensor, as for KITTI.
 The default viewpoint (``0 0 0 1 0 0 0``, written when nobody set one) counts only for organised clouds, which are
 in their sensor's frame; an unorganised cloud with it (a registered map, its origin anywhere) gets no sensor.
-A VIEWPOINT that is not 7 finite numbers is refused (a NaN one would make every sensor origin NaN).
+A VIEWPOINT that is not 7 finite numbers is refused (a NaN one would make every sensor origin NaN), and so is one
+whose position lies beyond :data:`SENSOR_LIMIT` (a tiled job stores sensor origins as float32 offsets from a
+tile's corner: a farther one became infinite there).
 Organised clouds (``HEIGHT > 1``, e.g. a depth camera's 640 x 480 image) mark pixels without a return with NaN
 coordinates; those rows are dropped like every non-finite row (counted in the cloud's report).
 """
@@ -19,7 +21,13 @@ import numpy as np
 from ..cloud import PointCloud, unit_normals
 from ..errors import InputError
 
-__all__ = ["read", "count", "DEFAULT_VIEWPOINT"]
+__all__ = ["read", "count", "DEFAULT_VIEWPOINT", "SENSOR_LIMIT"]
+
+#: Largest magnitude of a VIEWPOINT's position. A tiled job stores every sensor origin as a float32 offset from
+#: its tile's low corner (:data:`tiled_gridpull.jobdir.SPILL_RECORD_SENSOR`), whose largest finite value is
+#: about 3.4e38; ``cloud.COORDINATE_LIMIT`` (1e150, for float64 arithmetic) is far beyond it. 1e37 leaves room for
+#: the offset from any corner a float32 PCD's points can make (below about 3.3e38).
+SENSOR_LIMIT = 1e37
 
 #: the VIEWPOINT every PCL writer puts in a header unless told otherwise (origin, identity quaternion)
 DEFAULT_VIEWPOINT = (0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
@@ -109,7 +117,8 @@ def _viewpoint(p: Path, h: dict[str, list[str]]) -> np.ndarray | None:
     ------
     InputError
         A VIEWPOINT that is not 7 finite numbers: its translation would be every point's sensor origin (a NaN
-        one made every origin NaN), and no writer puts a non-finite orientation there.
+        one made every origin NaN), and no writer puts a non-finite orientation there. A position beyond
+        :data:`SENSOR_LIMIT`.
     """
     words = h.get("VIEWPOINT")
     if words is None:
@@ -121,4 +130,8 @@ def _viewpoint(p: Path, h: dict[str, list[str]]) -> np.ndarray | None:
     if view.shape != (7,) or not np.all(np.isfinite(view)):
         raise InputError(f"{p}: PCD header's VIEWPOINT '{' '.join(words)}' is not 7 finite numbers "
                          "(the sensor's position x y z, then its orientation quaternion w x y z)")
+    if np.abs(view[:3]).max() > SENSOR_LIMIT:
+        raise InputError(f"{p}: PCD header's VIEWPOINT '{' '.join(words)}' places the sensor beyond "
+                         f"+-{SENSOR_LIMIT:g} (sensor origins are kept as float32 offsets from the points): a "
+                         "damaged header?")
     return view
