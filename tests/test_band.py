@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from tiled_gridpull.band import build_band, dense_brick_table
+from tiled_gridpull.band import build_band, dense_brick_table, vertex_slots
 from tiled_gridpull.kernels import CELL_OCC, CELL_OPT, CELL_PULL, PARAM
 from tiled_gridpull.lattice import Lattice
 
@@ -79,3 +79,12 @@ def test_dense_brick_table_numbers_bricks_in_order_and_marks_the_rest_absent():
     assert np.count_nonzero(table >= 0) == 3 and set(np.unique(table)) == {-1, 0, 1, 2}
     wide = dense_brick_table((3, 3, 2), coords, first=7, dtype=np.int64)
     assert wide.dtype == np.int64 and int(wide[1, 2, 1]) == 9 and int(wide[0, 0, 1]) == -1
+
+
+def test_vertex_slots_by_hand():
+    # bricks (0, 0, 0) -> 0 and (1, 0, 0) -> 1 of a 2 x 1 x 1 grid
+    table = dense_brick_table((2, 1, 1), np.array([[0, 0, 0], [1, 0, 0]]))
+    v = np.array([[0, 0, 0], [1, 2, 3], [9, 0, 7], [16, 0, 0], [-1, 0, 0], [3, 8, 0]])
+    assert vertex_slots(table, v).tolist() == [0, 64 + 16 + 3, 512 + 64 + 7, -1, -1, -1]
+    # an absent brick inside the grid
+    assert vertex_slots(dense_brick_table((2, 1, 1), np.array([[1, 0, 0]])), v[:3]).tolist() == [-1, -1, 64 + 7]

@@ -22,7 +22,7 @@ from .kernels import BRICK, BRICK_VOLUME, PARAM
 from .kernels import band as kb
 from .lattice import Lattice
 
-__all__ = ["Band", "build_band", "dense_brick_table"]
+__all__ = ["Band", "build_band", "dense_brick_table", "vertex_slots"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -108,6 +108,32 @@ def dense_brick_table(bshape: tuple[int, ...], coords: np.ndarray, first: int = 
     table = np.full(bshape, -1, dtype)
     table[coords[:, 0], coords[:, 1], coords[:, 2]] = first + np.arange(len(coords), dtype=dtype)
     return table
+
+
+def vertex_slots(table: np.ndarray, vertices: np.ndarray) -> np.ndarray:
+    """Flat slot (``brick * 512 + local``) of each vertex in a brick-sparse field, or -1 where it has none.
+
+    Parameters
+    ----------
+    table : (bx, by, bz) int
+        Brick numbers over a brick grid (:func:`dense_brick_table`), -1 where no brick is stored.
+    vertices : (M, 3) int
+        Vertex indices relative to the table's low corner (brick ``(0, 0, 0)`` holds vertices ``[0, 8)^3``).
+
+    Returns
+    -------
+    (M,) int64
+        Slot into ``values.reshape(-1)`` / ``flags.reshape(-1)``; -1 where the vertex's brick lies outside the
+        table or is not stored.
+    """
+    v = np.asarray(vertices, np.int64)
+    b = v >> 3
+    out = np.full(len(v), -1, np.int64)
+    ok = np.all((b >= 0) & (b < np.asarray(table.shape)), axis=1)
+    row = table[b[ok, 0], b[ok, 1], b[ok, 2]].astype(np.int64)
+    loc = v[ok] & 7
+    out[ok] = np.where(row >= 0, row * BRICK_VOLUME + ((loc[:, 0] << 6) | (loc[:, 1] << 3) | loc[:, 2]), -1)
+    return out
 
 
 def build_band(index_points: np.ndarray, lattice: Lattice, m1: int = 3, m2: int = 14) -> Band:

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .band import dense_brick_table
+from .band import dense_brick_table, vertex_slots
 from .kernels import BRICK, PARAM
 
 __all__ = ["TileField", "brick_table", "pou_weight", "blend_into"]
@@ -52,20 +52,13 @@ class TileField:
 
     def lookup(self, g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Values and parameter mask at global vertices ``g`` (M, 3) (False where the tile has none)."""
-        bricks = g // BRICK
         lo, table = brick_table(self.brick_coords)
-        dims = np.asarray(table.shape)
-        rel = bricks - lo
-        inside = np.all((rel >= 0) & (rel < dims), axis=1)
-        b = np.full(len(g), -1, np.int64)
-        b[inside] = table[rel[inside, 0], rel[inside, 1], rel[inside, 2]]
-        local = g % BRICK
-        slot = (local[:, 0] << 6) | (local[:, 1] << 3) | local[:, 2]
-        ok = b >= 0
+        slot = vertex_slots(table, np.asarray(g, np.int64) - lo * BRICK)
+        ok = slot >= 0
         vals = np.zeros(len(g), np.float32)
         mask = np.zeros(len(g), bool)
-        vals[ok] = self.values[b[ok], slot[ok]]
-        mask[ok] = (self.flags[b[ok], slot[ok]] & PARAM) != 0
+        vals[ok] = self.values.reshape(-1)[slot[ok]]
+        mask[ok] = (self.flags.reshape(-1)[slot[ok]] & PARAM) != 0
         return vals, mask
 
 

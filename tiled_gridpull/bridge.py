@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .band import Band, dense_brick_table
+from .band import Band, dense_brick_table, vertex_slots
 from .field import Field
 from .kernels import BRICK, BRICK_VOLUME, CELL_OPT, PARAM
 from .kernels import bridge as kb
@@ -102,18 +102,10 @@ def _opened(mask: np.ndarray, width: int) -> np.ndarray:
 
 def bridged_cells(fld: Field, cells: np.ndarray) -> np.ndarray:
     """Whether each cell (M, 3) int (lowest corner, block index) carries the ``BRIDGE`` flag."""
-    band = fld.band
-    cells = np.asarray(cells, np.int64)
-    out = np.zeros(len(cells), bool)
-    bt = band.brick_table
-    b = cells // BRICK
-    ok = np.all((b >= 0) & (b < np.asarray(bt.shape)), axis=1)
-    row = np.full(len(cells), -1, np.int64)
-    row[ok] = bt[b[ok, 0], b[ok, 1], b[ok, 2]]
-    ok &= row >= 0
-    local = cells[ok] % BRICK
-    slot = (local[:, 0] << 6) | (local[:, 1] << 3) | local[:, 2]
-    out[ok] = (band.flags[row[ok], slot] & BRIDGE) != 0
+    slot = vertex_slots(fld.band.brick_table, cells)
+    ok = slot >= 0
+    out = np.zeros(len(slot), bool)
+    out[ok] = (fld.band.flags.reshape(-1)[slot[ok]] & BRIDGE) != 0
     return out
 
 
@@ -184,17 +176,8 @@ def bridge_field(fld: Field, points: np.ndarray, rule: BridgeRule) -> tuple[Fiel
     flat_v = values.reshape(-1)
     flat_f = flags.reshape(-1)
 
-    def slots(v: np.ndarray) -> np.ndarray:
-        """Flat slot of each vertex (M, 3), -1 where its brick is absent or it is off the lattice."""
-        out = np.full(len(v), -1, np.int64)
-        ok = np.all((v >= 0) & (v < np.asarray([X, Y, Z])), axis=1)
-        b = table[v[ok, 0] // BRICK, v[ok, 1] // BRICK, v[ok, 2] // BRICK].astype(np.int64)
-        loc = v[ok] % BRICK
-        s = b * BRICK_VOLUME + ((loc[:, 0] << 6) | (loc[:, 1] << 3) | loc[:, 2])
-        out[ok] = np.where(b >= 0, s, -1)
-        return out
-
-    sv = slots(verts)
+    # every vertex and cell corner below lies on the lattice: only an absent brick gives -1
+    sv = vertex_slots(table, verts)
     solved = (flat_f[sv] & PARAM) != 0
     mixed = np.where(solved, (1.0 - w) * flat_v[sv] + w * plane, plane)
     flat_v[sv] = mixed.astype(np.float32)
@@ -206,7 +189,7 @@ def bridge_field(fld: Field, points: np.ndarray, rule: BridgeRule) -> tuple[Fiel
     corner = np.indices((2, 2, 2)).reshape(3, -1).T
     cand = np.unique((verts[:, None, :] - corner[None]).reshape(-1, 3), axis=0)
     cand = cand[np.all((cand >= 0) & (cand < np.asarray([X - 1, Y - 1, Z - 1])), axis=1)]
-    cs = np.stack([slots(cand + c) for c in corner], axis=1)
+    cs = np.stack([vertex_slots(table, cand + c) for c in corner], axis=1)
     present = np.all(cs >= 0, axis=1)
     cand, cs = cand[present], cs[present]
     all_param = np.all((flat_f[cs] & PARAM) != 0, axis=1)
