@@ -79,6 +79,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--iterations", type=int, help="optimizer iterations at the finest level (default 800)")
     r.add_argument("--seed", type=int, help="random seed (default 0)")
     r.add_argument("--mode", choices=("sdf", "udf"), help="signed (closed surfaces) or unsigned (open) field")
+    r.add_argument("--device", choices=("auto", "cpu", "cuda"),
+                   help="where the solver runs: a CUDA GPU (cuda, needs the cuda extra), the CPU's threads (cpu), "
+                        "or a GPU when numba-cuda sees one (auto, default)")
     r.add_argument("--normals", action="store_true",
                    help="supervise the field's gradient with the input's normals (PLY nx ny nz, LAS extra bytes, "
                         "XYZ/NPY columns 4-6): normal_weight 1 unless the config sets it; one-shape mode")
@@ -214,7 +217,7 @@ def _setup_logging(args) -> None:
             f"warning: {str(message).splitlines()[0] if str(message) else category.__name__}"
 
 
-_CLI_KEYS = {"resolution": "resolution", "iterations": "iterations", "seed": "seed", "mode": "mode",
+_CLI_KEYS = {"resolution": "resolution", "iterations": "iterations", "seed": "seed", "mode": "mode", "device": "device",
              "voxel_size": "voxel_size", "tile_size": "tile_size", "overlap": "overlap",
              "drop_outliers": "drop_outliers"}
 
@@ -287,6 +290,10 @@ def cmd_reconstruct(args) -> int:
     if out.suffix.lower() not in (".ply", ".obj"):
         raise ConfigError(f"output {out}: use a .ply or .obj file name")
     cfg, tiling = resolve_settings(args)  # validated before any file is read
+    if cfg.device == "cuda":
+        from tiled_gridpull.device import resolve as resolve_device
+
+        resolve_device(cfg.device)  # no card: one line, exit 2, before any file is read
     _set_min_transfer_rate(args)
     if tiling is not None and getattr(args, "band_edges", None) is not None:
         raise ConfigError("--band-edges applies to one-shape mode (tiled mode removes every face farther than "

@@ -5,6 +5,10 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+# The CUDA kernels run in numba's simulator: CI has no card (numba reads this when it is first imported, so it is
+# set before anything imports numba). On a machine with one, NUMBA_ENABLE_CUDASIM=0 runs the CUDA tests on it.
+os.environ.setdefault("NUMBA_ENABLE_CUDASIM", "1")
+
 import numpy as np
 import pytest
 

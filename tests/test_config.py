@@ -146,7 +146,7 @@ def test_flat_dotted_and_nested_spellings_are_one_setting(tmp_path):
     for name, (section, field) in SETTINGS.items():
         value = base.get(name)
         if isinstance(value, str):
-            new = {"sqrt": "squared", "squared": "sqrt", "sdf": "udf"}[value]
+            new = {"sqrt": "squared", "squared": "sqrt", "sdf": "udf", "auto": "cpu"}[value]
         elif isinstance(value, bool):
             new = not value
         else:

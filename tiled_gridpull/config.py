@@ -8,6 +8,7 @@ The sections::
 
     SolverConfig
     ├── resolution, margin, mode, init_radius     what is solved, and from where
+    ├── relax, device                             one-shape mesh relaxation; where the solver runs (cpu/cuda/auto)
     ├── schedule: Schedule                        levels, iterations per level, learning-rate decay, UDF polish
     ├── coarse: LevelConfig                       the coarsest level's TV band, optimizer, gamma, query noise, TV form
     ├── refine: LevelConfig                       the same for every finer (refinement) level
@@ -251,6 +252,7 @@ SETTINGS: dict[str, tuple[str | None, str]] = {
     "mode": (None, "mode"),
     "init_radius": (None, "init_radius"),
     "relax": (None, "relax"),
+    "device": (None, "device"),
     "levels": ("schedule", "levels"),
     "coarse_iterations": ("schedule", "coarse_iterations"),
     "middle_iterations": ("schedule", "middle_iterations"),
@@ -306,7 +308,8 @@ SCAN_NOISE_SETTINGS = ("denoise",)
 _FLAT_OF = {path: name for name, path in SETTINGS.items()}
 _DOTTED = {f"{section}.{name}": (section, name) for section, name in SETTINGS.values() if section}
 
-_CHOICES = {"tv_form": ("squared", "sqrt"), "refine_tv_form": ("squared", "sqrt"), "mode": ("sdf", "udf")}
+_CHOICES = {"tv_form": ("squared", "sqrt"), "refine_tv_form": ("squared", "sqrt"), "mode": ("sdf", "udf"),
+            "device": ("cpu", "cuda", "auto")}
 _POSITIVE = ("resolution", "iterations", "queries", "min_queries", "lr", "lr_step", "knn", "levels",
              "coarse_iterations", "refine_lr", "refine_lr_step", "refine_sigma", "denoise_radius")
 _NONNEGATIVE = ("margin", "m1", "m2", "alpha", "beta", "gamma", "query_sigma", "init_radius", "normal_weight",
@@ -346,6 +349,10 @@ class SolverConfig:
         mesh (Taubin steps, each followed by a projection back onto the field's zero level), which even out its
         slivers; 0 keeps the marching-cubes vertices (the paper). Default 3 (docs/solver.md, "Relaxing the mesh
         on the field"). Tiled mode does not relax (a tile's border vertices must stay where its neighbour's are).
+    device : {"auto", "cpu", "cuda"}
+        Where the solver's iterations run (:mod:`tiled_gridpull.device`): ``auto`` (default) a CUDA card when
+        numba-cuda sees one, else the CPU. Not part of a tile's resume key: the two agree within a quarter cell
+        (docs/solver.md, "On a GPU"), and a job resumed on another machine keeps the tiles it has.
     schedule : Schedule
         Levels and iterations.
     coarse, refine : LevelConfig
@@ -364,6 +371,7 @@ class SolverConfig:
     mode: str = setting("sdf")
     init_radius: float = setting(2.0, sphere_only=True)
     relax: int = setting(3, solve=False)
+    device: str = setting("auto", solve=False)
     schedule: Schedule = field(default_factory=Schedule)
     coarse: LevelConfig = field(default_factory=LevelConfig)
     refine: LevelConfig = field(default_factory=lambda: REFINE_DEFAULTS)

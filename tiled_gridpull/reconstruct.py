@@ -274,6 +274,7 @@ def reconstruct(points: Any, *, config: SolverConfig | None = None, normals: np.
         "config": cfg.to_dict(),
         "lattice": lattice.to_dict(),
         "input": {"points": int(len(xyz)), **report},
+        "device": info.get("device"),
         "solve": info,
         "loss_history": fld.info.get("history", []),
         "noise_estimate": {**noise.to_dict(), "cells": noise.sigma / lattice.cell_size},

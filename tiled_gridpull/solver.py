@@ -20,17 +20,19 @@ from pykdtree.kdtree import KDTree
 
 from .band import Band, build_band
 from .config import LevelSchedule, SolverConfig
+from .device import describe as describe_device
+from .device import resolve as resolve_device
 from .errors import InputError
 from .field import Field
 from .kernels import CELL_PULL
-from .kernels import interp as ki
 from .kernels import losses as kl
 from .kernels import sampling as ksamp
 from .kernels import step as ks
 from .lattice import Lattice
+from .level import ADAM_BETA1, ADAM_BETA2, ADAM_EPS, LevelRun, upsample
 from .nearest import NearestPoints
 
-__all__ = ["solve", "sphere_init", "upsample", "ProgressFn", "InitFn"]
+__all__ = ["solve", "sphere_init", "upsample", "ProgressFn", "InitFn", "CpuBackend", "backend_for"]
 
 ProgressFn = Callable[[int, int, dict], None]
 InitFn = Callable[[Band], np.ndarray]
@@ -111,27 +113,9 @@ def _threads() -> int:
     return int(numba.get_num_threads())
 
 
-def upsample(coarse: Field, band: Band, factor: int = 2, fill: float = 1e3) -> np.ndarray:
-    """Initial values on a finer band from a coarser field (trilinear, rescaled to the finer cells).
-
-    Fine vertex ``i`` sits at coarse index ``i / factor``; a distance of ``d`` coarse cells is ``factor * d``
-    fine cells. Slots whose coarse cell has no values get ``fill`` (they are never parameters: the coarser band
-    is wider in world units).
-
-    Returns
-    -------
-    (n_bricks, 512) float32
-    """
-    pos = (band.slot_positions().astype(np.float64) / factor).astype(np.float32)
-    f, _ = ki.sample_field(coarse.values.reshape(-1), coarse.band.brick_table,
-                           np.asarray(coarse.band.lattice.shape, np.int64), pos, np.float32(fill / factor))
-    # the kernel clamps to the lattice: positions beyond it (slots past the fine block's edge) are never used
-    return (f * np.float32(factor)).reshape(band.n_bricks, 512)
-
-
 def solve(points: np.ndarray, lattice: Lattice, config: SolverConfig, *,
           normals: np.ndarray | None = None, init: InitFn | None = None,
-          progress: ProgressFn | None = None, history_every: int = 50) -> Field:
+          progress: ProgressFn | None = None, history_every: int = 50, device: str | None = None) -> Field:
     """Optimize a GridPull field for one cloud on one lattice.
 
     Parameters
@@ -157,6 +141,8 @@ def solve(points: np.ndarray, lattice: Lattice, config: SolverConfig, *,
         The optimized field on the finest band, ``info`` holding timings, band sizes and a loss history.
     """
     t0 = time.perf_counter()
+    resolved = resolve_device(device or config.device)
+    backend = backend_for(resolved)
     idx = lattice.to_index(points)
     inside = np.all((idx >= 0) & (idx <= np.asarray(lattice.shape) - 1), axis=1)
     idx = idx[inside]
@@ -186,14 +172,15 @@ def solve(points: np.ndarray, lattice: Lattice, config: SolverConfig, *,
         band = build_band(P, lat, config.sampling.m1, st.m2)
         t_band = time.perf_counter() - tb
         if fld is not None:
-            values = upsample(fld, band)
+            values = backend.upsample(fld, band)
         elif init is not None:
             values = np.ascontiguousarray(init(band), dtype=np.float32).reshape(band.n_bricks, 512)
         elif config.mode == "udf":
             values = nearest_point_init(band, P)
         else:
             values = sphere_init(band, config.init_radius)
-        fld = _optimize(P, Nl, band, values, config, st, progress, history_every, done, total, level, history)
+        fld = _optimize(P, Nl, band, values, config, st, progress, history_every, done, total, level, history,
+                        backend)
         done += st.iterations
         per_level.append({"level": level, "cell_size": lat.cell_size, "shape": list(lat.shape), "band": band.stats,
                           "time_band_s": t_band, **{k: v for k, v in fld.info.items() if k != "history"}})
@@ -202,7 +189,7 @@ def solve(points: np.ndarray, lattice: Lattice, config: SolverConfig, *,
     if udf:
         # P: the finest level's points, all of them
         fld, udf_info = _sign_and_polish(fld, P, N, config, levels, progress, history_every, done, total,
-                                         history)
+                                         history, backend)
         if config.schedule.udf_polish:
             per_level.append({"level": levels, "polish": True,
                               **{k: v for k, v in fld.info.items() if k != "history"}})
@@ -212,6 +199,7 @@ def solve(points: np.ndarray, lattice: Lattice, config: SolverConfig, *,
         "levels": per_level,
         "history": history,
         "time_total_s": time.perf_counter() - t0,
+        "device": describe_device(resolved),
     }
     if udf_info is not None:
         fld.info["udf"] = udf_info
@@ -220,7 +208,7 @@ def solve(points: np.ndarray, lattice: Lattice, config: SolverConfig, *,
 
 def _sign_and_polish(fld: Field, P: np.ndarray, N: np.ndarray | None, config: SolverConfig, levels: int,
                      progress: ProgressFn | None, history_every: int, done: int, total: int,
-                     history: list) -> tuple[Field, dict]:
+                     history: list, backend) -> tuple[Field, dict]:
     """End of a UDF solve: sign the unsigned field, then refine it as a signed one (``config.schedule.udf_polish``).
 
     ``N``: the input normals, present when the normal loss is on (``--normals``): they then orient the signs
@@ -233,103 +221,126 @@ def _sign_and_polish(fld: Field, P: np.ndarray, N: np.ndarray | None, config: So
         return Field(fld.band, values, signed=True, info=fld.info), info
     signed = config.replace(mode="sdf")
     out = _optimize(P, N, fld.band, values, signed, signed.polish_settings(), progress, history_every,
-                    done, total, levels, history)
+                    done, total, levels, history, backend)
     return out, info
+
+
+class CpuBackend:
+    """The solver's iterations on the CPU's threads (the numba kernels of :mod:`tiled_gridpull.kernels`)."""
+
+    name = "cpu"
+
+    def adopt(self, field: Field) -> None:
+        """Nothing to keep: the field's values are the host arrays."""
+
+    def upsample(self, coarse: Field, band: Band) -> np.ndarray:
+        """:func:`upsample` (factor 2)."""
+        return upsample(coarse, band)
+
+    def iterate(self, run: LevelRun) -> tuple[np.ndarray, dict]:
+        """Run the level's iterations; the optimized ``(n_slots,)`` field and timings."""
+        band, cfg, st = run.band, run.cfg, run.st
+        P = run.P
+        flat_flags = band.flags.reshape(-1)
+        d_a = run.values.reshape(-1).copy()
+        d_b = d_a.copy()
+        m = np.zeros_like(d_a)
+        v = np.zeros_like(d_a)
+        qgrad = np.zeros_like(d_a)
+        inv = np.zeros_like(d_a) if run.sqrt_tv else np.zeros(1, np.float32)
+        form = ks.TV_SQRT if run.sqrt_tv else ks.TV_SQUARED
+        shape = np.asarray(band.lattice.shape, np.int64)
+        nq = st.queries
+        sigma = np.float32(st.sigma)
+        slots = np.empty((nq, 16), np.int64)
+        grads = np.empty((nq, 16), np.float32)
+        losses = np.empty((nq, 4), np.float32)
+        centres = np.empty(nq, np.int64)
+        q = np.empty((nq, 3), np.float32)
+        t_query = t_step = 0.0
+        for it in range(st.iterations):
+            ta = time.perf_counter()
+            # the iteration number seeds the queries: levels draw different queries
+            batch = run.batch(it)
+            ksamp.draw_queries(P, cfg.sampling.seed, run.it0 + batch, sigma, centres, q)
+            nn_idx = run.pool_nn[batch] if run.pool_nn is not None else run.nn.query(q, centres)[0]
+            n_valid = kl.query_losses(d_a, flat_flags, band.brick_table, shape, q, P, nn_idx, run.normals,
+                                      CELL_PULL, run.beta, run.gamma, cfg.losses.normal_weight, slots, grads,
+                                      losses)
+            if n_valid:
+                kl.scatter_add(qgrad, slots, grads, np.float32(1.0 / n_valid))
+            tb = time.perf_counter()
+            _, lr_t = run.lr_t(it)
+            tv_sum = 0.0
+            if form == ks.TV_SQRT:
+                tv_sum = ks.tv_inverse_norms(d_a, flat_flags, band.neighbors, inv)
+            tv_sq = ks.tv_adam_step(d_a, d_b, m, v, qgrad, flat_flags, band.neighbors, inv, form,
+                                    np.float32(run.tv_scale), np.float32(lr_t), np.float32(ADAM_BETA1),
+                                    np.float32(ADAM_BETA2), np.float32(ADAM_EPS), run.udf)
+            d_a, d_b = d_b, d_a
+            tc = time.perf_counter()
+            t_query += tb - ta
+            t_step += tc - tb
+            if run.records(it):
+                run.record(it, losses.sum(axis=0), n_valid, tv_sum if form == ks.TV_SQRT else tv_sq)
+        return d_a, {"time_queries_s": t_query, "time_steps_s": t_step, "threads": _threads()}
+
+
+def backend_for(device: str):
+    """The backend object of a resolved device (``"cpu"`` or ``"cuda"``, :func:`tiled_gridpull.device.resolve`)."""
+    if device == "cuda":
+        from .solver_cuda import CudaBackend
+
+        return CudaBackend()
+    return CpuBackend()
 
 
 def _optimize(P: np.ndarray, N: np.ndarray | None, band: Band, values: np.ndarray, cfg: SolverConfig,
               st: LevelSchedule, progress: ProgressFn | None, history_every: int, it0: int, total: int, level: int,
-              history: list) -> Field:
+              history: list, backend=None) -> Field:
     """Run one level's schedule ``st`` on one band."""
+    backend = backend or CpuBackend()
     t0 = time.perf_counter()
     # Morton order: stratified centres then come out spatially sorted
     order = np.argsort(ksamp.morton_codes(P), kind="stable")
     P = np.ascontiguousarray(P[order])
     if N is not None:
         N = np.ascontiguousarray(N[order])
-    gamma = 0.0 if cfg.mode == "udf" else st.gamma
-    beta = cfg.losses.udf_beta if cfg.mode == "udf" else cfg.losses.beta
     sigma = np.float32(st.sigma)
     pool = st.query_pool
     nn = NearestPoints(P, cfg.sampling.knn, sigma=float(sigma),
                        expected_queries=st.queries * (pool if pool else st.iterations))
-    flat_flags = band.flags.reshape(-1)
-    d_a = values.reshape(-1).copy()
-    d_b = d_a.copy()
-    m = np.zeros_like(d_a)
-    v = np.zeros_like(d_a)
-    qgrad = np.zeros_like(d_a)
-    inv = np.zeros_like(d_a) if st.tv_form == "sqrt" else np.zeros(1, np.float32)
-    n_params = max(band.n_params, 1)
-    form = ks.TV_SQRT if st.tv_form == "sqrt" else ks.TV_SQUARED
-    tv_scale = (cfg.losses.alpha if form == ks.TV_SQRT else 2.0 * cfg.losses.alpha) / n_params
-    clamp = cfg.mode == "udf"
-    shape = np.asarray(band.lattice.shape, np.int64)
     nq = st.queries
-    slots = np.empty((nq, 16), np.int64)
-    grads = np.empty((nq, 16), np.float32)
-    losses = np.empty((nq, 4), np.float32)
-    centres = np.empty(nq, np.int64)
-    q = np.empty((nq, 3), np.float32)
-    nrm = N if N is not None else np.zeros((0, 3), np.float32)
-    beta1, beta2, eps = 0.9, 0.999, 1e-8
-    iterations, lr0, lr_step = st.iterations, st.lr, st.lr_step
-    t_query = t_step = 0.0
     tp = time.perf_counter()
+    pool_nn = None
     if pool:
         # nearest points found once per batch; the batch's queries are re-drawn from the counter-based RNG each
         # time it comes round (0.2 ms), so the pool holds 4 bytes per query
+        centres = np.empty(nq, np.int64)
+        q = np.empty((nq, 3), np.float32)
         pool_nn = np.empty((pool, nq), np.int32)
         for b in range(pool):
             ksamp.draw_queries(P, cfg.sampling.seed, it0 + b, sigma, centres, q)
             pool_nn[b] = nn.query(q, centres)[0]
     t_pool = time.perf_counter() - tp
-    for it in range(iterations):
-        ta = time.perf_counter()
-        # the iteration number seeds the queries: levels draw different queries
-        batch = it % pool if pool else it
-        ksamp.draw_queries(P, cfg.sampling.seed, it0 + batch, sigma, centres, q)
-        nn_idx = pool_nn[batch] if pool else nn.query(q, centres)[0]
-        n_valid = kl.query_losses(d_a, flat_flags, band.brick_table, shape, q, P, nn_idx, nrm, CELL_PULL,
-                                  beta, gamma, cfg.losses.normal_weight, slots, grads, losses)
-        if n_valid:
-            kl.scatter_add(qgrad, slots, grads, np.float32(1.0 / n_valid))
-        tb = time.perf_counter()
-        lr = lr0 * cfg.schedule.lr_decay ** (it // lr_step)
-        t = it + 1
-        lr_t = lr * np.sqrt(1.0 - beta2 ** t) / (1.0 - beta1 ** t)
-        tv_sum = 0.0
-        if form == ks.TV_SQRT:
-            tv_sum = ks.tv_inverse_norms(d_a, flat_flags, band.neighbors, inv)
-        tv_sq = ks.tv_adam_step(d_a, d_b, m, v, qgrad, flat_flags, band.neighbors, inv, form,
-                                np.float32(tv_scale), np.float32(lr_t), np.float32(beta1), np.float32(beta2),
-                                np.float32(eps), clamp)
-        d_a, d_b = d_b, d_a
-        tc = time.perf_counter()
-        t_query += tb - ta
-        t_step += tc - tb
-        if history_every and (it % history_every == 0 or it == iterations - 1):
-            mean = losses.sum(axis=0) / max(n_valid, 1)
-            tv = (tv_sum if form == ks.TV_SQRT else tv_sq) / n_params
-            rec = {"iteration": it0 + it, "level": level, "lr": lr, "pull": float(mean[0]),
-                   "surface": float(mean[1]), "gradient": float(mean[2]), "normal": float(mean[3]),
-                   "tv": float(tv), "valid_queries": int(n_valid)}
-            history.append(rec)
-            if progress is not None:
-                progress(it0 + it, total, rec)
+    run = LevelRun(P=P, normals=N if N is not None else np.zeros((0, 3), np.float32), band=band,
+                   values=values, cfg=cfg, st=st, nn=nn, pool_nn=pool_nn, progress=progress,
+                   history_every=history_every, it0=it0, total=total, level=level, history=history)
+    d, timings = backend.iterate(run)
     info = {
-        "iterations": iterations,
+        "iterations": st.iterations,
         "queries": nq,
         "points": int(len(P)),
         "time_solve_s": time.perf_counter() - t0,
-        "time_queries_s": t_query,
         "time_query_pool_s": t_pool,
-        "time_steps_s": t_step,
+        **timings,
         "nn_queries": nn.queries,
         "nn_fallback_fraction": nn.fallbacks / max(nn.queries, 1),
         "nn_candidates": int(nn.knn.shape[1]) if nn.knn is not None else 0,
         "nn_fast_share_predicted": nn.fast_share,
         "nn_lists_skipped": nn.lists_skipped,
-        "threads": _threads(),
+        "device": backend.name,
     }
-    return Field(band, d_a.reshape(band.n_bricks, 512), signed=cfg.mode == "sdf", info=info)
+    fld = Field(band, d.reshape(band.n_bricks, 512), signed=cfg.mode == "sdf", info=info)
+    backend.adopt(fld)
+    return fld

@@ -109,12 +109,18 @@ def solve_tile(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig, field
                        loss_first=_loss_point(hist[0], fld.info) if hist else None,
                        loss_last=_loss_point(hist[-1], fld.info) if hist else None,
                        loss_curve=[(h["iteration"], h["pull"], h["tv"]) for h in hist],
-                       field_path=str(field_path))
+                       field_path=str(field_path), device=fld.info.get("device"),
+                       solve_levels=[{k: lv.get(k) for k in LEVEL_TIMINGS} for lv in fld.info.get("levels", [])])
     except GridPullError as exc:
         summary.update(status="failed", reason=str(exc))
     summary["time_s"] = time.perf_counter() - t0
     summary["peak_rss_mb"] = peak_rss_mb()
     return summary
+
+
+#: per-level figures a tile's summary keeps (where a solve spends its time, on either device)
+LEVEL_TIMINGS = ("level", "time_band_s", "time_solve_s", "time_query_pool_s", "time_queries_s", "time_steps_s",
+                 "time_device_setup_s", "iterations", "queries", "points")
 
 
 def _denoise(xyz: np.ndarray, spec: TileSpec, tiling: TilingConfig, solver: SolverConfig,

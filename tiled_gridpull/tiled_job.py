@@ -434,10 +434,22 @@ def job_metadata(plan: TilePlan, tiling: TilingConfig, solver: SolverConfig, sca
                   "not_solved": [{"tile": s["tile"], "status": s["status"], "reason": s.get("reason")}
                                  for s in failed]},
         "tile_summaries": [{k: v for k, v in s.items() if k != "loss_curve"} for s in solve_summaries],
+        "devices": _device_summary(solve_summaries),
         "mesh_summaries": mesh_summaries,
         "timings_s": dict(timings),
         "memory_mb": _memory_summary(solve_summaries, mesh_summaries),
     }
+
+
+def _device_summary(solve_summaries: list) -> dict:
+    """Tiles solved per device (``"cpu"``, or ``"cuda: <card>"``): a job may mix them when resumed elsewhere."""
+    counts: dict[str, int] = {}
+    for s in solve_summaries:
+        d = s.get("device")
+        if d:
+            name = "cpu" if d.get("device") == "cpu" else f"cuda: {d.get('card')}"
+            counts[name] = counts.get(name, 0) + 1
+    return counts
 
 
 def _memory_summary(solve_summaries: list, mesh_summaries: list) -> dict:

@@ -7,6 +7,8 @@ is a distance in cells. Corner ``c = 4 dx + 2 dy + dz`` of the cell with lowest 
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numba import njit, prange
 
@@ -26,12 +28,10 @@ def locate(px, py, pz, nx, ny, nz):
 
     ``nx, ny, nz`` are vertex counts. Points outside are clamped to the border cell (t outside [0, 1] is
     clipped too, so values extrapolate flat)."""
-    fx = np.floor(px)
-    fy = np.floor(py)
-    fz = np.floor(pz)
-    i = min(max(int(fx), 0), nx - 2)
-    j = min(max(int(fy), 0), ny - 2)
-    k = min(max(int(fz), 0), nz - 2)
+    # math.floor (not np.floor): the CUDA target compiles this same function and has no floor ufunc
+    i = min(max(int(math.floor(px)), 0), nx - 2)
+    j = min(max(int(math.floor(py)), 0), ny - 2)
+    k = min(max(int(math.floor(pz)), 0), nz - 2)
     tx = min(max(px - i, 0.0), 1.0)
     ty = min(max(py - j, 0.0), 1.0)
     tz = min(max(pz - k, 0.0), 1.0)

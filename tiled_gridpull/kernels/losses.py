@@ -25,6 +25,87 @@ from .interp import corner_gradients, corner_slots, eval_corners, locate
 _EPS = 1e-12
 
 
+@njit(cache=True, inline="always")
+def query_one(values, flags, table, nx, ny, nz, qx, qy, qz, points, p, normals, use_normals, pull_bit,
+              beta, gamma, lam, slots, grads, losses):
+    """The losses of one query at ``(qx, qy, qz)`` whose nearest input point is ``points[p]``.
+
+    Writes its 16 corner slots into ``slots[0:16]`` (-1 where it does not count), their loss gradients into
+    ``grads[0:16]`` and the pull, surface, gradient and normal losses into ``losses[0:4]`` (0 where it does not
+    count); returns whether it counts. One query per call, so the CPU loop (:func:`query_losses`) and the CUDA
+    kernel (:mod:`tiled_gridpull.kernels.cuda`) compile the same source.
+    """
+    sx, sy, sz = points[p, 0], points[p, 1], points[p, 2]
+    qi, qj, qk, qtx, qty, qtz = locate(qx, qy, qz, nx, ny, nz)
+    si, sj, sk, stx, sty, stz = locate(sx, sy, sz, nx, ny, nz)
+    ok = corner_slots(table, qi, qj, qk, slots, 0)
+    ok = corner_slots(table, si, sj, sk, slots, 8) and ok
+    if ok:
+        c0 = slots[0]
+        ok = (flags[c0] & pull_bit) != 0
+    if not ok:
+        for c in range(16):
+            slots[c] = -1
+            grads[c] = 0.0
+        for c in range(4):
+            losses[c] = 0.0
+        return False
+    fq, gqx, gqy, gqz = eval_corners(values, slots, 0, qtx, qty, qtz)
+    fs, gsx, gsy, gsz = eval_corners(values, slots, 8, stx, sty, stz)
+    gq = math.sqrt(gqx * gqx + gqy * gqy + gqz * gqz + _EPS)
+    gs = math.sqrt(gsx * gsx + gsy * gsy + gsz * gsz + _EPS)
+    nqx, nqy, nqz = gqx / gq, gqy / gq, gqz / gq
+    nsx, nsy, nsz = gsx / gs, gsy / gs, gsz / gs
+    # --- pull
+    rx = qx - fq * nqx - sx
+    ry = qy - fq * nqy - sy
+    rz = qz - fq * nqz - sz
+    lp = math.sqrt(rx * rx + ry * ry + rz * rz + 1e-20)
+    ux, uy, uz = rx / lp, ry / lp, rz / lp
+    un = ux * nqx + uy * nqy + uz * nqz
+    dfq = -un
+    k = -fq / gq
+    dgqx = k * (ux - un * nqx)
+    dgqy = k * (uy - un * nqy)
+    dgqz = k * (uz - un * nqz)
+    # --- surface at s
+    ls = abs(fs)
+    dfs = beta * (1.0 if fs > 0.0 else (-1.0 if fs < 0.0 else 0.0))
+    # --- gradient consistency
+    dgsx = 0.0
+    dgsy = 0.0
+    dgsz = 0.0
+    lg = 0.0
+    if gamma > 0.0:
+        cs = nqx * nsx + nqy * nsy + nqz * nsz
+        lg = 1.0 - cs
+        a = -gamma / gq
+        dgqx += a * (nsx - cs * nqx)
+        dgqy += a * (nsy - cs * nqy)
+        dgqz += a * (nsz - cs * nqz)
+        b = -gamma / gs
+        dgsx += b * (nqx - cs * nsx)
+        dgsy += b * (nqy - cs * nsy)
+        dgsz += b * (nqz - cs * nsz)
+    # --- normal supervision at s
+    ln = 0.0
+    if use_normals:
+        Nx, Ny, Nz = normals[p, 0], normals[p, 1], normals[p, 2]
+        cn = nsx * Nx + nsy * Ny + nsz * Nz
+        ln = 1.0 - cn
+        b = -lam / gs
+        dgsx += b * (Nx - cn * nsx)
+        dgsy += b * (Ny - cn * nsy)
+        dgsz += b * (Nz - cn * nsz)
+    corner_gradients(grads, 0, qtx, qty, qtz, dfq, dgqx, dgqy, dgqz)
+    corner_gradients(grads, 8, stx, sty, stz, dfs, dgsx, dgsy, dgsz)
+    losses[0] = lp
+    losses[1] = ls
+    losses[2] = lg
+    losses[3] = ln
+    return True
+
+
 @njit(cache=True, parallel=True, fastmath=True)
 def query_losses(values, flags, table, shape, q, points, nearest, normals, pull_bit,
                  beta, gamma, lam, slots, grads, losses):
@@ -67,76 +148,9 @@ def query_losses(values, flags, table, shape, q, points, nearest, normals, pull_
     valid = np.zeros(nq, np.uint8)
     use_normals = lam > 0.0 and normals.shape[0] == points.shape[0]
     for n in prange(nq):
-        p = nearest[n]
-        sx, sy, sz = points[p, 0], points[p, 1], points[p, 2]
-        qi, qj, qk, qtx, qty, qtz = locate(q[n, 0], q[n, 1], q[n, 2], nx, ny, nz)
-        si, sj, sk, stx, sty, stz = locate(sx, sy, sz, nx, ny, nz)
-        ok = corner_slots(table, qi, qj, qk, slots[n], 0)
-        ok = corner_slots(table, si, sj, sk, slots[n], 8) and ok
-        if ok:
-            c0 = slots[n, 0]
-            ok = (flags[c0] & pull_bit) != 0
-        if not ok:
-            for c in range(16):
-                slots[n, c] = -1
-                grads[n, c] = 0.0
-            for c in range(4):
-                losses[n, c] = 0.0
-            continue
-        valid[n] = 1
-        fq, gqx, gqy, gqz = eval_corners(values, slots[n], 0, qtx, qty, qtz)
-        fs, gsx, gsy, gsz = eval_corners(values, slots[n], 8, stx, sty, stz)
-        gq = math.sqrt(gqx * gqx + gqy * gqy + gqz * gqz + _EPS)
-        gs = math.sqrt(gsx * gsx + gsy * gsy + gsz * gsz + _EPS)
-        nqx, nqy, nqz = gqx / gq, gqy / gq, gqz / gq
-        nsx, nsy, nsz = gsx / gs, gsy / gs, gsz / gs
-        # --- pull
-        rx = q[n, 0] - fq * nqx - sx
-        ry = q[n, 1] - fq * nqy - sy
-        rz = q[n, 2] - fq * nqz - sz
-        lp = math.sqrt(rx * rx + ry * ry + rz * rz + 1e-20)
-        ux, uy, uz = rx / lp, ry / lp, rz / lp
-        un = ux * nqx + uy * nqy + uz * nqz
-        dfq = -un
-        k = -fq / gq
-        dgqx = k * (ux - un * nqx)
-        dgqy = k * (uy - un * nqy)
-        dgqz = k * (uz - un * nqz)
-        # --- surface at s
-        ls = abs(fs)
-        dfs = beta * (1.0 if fs > 0.0 else (-1.0 if fs < 0.0 else 0.0))
-        # --- gradient consistency
-        dgsx = 0.0
-        dgsy = 0.0
-        dgsz = 0.0
-        lg = 0.0
-        if gamma > 0.0:
-            cs = nqx * nsx + nqy * nsy + nqz * nsz
-            lg = 1.0 - cs
-            a = -gamma / gq
-            dgqx += a * (nsx - cs * nqx)
-            dgqy += a * (nsy - cs * nqy)
-            dgqz += a * (nsz - cs * nqz)
-            b = -gamma / gs
-            dgsx += b * (nqx - cs * nsx)
-            dgsy += b * (nqy - cs * nsy)
-            dgsz += b * (nqz - cs * nsz)
-        # --- normal supervision at s
-        ln = 0.0
-        if use_normals:
-            Nx, Ny, Nz = normals[p, 0], normals[p, 1], normals[p, 2]
-            cn = nsx * Nx + nsy * Ny + nsz * Nz
-            ln = 1.0 - cn
-            b = -lam / gs
-            dgsx += b * (Nx - cn * nsx)
-            dgsy += b * (Ny - cn * nsy)
-            dgsz += b * (Nz - cn * nsz)
-        corner_gradients(grads[n], 0, qtx, qty, qtz, dfq, dgqx, dgqy, dgqz)
-        corner_gradients(grads[n], 8, stx, sty, stz, dfs, dgsx, dgsy, dgsz)
-        losses[n, 0] = lp
-        losses[n, 1] = ls
-        losses[n, 2] = lg
-        losses[n, 3] = ln
+        if query_one(values, flags, table, nx, ny, nz, q[n, 0], q[n, 1], q[n, 2], points, nearest[n], normals,
+                     use_normals, pull_bit, beta, gamma, lam, slots[n], grads[n], losses[n]):
+            valid[n] = 1
     return int(valid.sum())
 
 

@@ -66,22 +66,40 @@ def draw_queries(points, seed, iteration, sigma, centres, q):
     n = points.shape[0]
     nq = q.shape[0]
     step = n / nq
-    key = mix64(np.uint64(seed) * _GOLDEN + np.uint64(iteration))
+    key = iteration_key(seed, iteration)
     for i in prange(nq):
-        h = mix64(key ^ (np.uint64(i) * _GOLDEN))
-        u0, _ = uniforms(h)
-        c = int((i + u0) * step)
-        if c >= n:
-            c = n - 1
+        c, x, y, z = draw_one(points, key, i, step, sigma, NORMALS)
         centres[i] = c
-        h1 = mix64(h + np.uint64(1))
-        mask = np.uint64((1 << _TABLE_BITS) - 1)
-        n0 = NORMALS[h1 & mask]
-        n1 = NORMALS[(h1 >> np.uint64(16)) & mask]
-        n2 = NORMALS[(h1 >> np.uint64(32)) & mask]
-        q[i, 0] = points[c, 0] + sigma * n0
-        q[i, 1] = points[c, 1] + sigma * n1
-        q[i, 2] = points[c, 2] + sigma * n2
+        q[i, 0] = x
+        q[i, 1] = y
+        q[i, 2] = z
+
+
+@njit(cache=True, inline="always")
+def iteration_key(seed, iteration):
+    """The hash every query of one iteration starts from."""
+    return mix64(np.uint64(seed) * _GOLDEN + np.uint64(iteration))
+
+
+@njit(cache=True, inline="always")
+def draw_one(points, key, i, step, sigma, table):
+    """Query ``i`` of an iteration (``key`` from :func:`iteration_key`): its centre row and position.
+
+    ``step`` is ``len(points) / n_queries``; ``table`` the normal quantiles (:data:`NORMALS`), an argument so the
+    CUDA kernel can read them from device memory.
+    """
+    n = points.shape[0]
+    h = mix64(key ^ (np.uint64(i) * _GOLDEN))
+    u0, _ = uniforms(h)
+    c = int((i + u0) * step)
+    if c >= n:
+        c = n - 1
+    h1 = mix64(h + np.uint64(1))
+    mask = np.uint64((1 << _TABLE_BITS) - 1)
+    n0 = table[h1 & mask]
+    n1 = table[(h1 >> np.uint64(16)) & mask]
+    n2 = table[(h1 >> np.uint64(32)) & mask]
+    return c, points[c, 0] + sigma * n0, points[c, 1] + sigma * n1, points[c, 2] + sigma * n2
 
 
 @njit(cache=True)

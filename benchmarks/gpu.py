@@ -1,0 +1,338 @@
+"""The solver on a CUDA card against the same machine's CPU threads, in one run (BENCHMARKS.md, "GPU").
+
+Usage (on a machine with a CUDA card and numba-cuda; every stage appends JSON lines to ``--out``)::
+
+    python -m benchmarks.gpu all --out gpu.jsonl [--budget 500] [--work /tmp/gpu]
+    python -m benchmarks.gpu agree|step|shape|wide|street --out gpu.jsonl
+
+Stages:
+
+* ``env``: the card, the versions, and the card's measured device-to-device copy bandwidth (the yardstick of the
+  step kernel, which is bandwidth-bound);
+* ``agree``: a small shape solved on both devices: field and mesh differences, and two CUDA runs compared byte for
+  byte (determinism);
+* ``step``: the kernels alone on a synthetic band of dense bricks (64 tiles' worth, ~200M slots, and one tile's
+  3.2M): ms per iteration, ns per slot, bandwidth against the copy's; the query kernel on 16M queries;
+* ``shape``: a 100k-point torus at R = 256, one-shape mode, both devices;
+* ``wide``: the 1M-point grid of streets (configs/scene.yaml, 0.1 m), tiled on a local Dask cluster, both devices;
+* ``street``: the 14M-point street, CUDA only unless the budget leaves room for the CPU.
+
+Accuracy here is the sampled metric of :func:`tiled_gridpull.metrics.evaluate` (``exact=False``: pyvista is not on
+such machines), on both devices' meshes alike; the exact figures of the CPU path are in BENCHMARKS.md.
+Stages past ``--budget`` seconds are skipped (and say so).
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parent.parent
+CLI = [sys.executable, "-m", "tiled_gridpull"]
+T0 = time.perf_counter()
+
+
+def out_line(path: Path, row: dict) -> None:
+    row = {"stage": row.pop("stage"), **row, "elapsed_s": round(time.perf_counter() - T0, 1)}
+    with open(path, "a") as f:
+        f.write(json.dumps(row, default=float) + "\n")
+    print(json.dumps(row, default=float), flush=True)
+
+
+def stage_env(out: Path) -> None:
+    from tiled_gridpull.device import cuda_card, cuda_module, describe
+
+    cuda_module()  # numba-cuda made importable first (tiled_gridpull.device)
+    from numba import cuda
+
+    n = 1 << (28 if os.environ.get("NUMBA_ENABLE_CUDASIM") != "1" else 10)  # 1 GiB of float32
+    a = cuda.device_array(n, np.float32)
+    b = cuda.device_array(n, np.float32)
+    a.copy_to_device(b)
+    cuda.synchronize()
+    e0, e1 = cuda.event(), cuda.event()
+    e0.record()
+    for _ in range(10):
+        b.copy_to_device(a)
+    e1.record()
+    e1.synchronize()
+    ms = e0.elapsed_time(e1) / 10
+    import numba
+
+    out_line(out, {"stage": "env", "card": cuda_card(), **describe("cuda"), "numba": numba.__version__,
+                   "numpy": np.__version__, "cpu_count": os.cpu_count(),
+                   "copy_gbps": 2 * n * 4 / ms / 1e6, "copy_ms_1gib": ms})
+    del a, b
+
+
+def _sphere_cloud(n: int, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    p = rng.normal(size=(n, 3))
+    return p / np.linalg.norm(p, axis=1, keepdims=True)
+
+
+def stage_agree(out: Path, small: bool = False) -> None:
+    from tiled_gridpull import reconstruct
+    from tiled_gridpull.config import SolverConfig
+    from tiled_gridpull.lattice import Lattice
+    from tiled_gridpull.metrics import evaluate
+    from tiled_gridpull.solver import solve
+
+    P = _sphere_cloud(2_000 if small else 20_000)
+    cfg = SolverConfig(resolution=20, levels=1, iterations=4, queries=200) if small else SolverConfig(resolution=64)
+    lat = Lattice.fit(P, cfg.resolution, cfg.margin)
+    rows = {}
+    for dev in ("cpu", "cuda", "cuda"):
+        t = time.perf_counter()
+        f = solve(P, lat, cfg, device=dev)
+        rows.setdefault(dev, []).append((f, time.perf_counter() - t))
+    a, b, c = rows["cpu"][0][0], rows["cuda"][0][0], rows["cuda"][1][0]
+    par = (a.band.flags.reshape(-1) & 1) != 0
+    d = np.abs(a.values.reshape(-1) - b.values.reshape(-1))[par]
+    # near the zero level (where the mesh is cut); farther out Adam's sign steps on rounding-noise gradients differ
+    near = par & (np.abs(a.values.reshape(-1)) < 1.5)
+    dn = np.abs(a.values.reshape(-1) - b.values.reshape(-1))[near]
+    meshes = {dev: reconstruct(P, config=cfg.replace(device=dev)) for dev in ("cpu", "cuda")}
+    m2 = reconstruct(P, config=cfg.replace(device="cuda"))
+    ev = evaluate(meshes["cuda"], meshes["cpu"], exact=False)
+    cell = lat.cell_size
+    out_line(out, {"stage": "agree", "points": len(P), "resolution": cfg.resolution,
+                   "field_max_abs_diff_cells": float(d.max()), "field_mean_abs_diff_cells": float(d.mean()),
+                   "near_surface_max_abs_diff_cells": float(dn.max()),
+                   "near_surface_mean_abs_diff_cells": float(dn.mean()),
+                   "field_bitwise_repeat": bool(np.array_equal(b.values, c.values)),
+                   "mesh_bitwise_repeat": bool(np.array_equal(meshes["cuda"].vertices, m2.vertices)
+                                               and np.array_equal(meshes["cuda"].faces, m2.faces)),
+                   "mesh_chamfer_cells": ev["chamfer_l1"] / cell,
+                   "solve_s_cpu": rows["cpu"][0][1], "solve_s_cuda_first": rows["cuda"][0][1],
+                   "solve_s_cuda_second": rows["cuda"][1][1],
+                   "sha_cuda": hashlib.sha1(b.values.tobytes()).hexdigest()[:12]})
+
+
+def dense_band(bricks_per_axis: tuple[int, int, int]):
+    """A synthetic band of dense bricks (every slot a parameter) over a block of bricks: the step kernel's
+    bandwidth test (a real band's bricks have the same layout, with some slots not parameters)."""
+    from tiled_gridpull.band import Band, dense_brick_table
+    from tiled_gridpull.lattice import Lattice
+
+    bx, by, bz = bricks_per_axis
+    coords = np.stack(np.meshgrid(np.arange(bx), np.arange(by), np.arange(bz), indexing="ij"), -1).reshape(-1, 3)
+    table = dense_brick_table((bx, by, bz), coords)
+    nb = len(coords)
+    neighbors = np.full((nb, 6), -1, np.int32)
+    for side, (ax, sgn) in enumerate([(0, -1), (0, 1), (1, -1), (1, 1), (2, -1), (2, 1)]):
+        c = coords.copy()
+        c[:, ax] += sgn
+        ok = (c[:, ax] >= 0) & (c[:, ax] < (bx, by, bz)[ax])
+        neighbors[ok, side] = table[c[ok, 0], c[ok, 1], c[ok, 2]]
+    flags = np.full((nb, 512), 0xF, np.uint8)
+    lat = Lattice((0.0, 0.0, 0.0), 1.0, (bx * 8, by * 8, bz * 8))
+    return Band(lat, 3, 3, coords.astype(np.int32), table, neighbors, flags)
+
+
+def stage_step(out: Path, copy_gbps: float | None, small: bool = False) -> None:
+    from numba import cuda
+
+    from tiled_gridpull.device import cuda_module
+    from tiled_gridpull.kernels import CELL_PULL
+    from tiled_gridpull.kernels import sampling as ksamp
+
+    k = cuda_module()
+    sizes = (("one tile (3.2M slots)", (25, 16, 16)), ("64-tile batch (206M slots)", (100, 64, 63)))
+    for label, shape in (sizes if not small else (("smoke", (2, 2, 2)),)):
+        band = dense_band(shape)
+        n = band.n_slots
+        to = cuda.to_device
+        rng = np.random.default_rng(0)
+        d_a = to(rng.normal(size=n).astype(np.float32))
+        d_b = cuda.device_array(n, np.float32)
+        m = to(np.zeros(n, np.float32))
+        v = to(np.zeros(n, np.float32))
+        acc = to(np.zeros(n, np.int64))
+        inv = to(np.zeros(n, np.float32))
+        flags = to(band.flags.reshape(-1))
+        nbr = to(band.neighbors)
+        counts = to(np.ones(64, np.int32))
+        sums = to(np.zeros(64, np.float64))
+        blocks = -(-n // 512) if not small else 1
+        res = {}
+        for form in (0, 1):
+            def it(i):
+                if form:
+                    k.tv_norms[blocks, 512](d_a, flags, nbr, inv, sums, 0, False)
+                k.tv_adam[blocks, 512](d_a, d_b, m, v, acc, counts, 0, flags, nbr, inv, form, np.float32(1e-6),
+                                       np.float32(0.01), np.float32(0.9), np.float32(0.999), np.float32(1e-8),
+                                       False, sums, False)
+            it(0)
+            cuda.synchronize()
+            e0, e1 = cuda.event(), cuda.event()
+            reps = 20
+            e0.record()
+            for i in range(reps):
+                it(i)
+            e1.record()
+            e1.synchronize()
+            ms = e0.elapsed_time(e1) / reps
+            # bytes per slot of the fused step: d 4 + flags 1 + m, v 8 + acc 8 read; d_out 4 + m, v 8 + acc 8 written
+            # (neighbours' reads hit the cache: a brick is one block); the sqrt form adds its norm pass
+            bytes_per_slot = 41 + (4 + 1 + 4 + 4 if form else 0)
+            gbps = bytes_per_slot * n / ms / 1e6
+            res["squared" if form == 0 else "sqrt"] = {
+                "ms_per_iteration": ms, "ns_per_slot": ms * 1e6 / n, "effective_gbps": gbps,
+                "share_of_copy": gbps / copy_gbps if copy_gbps else None}
+        # queries: 16 per point on a 1M-point-like load against this band
+        nq = 16_000_000 if n > 50_000_000 else (1_000_000 if not small else 64)
+        pts = (rng.random((max(nq // 16, 1000), 3)) * (np.array(band.lattice.shape) - 2)).astype(np.float32)
+        pts_d = to(pts)
+        near = to(rng.integers(0, len(pts), nq).astype(np.int32))
+        tab = to(band.brick_table)
+        nrm_t = to(ksamp.NORMALS)
+        nx, ny, nz = band.lattice.shape
+        key = ksamp.iteration_key(0, 0)
+        qb = -(-nq // 512) if not small else 1
+        no_normals = to(np.zeros((0, 3), np.float32))
+        loss_sums = to(np.zeros((1, 4)))
+
+        def q():
+            k.query_scatter[qb, 512](d_a, flags, tab, nx, ny, nz, pts_d, no_normals, False, near, key,
+                                     len(pts) / nq, np.float32(0.5), nrm_t, CELL_PULL, 1.0, 0.005, 0.0, acc, counts,
+                                     0, loss_sums, False)
+        q()
+        cuda.synchronize()
+        e0, e1 = cuda.event(), cuda.event()
+        e0.record()
+        for _ in range(5):
+            q()
+        e1.record()
+        e1.synchronize()
+        out_line(out, {"stage": "step", "band": label, "slots": n, **res, "queries": nq,
+                       "query_ms": e0.elapsed_time(e1) / 5})
+
+
+def _sampled_scores(mesh_path: Path, gt_path: Path, points_path: Path | None) -> dict:
+    from tiled_gridpull.io import read_mesh, read_points
+    from tiled_gridpull.metrics import evaluate
+
+    obs = read_points(str(points_path)).xyz if points_path else None
+    # a million samples a side: the sampled Chamfer's floor (sample spacing) then sits below the surfaces' errors
+    r = evaluate(read_mesh(str(mesh_path)), read_mesh(str(gt_path)), n_samples=1_000_000, exact=False, observed=obs,
+                 observed_radius=0.2 if obs is not None else 0.0, thresholds=(0.05, 0.1, 0.2))
+    return {"chamfer_l1_sampled": r["chamfer_l1"], "fscore_sampled@0.1": r.get("fscore@0.1"),
+            "normal_consistency_sampled": r.get("normal_consistency")}
+
+
+def _cli(args: list[str]) -> float:
+    t = time.perf_counter()
+    subprocess.run([*CLI, *args], check=True)
+    return time.perf_counter() - t
+
+
+def _sidecar(mesh: Path) -> dict:
+    side = json.loads(mesh.with_suffix(".json").read_text())
+    keep = {"timings_s": side.get("timings_s"), "devices": side.get("devices"), "device": side.get("device"),
+            "tiles": (side.get("tiles") or {}).get("solved")}
+    lv = [t.get("solve_levels") for t in side.get("tile_summaries", []) if t.get("solve_levels")]
+    if lv:
+        per = {}
+        for levels in lv:
+            for x in levels:
+                acc = per.setdefault(x["level"], {})
+                for key in ("time_band_s", "time_solve_s", "time_query_pool_s", "time_steps_s"):
+                    acc[key] = acc.get(key, 0.0) + (x.get(key) or 0.0)
+                acc["iterations"] = acc.get("iterations", 0) + (x.get("iterations") or 0)
+        keep["task_s_per_level"] = per
+        keep["solve_task_s"] = sum(t.get("time_s", 0.0) for t in side.get("tile_summaries", []))
+    if "solve" in side:
+        keep["solve_levels"] = [{k: v for k, v in x.items() if k.startswith("time") or k == "iterations"}
+                                for x in side["solve"].get("levels", [])]
+    return keep
+
+
+def stage_shape(out: Path, work: Path, devices=("cuda", "cpu")) -> None:
+    d = work / "torus"
+    src, gt = d / "torus.xyz", d / "torus_gt.ply"
+    if not src.exists():
+        subprocess.run([*CLI, "sample", "torus", str(d), "--points", "100000", "-q"], check=True)
+    for dev in devices:
+        mesh = d / f"mesh_{dev}.ply"
+        wall = _cli(["reconstruct", str(src), "-o", str(mesh), "--resolution", "256", "--device", dev, "-q",
+                     "--overwrite"])
+        row = {"stage": "shape", "device": dev, "points": 100_000, "resolution": 256, "wall_s": wall,
+               **_sidecar(mesh)}
+        row.update(_sampled_scores(mesh, gt, None))
+        out_line(out, row)
+
+
+def stage_scene(out: Path, work: Path, name: str, n_points: int, layout: str, devices, workers: int) -> None:
+    d = work / name
+    if not (d / "street.laz").exists():
+        t = time.perf_counter()
+        subprocess.run([*CLI, "sample", "street", str(d), "--points", str(n_points), "--layout", layout,
+                        "--origin", "500000", "4000000", "100", "-q"], check=True)
+        out_line(out, {"stage": name, "sample_s": time.perf_counter() - t})
+    for dev in devices:
+        mesh = d / f"mesh_{dev}.ply"
+        shutil.rmtree(mesh.with_suffix(".job"), ignore_errors=True)
+        wall = _cli(["reconstruct", str(d / "street.laz"), "-o", str(mesh), "--config",
+                     str(REPO / "configs" / "scene.yaml"), "--device", dev, "--workers", str(workers), "-q",
+                     "--overwrite"])
+        row = {"stage": name, "device": dev, "points": n_points, "workers": workers, "wall_s": wall,
+               **_sidecar(mesh)}
+        try:
+            row.update(_sampled_scores(mesh, d / "street_gt.ply", d / "street.laz"))
+        except Exception as exc:  # the timings are worth keeping without the scores
+            row["score_error"] = f"{type(exc).__name__}: {exc}"[:500]
+        out_line(out, row)
+        shutil.copy(mesh.with_suffix(".json"), out.parent / f"{name}_{dev}_sidecar.json")
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("stages", nargs="+", choices=("env", "agree", "step", "shape", "wide", "street", "warm", "all"))
+    ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "gpu.jsonl")
+    ap.add_argument("--work", type=Path, default=Path("/tmp/tiled_gridpull_gpu"))
+    ap.add_argument("--budget", type=float, default=1e9, help="skip stages that start after this many seconds")
+    ap.add_argument("--workers", type=int, default=os.cpu_count())
+    ap.add_argument("--scene-devices", default="cuda", help="devices of the scene stages, comma-separated")
+    ap.add_argument("--small", action="store_true", help="tiny sizes: a smoke test of the script (the simulator)")
+    a = ap.parse_args(argv)
+    stages = ["env", "agree", "step", "shape", "wide", "street"] if "all" in a.stages else a.stages
+    a.work.mkdir(parents=True, exist_ok=True)
+    copy = None
+    devices = tuple(a.scene_devices.split(","))
+    for st in stages:
+        if time.perf_counter() - T0 > a.budget:
+            out_line(a.out, {"stage": st, "skipped": f"past the budget of {a.budget:.0f} s"})
+            continue
+        try:
+            if st == "env":
+                stage_env(a.out)
+                copy = json.loads(a.out.read_text().strip().splitlines()[-1]).get("copy_gbps")
+            elif st == "agree":
+                stage_agree(a.out, a.small)
+            elif st == "step":
+                stage_step(a.out, copy, a.small)
+            elif st == "shape":
+                stage_shape(a.out, a.work, devices)
+            elif st == "warm":
+                stage_scene(a.out, a.work, "warm", 20_000, "street", devices[:1], a.workers)
+            elif st == "wide":
+                stage_scene(a.out, a.work, "wide", 1_000_000, "grid", devices, a.workers)
+            elif st == "street":
+                stage_scene(a.out, a.work, "street", 14_000_000, "street", devices, a.workers)
+        except Exception as exc:  # one stage's failure must not lose the others' figures
+            out_line(a.out, {"stage": st, "error": f"{type(exc).__name__}: {exc}"[:2000]})
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,196 @@
+"""The CUDA kernels against the CPU kernels whose contracts they keep, on small bands.
+
+They run under numba's CUDA simulator (conftest sets ``NUMBA_ENABLE_CUDASIM=1``; on a machine with a card,
+``NUMBA_ENABLE_CUDASIM=0 pytest`` runs them on it): every Python thread of the simulator is slow, so the bands here
+are a few bricks.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+# the simulator runs the 64-bit hashes in NumPy scalars, which warn where the card's integers silently wrap
+pytestmark = pytest.mark.filterwarnings("ignore:overflow encountered:RuntimeWarning")
+
+pytest.importorskip("numba.cuda", reason="numba-cuda is not installed (pip install 'tiled-gridpull[cuda]')")
+
+from tiled_gridpull.band import build_band  # noqa: E402
+from tiled_gridpull.device import cuda_card, cuda_module  # noqa: E402
+from tiled_gridpull.kernels import CELL_PULL  # noqa: E402
+from tiled_gridpull.kernels import interp as ki  # noqa: E402
+from tiled_gridpull.kernels import losses as kl  # noqa: E402
+from tiled_gridpull.kernels import sampling as ksamp  # noqa: E402
+from tiled_gridpull.kernels import step as ks  # noqa: E402
+from tiled_gridpull.lattice import Lattice  # noqa: E402
+
+if cuda_card() is None:  # pragma: no cover - conftest enables the simulator
+    pytest.skip("no CUDA card and no simulator", allow_module_level=True)
+
+from numba import cuda  # noqa: E402
+
+K = cuda_module()
+SIM = cuda_card() == "CUDA simulator"
+
+
+def launch(n: int) -> tuple[int, int]:
+    return (1, min(n, 16)) if SIM else (-(-n // 256), 256)
+
+
+@pytest.fixture(scope="module")
+def setup():
+    """A sphere of points in index coordinates on a 24^3 lattice, its band, and a field that is not a distance."""
+    rng = np.random.default_rng(3)
+    p = rng.normal(size=(400, 3))
+    P = (p / np.linalg.norm(p, axis=1, keepdims=True) * 7.0 + 11.5).astype(np.float32)
+    P = np.ascontiguousarray(P[np.argsort(ksamp.morton_codes(P), kind="stable")])
+    lat = Lattice((0.0, 0.0, 0.0), 1.0, (24, 24, 24))
+    band = build_band(P, lat, 2, 4)
+    pos = band.slot_positions().astype(np.float64)
+    values = (np.linalg.norm(pos - 11.5, axis=1) - 7.0 + 0.3 * rng.normal(size=len(pos))).astype(np.float32)
+    normals = rng.normal(size=P.shape).astype(np.float32)
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    return P, band, values, normals
+
+
+def _cpu_queries(P, band, values, normals, nq, seed, it, sigma, lam):
+    centres = np.empty(nq, np.int64)
+    q = np.empty((nq, 3), np.float32)
+    ksamp.draw_queries(P, seed, it, np.float32(sigma), centres, q)
+    # nearest point: any index will do for the contract (the loss reads the point it is given)
+    nearest = ((centres * 7) % len(P)).astype(np.int32)
+    slots = np.empty((nq, 16), np.int64)
+    grads = np.empty((nq, 16), np.float32)
+    losses = np.empty((nq, 4), np.float32)
+    shape = np.asarray(band.lattice.shape, np.int64)
+    n_valid = kl.query_losses(values, band.flags.reshape(-1), band.brick_table, shape, q, P, nearest,
+                              normals if lam > 0 else np.zeros((0, 3), np.float32), CELL_PULL, 1.0, 0.005, lam,
+                              slots, grads, losses)
+    qgrad = np.zeros(band.n_slots, np.float32)
+    kl.scatter_add(qgrad, slots, grads, np.float32(1.0 / n_valid))
+    return nearest, n_valid, qgrad, losses.sum(axis=0)
+
+
+def _gpu_queries(P, band, values, normals, nearest, seed, it, sigma, lam, grid):
+    nq = len(nearest)
+    acc = cuda.to_device(np.zeros(band.n_slots, np.int64))
+    counts = cuda.to_device(np.zeros(1, np.int32))
+    sums = cuda.to_device(np.zeros((1, 4), np.float64))
+    nx, ny, nz = band.lattice.shape
+    K.query_scatter[grid](cuda.to_device(values), cuda.to_device(band.flags.reshape(-1)),
+                          cuda.to_device(band.brick_table), nx, ny, nz, cuda.to_device(P),
+                          cuda.to_device(normals), lam > 0, cuda.to_device(nearest), ksamp.iteration_key(seed, it),
+                          len(P) / nq, np.float32(sigma), cuda.to_device(ksamp.NORMALS), CELL_PULL, 1.0, 0.005, lam,
+                          acc, counts, 0, sums, True)
+    return acc.copy_to_host(), int(counts.copy_to_host()[0]), sums.copy_to_host()[0]
+
+
+@pytest.mark.parametrize("lam", [0.0, 0.5])
+def test_queries_scatter_the_cpu_gradient(setup, lam):
+    P, band, values, normals = setup
+    nq = 300
+    nearest, n_valid, qgrad, loss_sum = _cpu_queries(P, band, values, normals, nq, 5, 2, 2.5, lam)
+    assert 0 < n_valid < nq  # some queries fall outside the pull band: the valid count is part of the contract
+    acc, count, sums = _gpu_queries(P, band, values, normals, nearest, 5, 2, 2.5, lam, launch(nq))
+    assert count == n_valid
+    got = acc.astype(np.float64) / K.FIXED_SCALE / count
+    scale = np.abs(qgrad).max()
+    assert scale > 0
+    np.testing.assert_allclose(got, qgrad, rtol=0, atol=2e-5 * scale)
+    assert np.count_nonzero(got) == np.count_nonzero(qgrad)
+    np.testing.assert_allclose(sums, loss_sum, rtol=1e-4)
+
+
+def test_query_sums_do_not_depend_on_the_launch(setup):
+    """Fixed-point accumulation: any order of the atomics gives the same integers, bit for bit."""
+    P, band, values, normals = setup
+    nearest = (np.arange(300) * 13 % len(P)).astype(np.int32)
+    a, _, _ = _gpu_queries(P, band, values, normals, nearest, 1, 0, 0.8, 0.0, (1, 1))
+    b, _, _ = _gpu_queries(P, band, values, normals, nearest, 1, 0, 0.8, 0.0, launch(300))
+    assert np.any(a != 0)
+    assert np.array_equal(a, b)
+
+
+def _step_inputs(band, values, seed=0):
+    rng = np.random.default_rng(seed)
+    n = band.n_slots
+    m = (0.01 * rng.normal(size=n)).astype(np.float32)
+    v = (1e-4 * rng.random(n)).astype(np.float32)
+    qgrad = (1e-3 * rng.normal(size=n)).astype(np.float32)
+    qgrad[(band.flags.reshape(-1) & 1) == 0] = 0.0
+    return m, v, qgrad
+
+
+@pytest.mark.parametrize("form,clamp", [(ks.TV_SQUARED, False), (ks.TV_SQRT, False), (ks.TV_SQUARED, True)])
+def test_tv_adam_matches_the_cpu_step(setup, form, clamp):
+    P, band, values, _ = setup
+    n = band.n_slots
+    flags = band.flags.reshape(-1)
+    m, v, qgrad = _step_inputs(band, values)
+    # the query gradient as the card holds it: fixed point over a valid count of 37
+    acc = np.floor(qgrad.astype(np.float64) * 37 * K.FIXED_SCALE + 0.5).astype(np.int64)
+    qgrad_fixed = (acc.astype(np.float32) * np.float32(1.0 / K.FIXED_SCALE / 37)).astype(np.float32)
+    d0 = values.copy()
+    inv = np.zeros(n, np.float32)
+    tv_cpu = 0.0
+    if form == ks.TV_SQRT:
+        tv_cpu = ks.tv_inverse_norms(d0, flags, band.neighbors, inv)
+    cm, cv, cq = m.copy(), v.copy(), qgrad_fixed.copy()
+    d_cpu = np.empty_like(d0)
+    sq_cpu = ks.tv_adam_step(d0, d_cpu, cm, cv, cq, flags, band.neighbors, inv, form, np.float32(0.01),
+                             np.float32(0.05), np.float32(0.9), np.float32(0.999), np.float32(1e-8), clamp)
+    dev = {name: cuda.to_device(a) for name, a in
+           (("d", d0), ("m", m), ("v", v), ("acc", acc), ("flags", flags), ("nb", band.neighbors))}
+    inv_g = cuda.to_device(np.zeros(n, np.float32))
+    sums = cuda.to_device(np.zeros(1, np.float64))
+    out = cuda.device_array(n, np.float32)
+    grid = launch(n)
+    if form == ks.TV_SQRT:
+        K.tv_norms[grid](dev["d"], dev["flags"], dev["nb"], inv_g, sums, 0, True)
+        np.testing.assert_allclose(inv_g.copy_to_host(), inv, rtol=1e-5, atol=1e-6)
+        assert sums.copy_to_host()[0] == pytest.approx(tv_cpu, rel=1e-5)
+        sums = cuda.to_device(np.zeros(1, np.float64))
+    K.tv_adam[grid](dev["d"], out, dev["m"], dev["v"], dev["acc"], cuda.to_device(np.array([37], np.int32)), 0,
+                    dev["flags"], dev["nb"], inv_g, 1 if form == ks.TV_SQRT else 0, np.float32(0.01),
+                    np.float32(0.05), np.float32(0.9), np.float32(0.999), np.float32(1e-8), clamp, sums, True)
+    par = (flags & 1) != 0
+    np.testing.assert_allclose(out.copy_to_host(), d_cpu, rtol=0, atol=1e-5)
+    np.testing.assert_allclose(dev["m"].copy_to_host()[par], cm[par], rtol=1e-4, atol=1e-7)
+    np.testing.assert_allclose(dev["v"].copy_to_host()[par], cv[par], rtol=1e-4, atol=1e-10)
+    assert not np.any(dev["acc"].copy_to_host())  # the accumulator is reset for the next iteration
+    if form == ks.TV_SQUARED:
+        assert sums.copy_to_host()[0] == pytest.approx(sq_cpu, rel=1e-4)
+    if clamp:
+        assert out.copy_to_host().min() >= 0.0
+    # non-parameters keep their values
+    assert np.array_equal(out.copy_to_host()[~par], d0[~par])
+
+
+def test_upsample_matches_the_cpu():
+    from tiled_gridpull.field import Field
+    from tiled_gridpull.solver import upsample
+
+    rng = np.random.default_rng(1)
+    p = rng.normal(size=(300, 3))
+    P = (p / np.linalg.norm(p, axis=1, keepdims=True) * 3.0 + 6.0).astype(np.float32)
+    band = build_band(P, Lattice((0.0, 0.0, 0.0), 1.0, (40, 40, 40)), 2, 3)
+    pos = band.slot_positions().astype(np.float64)
+    values = (np.linalg.norm(pos - 6.0, axis=1) - 3.0).astype(np.float32)
+    coarse = Field(band, values.reshape(band.n_bricks, 512), signed=True)
+    # the finer band reaches past the coarse one's bricks: those slots get the fill
+    fine = build_band(P * 2, Lattice((0.0, 0.0, 0.0), 0.5, (79, 79, 79)), 2, 20)
+    cpu = upsample(coarse, fine)
+    out = cuda.device_array(fine.n_slots, np.float32)
+    nx, ny, nz = band.lattice.shape
+    K.upsample[launch(fine.n_slots)](cuda.to_device(values), cuda.to_device(band.brick_table), nx, ny, nz,
+                                     cuda.to_device(fine.brick_coords.astype(np.int32)), 2, 1e3, out)
+    got = out.copy_to_host().reshape(fine.n_bricks, 512)
+    assert np.any(cpu == np.float32(1e3)) and np.any(cpu != np.float32(1e3))
+    np.testing.assert_allclose(got, cpu, rtol=1e-6, atol=1e-5)
+
+
+def test_device_functions_are_the_cpu_helpers_recompiled():
+    """One source for both targets: the CUDA helper runs the CPU helper's code."""
+    assert K._ENV["query_one"].py_func.__code__ is kl.query_one.py_func.__code__
+    assert K._ENV["locate"].py_func.__code__ is ki.locate.py_func.__code__
+    assert K._ENV["draw_one"].py_func.__code__ is ksamp.draw_one.py_func.__code__

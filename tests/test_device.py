@@ -1,0 +1,168 @@
+"""The device setting: cpu | cuda | auto, its refusals, and the CUDA path end to end (in numba's simulator)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from tiled_gridpull import device
+from tiled_gridpull.config import SolverConfig
+from tiled_gridpull.errors import ConfigError
+from tiled_gridpull.lattice import Lattice
+from tiled_gridpull.solver import solve
+
+from conftest import unit_sphere_points
+
+try:
+    import numba.cuda  # noqa: F401
+
+    HAVE_NUMBA_CUDA = True
+except ImportError:  # pragma: no cover - the cuda extra is part of dev
+    HAVE_NUMBA_CUDA = False
+pytestmark = pytest.mark.filterwarnings("ignore:overflow encountered:RuntimeWarning")  # the simulator's hashes
+needs_cuda = pytest.mark.skipif(not HAVE_NUMBA_CUDA, reason="numba-cuda is not installed (the cuda extra)")
+
+def near_surface_diff(a, b):
+    """|a - b| (cells) at the parameters within 1.5 cells of a's zero level: the field the mesh is cut from.
+
+    Farther out, where the queries do not reach and the field is nearly linear, the gradient is rounding noise, and
+    Adam's first steps (each about lr along the gradient's sign) move such a vertex by up to a cell one way on one
+    device and the other way on the other: both fine, and invisible to the mesh."""
+    v = a.values.reshape(-1)
+    near = ((a.band.flags.reshape(-1) & 1) != 0) & (np.abs(v) < 1.5)
+    assert near.sum() > 50
+    return np.abs(v - b.values.reshape(-1))[near]
+
+
+TINY = dict(resolution=20, levels=1, iterations=6, queries=300, margin=3)
+
+
+def test_config_takes_the_three_devices_and_refuses_others():
+    assert SolverConfig().device == "auto"
+    for d in ("cpu", "cuda", "auto"):
+        assert SolverConfig(device=d).device == d
+    with pytest.raises(ConfigError, match="device"):
+        SolverConfig(device="gpu")
+    # where a solve runs does not change what it computes: a resumed job keeps tiles solved elsewhere
+    assert "device" not in SolverConfig(device="cuda").solve_settings(True)
+
+
+def test_auto_never_picks_the_simulator_and_cpu_is_cpu(monkeypatch):
+    assert device.resolve("cpu") == "cpu"
+    monkeypatch.setattr(device, "cuda_card", lambda: device.SIMULATOR)
+    assert device.resolve("auto") == "cpu"
+    assert device.resolve("cuda") == "cuda"
+    monkeypatch.setattr(device, "cuda_card", lambda: "NVIDIA H200")
+    assert device.resolve("auto") == "cuda"
+
+
+def test_cuda_without_a_card_is_one_line(monkeypatch):
+    monkeypatch.setattr(device, "cuda_card", lambda: None)
+    assert device.resolve("auto") == "cpu"
+    with pytest.raises(ConfigError) as e:
+        device.resolve("cuda")
+    msg = str(e.value)
+    assert "\n" not in msg and "cuda" in msg and ("no CUDA GPU" in msg or "not installed" in msg)
+    with pytest.raises(ConfigError):
+        solve(unit_sphere_points(200), Lattice.fit(unit_sphere_points(200), 20, 3), SolverConfig(**TINY),
+              device="cuda")
+
+
+def test_cli_refuses_cuda_without_a_card_before_reading(tmp_path):
+    """Exit 2 and one line, even for an input that does not exist: nothing was read."""
+    env = {**os.environ, "NUMBA_ENABLE_CUDASIM": "0"}
+    probe = subprocess.run([sys.executable, "-c", "from tiled_gridpull.device import cuda_card; print(cuda_card())"],
+                           capture_output=True, text=True, env=env)
+    if probe.stdout.strip() not in ("None", ""):
+        pytest.skip(f"this machine has a CUDA card ({probe.stdout.strip()})")
+    r = subprocess.run([sys.executable, "-m", "tiled_gridpull", "reconstruct", str(tmp_path / "missing.ply"), "-o",
+                        str(tmp_path / "m.ply"), "--device", "cuda"], capture_output=True, text=True, env=env)
+    assert r.returncode == 2, r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and "cuda" in lines[0] and "missing.ply" not in lines[0]
+    assert not (tmp_path / "m.ply").exists() and not (tmp_path / "m.json").exists()
+
+
+@needs_cuda
+def test_cuda_solve_matches_the_cpu_and_repeats_bit_for_bit():
+    P = unit_sphere_points(600)
+    cfg = SolverConfig(**TINY)
+    lat = Lattice.fit(P, cfg.resolution, cfg.margin)
+    cpu = solve(P, lat, cfg, device="cpu")
+    gpu = solve(P, lat, cfg, device="cuda")
+    again = solve(P, lat, cfg, device="cuda")
+    assert gpu.info["device"]["device"] == "cuda" and gpu.info["device"]["card"]
+    assert cpu.info["device"]["device"] == "cpu"
+    diff = near_surface_diff(cpu, gpu)
+    assert diff.mean() < 1e-3 and diff.max() < 0.05  # cells, after 6 Adam steps of about lr = 1 cell
+    assert np.array_equal(gpu.values, again.values)
+    # the history is recorded on both
+    assert len(gpu.info["history"]) == len(cpu.info["history"])
+    assert gpu.info["history"][-1]["valid_queries"] == cpu.info["history"][-1]["valid_queries"]
+
+
+@needs_cuda
+def test_cuda_solve_two_levels_upsamples_on_the_card():
+    P = unit_sphere_points(800, radius=0.25)
+    cfg = SolverConfig(resolution=64, levels=2, coarse_iterations=3, iterations=3, queries=200, refine_m2=3)
+    # a small sphere in a large lattice: a thin band, so the simulator's threads have little to do
+    lat = Lattice((-2.0, -2.0, -2.0), 4.0 / 64, (65, 65, 65))
+    assert cfg.levels_for(max(lat.n_cells)) == 2
+    cpu = solve(P, lat, cfg, device="cpu")
+    gpu = solve(P, lat, cfg, device="cuda")
+    diff = near_surface_diff(cpu, gpu)
+    assert diff.mean() < 1e-3 and diff.max() < 0.05
+
+
+@needs_cuda
+@pytest.mark.slow
+def test_reconstruct_device_cuda_end_to_end_matches_the_cpu(tmp_path):
+    """``reconstruct --device cuda`` (the simulator here) gives the CPU's mesh within a quarter cell."""
+    from tiled_gridpull.io import read_mesh
+    from tiled_gridpull.nearest import distances_to_cloud
+
+    src = tmp_path / "sphere.npy"
+    np.save(src, unit_sphere_points(1500))
+    meshes = {}
+    for dev in ("cpu", "cuda"):
+        out = tmp_path / f"m_{dev}.ply"
+        subprocess.run([sys.executable, "-m", "tiled_gridpull", "reconstruct", str(src), "-o", str(out),
+                        "--device", dev, "--resolution", "20", "--set", "levels=1", "--set", "iterations=8",
+                        "--set", "queries=300", "--set", "margin=3", "-q"], check=True)
+        meshes[dev] = read_mesh(out)
+        side = json.loads(out.with_suffix(".json").read_text())
+        assert side["device"]["device"] == dev
+        cell = side["lattice"]["cell_size"]
+    a, b = meshes["cpu"], meshes["cuda"]
+    assert a.n_faces > 100 and b.n_faces > 100
+    mean = 0.5 * (distances_to_cloud(a.vertices, b.vertices).mean() + distances_to_cloud(b.vertices, a.vertices).mean())
+    assert mean < 0.25 * cell
+
+
+@needs_cuda
+def test_one_launch_per_level_equals_one_launch_per_step(monkeypatch, caplog):
+    """The cooperative whole-level kernel and the per-iteration launches run the same arithmetic: the same field,
+    bit for bit (the fixed-point sums do not depend on the order), and the same history."""
+    from tiled_gridpull.solver_cuda import ONE_LAUNCH_ENV, CudaBackend
+
+    P = unit_sphere_points(600)
+    cfg = SolverConfig(**{**TINY, "tv_form": "sqrt", "iterations": 5})
+    lat = Lattice.fit(P, cfg.resolution, cfg.margin)
+    assert not CudaBackend().cooperative  # opt-in
+    per_step = solve(P, lat, cfg, device="cuda", history_every=2)
+    monkeypatch.setenv(ONE_LAUNCH_ENV, "1")
+    assert CudaBackend().cooperative
+    with caplog.at_level("WARNING"):
+        one = solve(P, lat, cfg, device="cuda", history_every=2)
+    assert not [r for r in caplog.records if "one launch per level" in r.getMessage()]
+    assert np.array_equal(one.values, per_step.values)
+    h1, h2 = one.info["history"], per_step.info["history"]
+    assert [h["iteration"] for h in h1] == [h["iteration"] for h in h2] == [0, 2, 4]
+    for a, b in zip(h1, h2):
+        assert a["valid_queries"] == b["valid_queries"]
+        assert a["pull"] == pytest.approx(b["pull"], rel=1e-9) and a["tv"] == pytest.approx(b["tv"], rel=1e-9)

@@ -1,0 +1,106 @@
+"""Where the solver runs: on the CPU's threads (numba) or on a CUDA card (numba-cuda).
+
+The setting is ``device: cpu | cuda | auto`` (config) or ``--device`` (command line):
+
+* ``cpu``: the numba kernels of :mod:`tiled_gridpull.kernels`;
+* ``cuda``: their twins in :mod:`tiled_gridpull.kernels.cuda`; refused in one line when numba-cuda sees no card;
+* ``auto`` (default): ``cuda`` when numba-cuda is installed and sees a card, else ``cpu`` (never the simulator).
+
+numba-cuda lives in the ``cuda`` extra (``pip install 'tiled-gridpull[cuda]'``). Under numba's CUDA simulator
+(``NUMBA_ENABLE_CUDASIM=1``) the card is simulated on the CPU, slowly: that is how the tests run the CUDA path on
+machines without one.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+from types import ModuleType
+
+from .errors import ConfigError, MissingDependencyError
+
+__all__ = ["DEVICES", "cuda_card", "cuda_module", "resolve", "describe"]
+
+DEVICES = ("cpu", "cuda", "auto")
+SIMULATOR = "CUDA simulator"
+
+
+def _import_numba_cuda() -> ModuleType:
+    import numpy as np
+
+    # numba-cuda 0.30 overloads np.row_stack, which NumPy 2.4+ dropped: without the alias nothing compiles
+    if not hasattr(np, "row_stack"):
+        np.row_stack = np.vstack  # noqa: NPY201
+    from numba import cuda
+
+    return cuda
+
+
+@functools.cache
+def cuda_card() -> str | None:
+    """Name of the CUDA card numba-cuda sees (``"CUDA simulator"`` under the simulator), or None.
+
+    Cached for the process: probing the driver costs about a second."""
+    try:
+        cuda = _import_numba_cuda()
+    except ImportError:
+        return None
+    if os.environ.get("NUMBA_ENABLE_CUDASIM") == "1":
+        return SIMULATOR
+    try:
+        if not cuda.is_available():
+            return None
+        name = cuda.get_current_device().name
+    except Exception:  # a driver that fails to initialise is no card (numba raises several types)
+        return None
+    return name.decode() if isinstance(name, bytes) else str(name)
+
+
+def cuda_module() -> ModuleType:
+    """:mod:`tiled_gridpull.kernels.cuda`, imported once numba-cuda is importable; one-line error without it."""
+    try:
+        _import_numba_cuda()
+    except ImportError as exc:
+        raise MissingDependencyError(f"device cuda needs numba-cuda (pip install 'tiled-gridpull[cuda]'): "
+                                     f"{exc}") from None
+    from .kernels import cuda as kernels
+
+    return kernels
+
+
+def resolve(setting: str) -> str:
+    """``"cpu"`` or ``"cuda"`` for a ``device`` setting; ``cuda`` without a card is a :class:`ConfigError`."""
+    if setting not in DEVICES:
+        raise ConfigError(f"device must be one of {', '.join(DEVICES)}, got {setting!r}")
+    if setting == "cpu":
+        return "cpu"
+    card = cuda_card()
+    if card is None:
+        if setting == "cuda":
+            try:
+                _import_numba_cuda()
+            except ImportError:
+                raise ConfigError("device cuda: numba-cuda is not installed (pip install "
+                                  "'tiled-gridpull[cuda]'), use --device cpu or auto") from None
+            raise ConfigError("device cuda: numba-cuda sees no CUDA GPU on this machine (no card or no driver); "
+                              "use --device cpu or auto")
+        return "cpu"
+    if card == SIMULATOR and setting == "auto":
+        # the simulator is for tests that ask for it by name; everything else stays on the CPU's kernels
+        return "cpu"
+    return "cuda"
+
+
+def describe(device: str) -> dict:
+    """What sidecars record: the device, and for ``cuda`` the card and numba-cuda's version."""
+    if device != "cuda":
+        import numba
+
+        return {"device": "cpu", "threads": int(numba.get_num_threads()), "cpu_count": os.cpu_count()}
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        v = version("numba-cuda")
+    except PackageNotFoundError:  # pragma: no cover - numba's bundled cuda target
+        v = "bundled"
+    return {"device": "cuda", "card": cuda_card(), "numba_cuda": v}

@@ -1,0 +1,200 @@
+"""The solver's iterations on a CUDA card: the field and Adam's state stay on the card across iterations and levels.
+
+Per iteration, three launches (:mod:`tiled_gridpull.kernels.cuda`): the queries (drawn, evaluated and scattered in
+one kernel), the sqrt form's TV norms, and the fused TV + Adam step; the host computes the learning rate and reads
+nothing back except at the history's iterations. Nearest points stay on the CPU (pykdtree, once per pool batch,
+:func:`tiled_gridpull.solver._optimize`); their indices go to the card once per level. Between levels the finer
+band's initial values are sampled from the coarser field still on the card.
+
+Results are bitwise reproducible on one card (the query gradients are summed in fixed point) and agree with the
+CPU's within float32 rounding per step (tests/test_cuda_kernels.py, tests/test_device.py).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+
+import numpy as np
+
+from .band import Band
+from .device import cuda_card, cuda_module
+from .field import Field
+from .kernels import CELL_PULL
+from .kernels import sampling as ksamp
+from .level import ADAM_BETA1, ADAM_BETA2, ADAM_EPS, LevelRun, upsample
+
+__all__ = ["CudaBackend", "ONE_LAUNCH_ENV"]
+
+#: ``1``: run each level in one cooperative launch (:func:`~tiled_gridpull.kernels.cuda.solve_level`) instead of three
+#: launches per iteration. Tested against the per-step launches in the simulator (bit for bit), not yet timed on a
+#: card: its first try on an H200 found no cooperative grid for 512-thread blocks (it now picks a smaller block).
+ONE_LAUNCH_ENV = "TILED_GRIDPULL_CUDA_ONE_LAUNCH"
+
+log = logging.getLogger(__name__)
+
+#: threads per block: one brick's 512 slots (the TV gather then reads its neighbours from the same brick)
+BLOCK = 512
+#: under the simulator every thread is a Python thread: a few of them loop over the items instead
+SIM_THREADS = 32
+
+
+class CudaBackend:
+    """Runs :class:`~tiled_gridpull.solver.LevelRun` s on the current CUDA card (or numba's simulator)."""
+
+    name = "cuda"
+    #: set once the one-launch kernel failed in this process (then every solve launches per step)
+    _one_launch_failed = False
+
+    def __init__(self) -> None:
+        self.k = cuda_module()
+        from numba import cuda
+
+        self.cuda = cuda
+        self.simulator = cuda_card() == "CUDA simulator"
+        self._normals = None
+        self._pending_init = None  # the next band's initial values on the card, from upsample()
+        self._keep = None
+        #: one launch per level (grid sync), opt-in: see ONE_LAUNCH_ENV
+        self.cooperative = os.environ.get(ONE_LAUNCH_ENV) == "1" and not CudaBackend._one_launch_failed
+        self._last: tuple[Field, object] | None = None  # the last level's field and its values on the card
+
+    def _grid(self, n: int) -> tuple[int, int]:
+        if self.simulator:
+            return 1, min(SIM_THREADS, max(n, 1))
+        return max(1, -(-n // BLOCK)), BLOCK
+
+    def _level_in_one_launch(self, run: LevelRun, d_a, d_b, m, v, acc, inv, common, pool, step, sigma, form, tv_scale,
+                             counts, loss_sums, tv_sums):
+        """All the level's iterations in one cooperative launch (:func:`~tiled_gridpull.kernels.cuda.solve_level`);
+        the history is read back once, at the end. Returns the array holding the result."""
+        cfg, iters = run.cfg, run.st.iterations
+        lr_ts = np.array([run.lr_t(it)[1] for it in range(iters)], np.float32)
+        args = (d_a, d_b, m, v, acc, inv, *common, pool, int(cfg.sampling.seed), int(run.it0), float(step), sigma,
+                self._normals, CELL_PULL, float(run.beta), float(run.gamma), float(cfg.losses.normal_weight),
+                self.cuda.to_device(lr_ts), form, tv_scale, np.float32(ADAM_BETA1), np.float32(ADAM_BETA2),
+                np.float32(ADAM_EPS), run.udf, counts, loss_sums, tv_sums, int(run.history_every))
+        if self.simulator:
+            blocks, threads = 1, SIM_THREADS
+            self.k.solve_level[blocks, threads](*args)
+        else:
+            spec = self.k.solve_level.specialize(*args)
+            kernel = next(iter(spec.overloads.values()))
+            # the query phase holds many registers: 512 threads a block fit no cooperative grid on an H200 (the
+            # largest resident grid was 0 blocks); take the largest block that fits
+            for threads in (512, 256, 128, 64):
+                resident = kernel.max_cooperative_grid_blocks(threads)
+                if resident > 0:
+                    break
+            else:
+                raise RuntimeError("no block size fits a cooperative grid")
+            need = -(-max(run.band.n_slots, run.st.queries) // threads)
+            spec[max(1, min(need, resident)), threads](*args)
+        if run.history_every:
+            c, ls, tv = counts.copy_to_host(), loss_sums.copy_to_host(), tv_sums.copy_to_host()
+            for it in range(iters):
+                if run.records(it):
+                    run.record(it, ls[it], int(c[it]), float(tv[it]))
+        return d_a if iters % 2 == 0 else d_b
+
+    def upsample(self, coarse: Field, band: Band) -> np.ndarray:
+        """The finer band's initial values (:func:`tiled_gridpull.solver.upsample`), from the coarse field on the card
+        when it is the last one this backend produced."""
+        if self._last is None or self._last[0] is not coarse:
+            return upsample(coarse, band)
+        cb = coarse.band
+        to = self.cuda.to_device
+        out = self.cuda.device_array(band.n_slots, np.float32)
+        nx, ny, nz = (int(v) for v in cb.lattice.shape)
+        blocks, threads = self._grid(band.n_slots)
+        self.k.upsample[blocks, threads](self._last[1], to(cb.brick_table), nx, ny, nz,
+                                         to(np.ascontiguousarray(band.brick_coords, np.int32)), 2, 1e3, out)
+        self._pending_init = out
+        return out.copy_to_host().reshape(band.n_bricks, 512)
+
+    def iterate(self, run: LevelRun) -> tuple[np.ndarray, dict]:
+        """Run the level's iterations on the card; the optimized ``(n_slots,)`` field (on the host) and timings."""
+        cuda, k = self.cuda, self.k
+        t0 = time.perf_counter()
+        band, cfg, st = run.band, run.cfg, run.st
+        to = cuda.to_device
+        if self._normals is None:
+            self._normals = to(ksamp.NORMALS)
+        n_slots = band.n_slots
+        pending, self._pending_init = self._pending_init, None
+        d_a = pending if pending is not None and pending.shape[0] == n_slots else to(run.values.reshape(-1))
+        d_b = cuda.device_array(n_slots, np.float32)
+        m = to(np.zeros(n_slots, np.float32))
+        v = to(np.zeros(n_slots, np.float32))
+        acc = to(np.zeros(n_slots, np.int64))
+        inv = to(np.zeros(n_slots if run.sqrt_tv else 1, np.float32))
+        flags = to(band.flags.reshape(-1))
+        table = to(band.brick_table)
+        neighbors = to(band.neighbors)
+        points = to(run.P)
+        normals = to(np.ascontiguousarray(run.normals, np.float32).reshape(-1, 3))
+        use_normals = bool(cfg.losses.normal_weight > 0.0 and run.normals.shape[0] == run.P.shape[0])
+        iters = st.iterations
+        counts = to(np.zeros(iters, np.int32))
+        loss_sums = to(np.zeros((iters, 4), np.float64))
+        tv_sums = to(np.zeros(iters, np.float64))
+        nq = st.queries
+        pool = to(run.pool_nn) if run.pool_nn is not None else None
+        fresh = cuda.device_array(nq, np.int32) if pool is None else None
+        centres = np.empty(nq, np.int64)
+        q = np.empty((nq, 3), np.float32)
+        nx, ny, nz = (int(v) for v in band.lattice.shape)
+        sigma = np.float32(st.sigma)
+        step = run.P.shape[0] / nq
+        form = 1 if run.sqrt_tv else 0
+        qb, qt = self._grid(nq)
+        sb, stt = self._grid(n_slots)
+        tv_scale = np.float32(run.tv_scale)
+        seed = cfg.sampling.seed
+        t_setup = time.perf_counter() - t0
+        common = (flags, table, neighbors, nx, ny, nz, points, normals, use_normals)
+        one_launch = False
+        if pool is not None and self.cooperative:
+            try:
+                d_a = self._level_in_one_launch(run, d_a, d_b, m, v, acc, inv, common, pool, step, sigma, form,
+                                                tv_scale, counts, loss_sums, tv_sums)
+                one_launch = True
+            except Exception as exc:  # noqa: BLE001 - e.g. no libcudadevrt to link grid sync: fall back, once
+                CudaBackend._one_launch_failed = True
+                self.cooperative = False
+                log.warning("one launch per level is unavailable on this card (%s): launching per iteration",
+                            str(exc).splitlines()[0][:200])
+        for it in range(0 if one_launch else iters):
+            batch = run.batch(it)
+            if pool is not None:
+                nearest = pool[batch]
+            else:
+                ksamp.draw_queries(run.P, seed, run.it0 + batch, sigma, centres, q)
+                fresh.copy_to_device(run.nn.query(q, centres)[0].astype(np.int32))
+                nearest = fresh
+            want = run.records(it)
+            key = ksamp.iteration_key(seed, run.it0 + batch)
+            k.query_scatter[qb, qt](d_a, flags, table, nx, ny, nz, points, normals, use_normals, nearest, key, step,
+                                    sigma, self._normals, CELL_PULL, float(run.beta), float(run.gamma),
+                                    float(cfg.losses.normal_weight), acc, counts, it, loss_sums, want)
+            _, lr_t = run.lr_t(it)
+            if form:
+                k.tv_norms[sb, stt](d_a, flags, neighbors, inv, tv_sums, it, want)
+            k.tv_adam[sb, stt](d_a, d_b, m, v, acc, counts, it, flags, neighbors, inv, form, tv_scale,
+                               np.float32(lr_t), np.float32(ADAM_BETA1), np.float32(ADAM_BETA2), np.float32(ADAM_EPS),
+                               run.udf, tv_sums, want)
+            d_a, d_b = d_b, d_a
+            if want:
+                n_valid = int(counts[it:it + 1].copy_to_host()[0])
+                run.record(it, loss_sums[it].copy_to_host(), n_valid, float(tv_sums[it:it + 1].copy_to_host()[0]))
+        values = d_a.copy_to_host()  # synchronizes: the loop's time below is the card's
+        t_loop = time.perf_counter() - t0 - t_setup
+        self._last = None
+        self._keep = d_a
+        return values, {"time_queries_s": 0.0, "time_steps_s": t_loop, "time_device_setup_s": t_setup,
+                        "card": cuda_card()}
+
+    def adopt(self, field: Field) -> None:
+        """Mark ``field`` (built from the last :meth:`iterate`) as the one whose values are still on the card."""
+        self._last = (field, self._keep)
