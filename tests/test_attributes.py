@@ -375,3 +375,21 @@ def test_cli_attributes_option_and_render_color(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert code != 0 and len(err) == 1 and "no vertex classification" in err[0]
     assert not (tmp_path / "x.png").exists()
+
+
+def test_cli_tiled_mode_takes_attributes_rgb(tmp_path, capsys):
+    from tiled_gridpull.pipeline.cli import main
+
+    src = _terrain_ply(tmp_path / "g.ply")
+    out = tmp_path / "scene.ply"
+    code = main(["reconstruct", str(src), "-o", str(out), "-q", "--voxel-size", "0.2", "--tile-size", "6.4",
+                 "--overlap", "1.6", "--attributes", "rgb", "--workers", "1", "--set", "iterations=60",
+                 "--set", "refine_m2=6", "--set", "coarse_iterations=60", "--tile-meshes", str(tmp_path / "tiles")])
+    assert code == 0, capsys.readouterr().err
+    mesh = read_mesh(out)
+    assert set(mesh.vertex_attributes) == {"red", "green", "blue"}  # not the classification
+    assert np.median(np.abs(mesh.vertex_attributes["red"] - _ramp(mesh.vertices[:, 0], X0, X0 + EXTENT))) <= 3.0
+    side = json.loads(out.with_suffix(".json").read_text())
+    assert side["tiling"]["attributes"] == "rgb" and side["vertex_attributes"]["rule"] == "rgb"
+    tiles = sorted((tmp_path / "tiles").glob("*.ply"))
+    assert tiles and all(set(read_mesh(t).vertex_attributes) == {"red", "green", "blue"} for t in tiles)
