@@ -393,3 +393,25 @@ def test_cli_tiled_mode_takes_attributes_rgb(tmp_path, capsys):
     assert side["tiling"]["attributes"] == "rgb" and side["vertex_attributes"]["rule"] == "rgb"
     tiles = sorted((tmp_path / "tiles").glob("*.ply"))
     assert tiles and all(set(read_mesh(t).vertex_attributes) == {"red", "green", "blue"} for t in tiles)
+
+
+def test_colours_of_other_libraries_go_in_and_come_back():
+    trimesh = pytest.importorskip("trimesh")
+    o3d = pytest.importorskip("open3d")
+    pv = pytest.importorskip("pyvista")
+    m = _quad()
+    for c, value in (("red", 200), ("green", 100), ("blue", 0)):
+        m.vertex_attributes[c] = np.full(4, value, np.uint8)
+    for back in (Mesh.from_trimesh(m.to_trimesh()), Mesh.from_open3d(m.to_open3d()),
+                 Mesh.from_pyvista(m.to_pyvista())):
+        assert [int(back.vertex_attributes[c][0]) for c in ("red", "green", "blue")] == [200, 100, 0]
+    # a coloured cloud of each library is meshed with its colour
+    pts = unit_sphere_points(3000, seed=4)
+    rgb = np.tile(np.array([[10, 20, 30]], np.uint8), (len(pts), 1))
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+    pc.colors = o3d.utility.Vector3dVector(rgb / 255.0)
+    poly = pv.PolyData(pts)
+    poly.point_data["RGB"] = rgb
+    for obj in (trimesh.PointCloud(pts, colors=rgb), pc, poly):
+        mesh = reconstruct(obj, resolution=24, iterations=30, coarse_iterations=30)
+        assert [set(mesh.vertex_attributes[c].tolist()) for c in ("red", "green", "blue")] == [{10}, {20}, {30}]

@@ -12,6 +12,7 @@ from functools import cached_property
 import numpy as np
 
 from ._optional import require
+from .cloud import colors_of
 from .kernels import graph as kg
 
 __all__ = ["Mesh", "MeshTopology", "edge_groups", "take_attributes", "COLOR_CHANNELS", "color_full_scale",
@@ -286,9 +287,11 @@ class Mesh:
         Returns
         -------
         Mesh
-            ``vertices`` (V, 3) float64, ``faces`` (F, 3) int64.
+            ``vertices`` (V, 3) float64, ``faces`` (F, 3) int64; per-vertex colours (``visual.vertex_colors``)
+            as ``red``, ``green``, ``blue`` uint8 vertex attributes.
         """
-        return cls(np.array(mesh.vertices, dtype=np.float64), np.array(mesh.faces, dtype=np.int64))
+        return cls(np.array(mesh.vertices, dtype=np.float64), np.array(mesh.faces, dtype=np.int64), {},
+                   colors_of(mesh))
 
     @classmethod
     def from_pyvista(cls, poly, *, triangulate: bool = False) -> Mesh:
@@ -306,7 +309,8 @@ class Mesh:
         Returns
         -------
         Mesh
-            ``vertices`` (V, 3) float64, ``faces`` (F, 3) int64.
+            ``vertices`` (V, 3) float64, ``faces`` (F, 3) int64; colour, intensity and classification point
+            arrays (:func:`~tiled_gridpull.cloud.colors_of`) as vertex attributes.
 
         Raises
         ------
@@ -327,7 +331,7 @@ class Mesh:
             poly = poly.triangulate()
             has_polys = poly.faces.size > 0
         faces = poly.regular_faces if has_polys else np.empty((0, 3), dtype=np.int64)
-        return cls(np.array(poly.points, dtype=np.float64), np.array(faces, dtype=np.int64))
+        return cls(np.array(poly.points, dtype=np.float64), np.array(faces, dtype=np.int64), {}, colors_of(poly))
 
     @classmethod
     def from_open3d(cls, mesh) -> Mesh:
@@ -341,10 +345,15 @@ class Mesh:
         Returns
         -------
         Mesh
-            ``vertices`` (V, 3) float64, ``faces`` (F, 3) int64.
+            ``vertices`` (V, 3) float64, ``faces`` (F, 3) int64; ``vertex_colors`` (floats in [0, 1]) as
+            ``red``, ``green``, ``blue`` uint8 vertex attributes.
         """
+        attrs = {}
+        if mesh.has_vertex_colors():
+            rgb = np.clip(np.rint(np.asarray(mesh.vertex_colors) * 255.0), 0, 255).astype(np.uint8)
+            attrs = {c: np.ascontiguousarray(rgb[:, i]) for i, c in enumerate(("red", "green", "blue"))}
         return cls(np.asarray(mesh.vertices, dtype=np.float64).copy(),
-                   np.asarray(mesh.triangles, dtype=np.int64).copy())
+                   np.asarray(mesh.triangles, dtype=np.int64).copy(), {}, attrs)
 
     @classmethod
     def from_any(cls, obj, *, triangulate: bool = False) -> Mesh:

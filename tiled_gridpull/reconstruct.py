@@ -17,7 +17,7 @@ import numpy as np
 
 from ._version import __version__
 from .attributes import ATTRIBUTE_NEIGHBORS, attribute_layout, check_mode, interpolate_attributes, select_attributes
-from .cloud import PointCloud, as_points, clean_points
+from .cloud import PointCloud, as_points, clean_points, colors_of
 from .config import NOISE_PRESETS, NOISE_SETTINGS, NORMALS_WEIGHT, SolverConfig, split_settings
 from .errors import ConfigError, InputError
 from .isosurface import extract_mesh, relax_on_field
@@ -170,7 +170,8 @@ def reconstruct(points: Any, *, config: SolverConfig | None = None, normals: np.
     points : (N, 3) array_like, PointCloud, or a pyvista, Open3D or trimesh point cloud or mesh
         World coordinates (any magnitude: the solver works in lattice-local coordinates); normals come with
         the object when it has them (see :func:`~tiled_gridpull.cloud.as_points`) and, like a ``PointCloud``'s,
-        are used when ``normal_weight > 0``.
+        are used when ``normal_weight > 0``; so do its colours (:func:`~tiled_gridpull.cloud.colors_of`), carried
+        onto the vertices like a file's (``attributes``).
     config : SolverConfig, optional
         Solver settings (defaults: the schedule we ship, see :class:`~tiled_gridpull.config.SolverConfig`).
         Keyword ``options`` override single fields, e.g. ``resolution=128, iterations=800, seed=1``.
@@ -235,7 +236,10 @@ def reconstruct(points: Any, *, config: SolverConfig | None = None, normals: np.
     if cfg.mode == "udf" and band_edges != "trim":
         raise ConfigError(f"band_edges {band_edges!r} applies to signed mode (udf mode ends its sheets at the data "
                           "already)")
+    colors = colors_of(points)
     points, own_normals = as_points(points)
+    if colors:  # a pyvista, Open3D or trimesh cloud with colour: carried like a file's
+        points = PointCloud(np.asarray(points, dtype=np.float64), attributes=colors, source="input")
     # an open flat patch is a surface for the unsigned mode (a sheet); the signed mode needs an inside
     cleaned = _prepare_cloud(points, own_normals if normals is None else normals, reject_planar=cfg.mode == "sdf")
     xyz, nrm, report = cleaned.xyz, cleaned.normals, dict(cleaned.report)
