@@ -415,3 +415,33 @@ def test_colours_of_other_libraries_go_in_and_come_back():
     for obj in (trimesh.PointCloud(pts, colors=rgb), pc, poly):
         mesh = reconstruct(obj, resolution=24, iterations=30, coarse_iterations=30)
         assert [set(mesh.vertex_attributes[c].tolist()) for c in ("red", "green", "blue")] == [{10}, {20}, {30}]
+
+
+def test_pcd_packed_rgb_pts_and_e57_colours_are_read(tmp_path):
+    packed = float(np.array([0x00C86400], np.uint32).view(np.float32)[0])  # (200, 100, 0), as PCL packs it
+    rows = [f"{x} {y} 1 {packed!r}" for x, y in ((0, 0), (1, 0), (0, 1), (1, 1))]
+    header = ["VERSION 0.7", "FIELDS x y z rgb", "SIZE 4 4 4 4", "TYPE F F F F", "COUNT 1 1 1 1", "WIDTH 4",
+              "HEIGHT 1", "VIEWPOINT 0 0 0 1 0 0 0", "POINTS 4", "DATA ascii"]
+    (tmp_path / "c.pcd").write_text("\n".join(header + rows) + "\n")
+    a = read_points(tmp_path / "c.pcd", clean=False).attributes
+    assert [a[c].tolist() for c in ("red", "green", "blue")] == [[200] * 4, [100] * 4, [0] * 4]
+    pts = "\n".join(f"{i} {i % 3} {i % 5} 7 10 20 30" for i in range(12))
+    (tmp_path / "s.pts").write_text("12\n" + pts + "\n")
+    a = read_points(tmp_path / "s.pts", clean=False).attributes
+    assert a["red"].dtype == np.uint8 and set(a["green"]) == {20} and set(a["intensity"]) == {7}
+    pye57 = pytest.importorskip("pye57")
+    e57 = pye57.E57(str(tmp_path / "c.e57"), mode="w")
+    n = 20
+    e57.write_scan_raw({"cartesianX": np.arange(n, dtype=float), "cartesianY": np.arange(n) % 3.0,
+                        "cartesianZ": np.arange(n) % 7.0, "colorRed": np.full(n, 200, np.uint8),
+                        "colorGreen": np.full(n, 100, np.uint8), "colorBlue": np.zeros(n, np.uint8)})
+    e57.close()
+    a = read_points(tmp_path / "c.e57", clean=False).attributes
+    assert set(a["red"]) == {200} and set(a["blue"]) == {0}
+    assert "scan" not in select_attributes(a, "all")  # the scan number is the reader's, not the surface's
+
+
+def test_kinect_office_colours_are_read():
+    a = read_points(shared_file("indoor", "office1.pcd"), clean=False).attributes
+    assert a["red"].dtype == np.uint8 and len(a["red"]) == 307_200
+    assert len(np.unique(a["red"])) > 100  # a photograph's colours, not one constant

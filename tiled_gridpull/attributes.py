@@ -23,8 +23,9 @@ ATTRIBUTE_MODES = ("none", "rgb", "all")
 #: Attributes that name a category: a vertex takes the weighted majority of its neighbours, never a mean.
 CATEGORICAL = ("classification",)
 #: Per-point arrays readers keep for the pipeline's own use, never carried onto the mesh: a KITTI sequence's
-#: frame number, the GPS time a trajectory is looked up with, a text file's unnamed extra columns.
-NOT_CARRIED = ("frame", "gps_time", "extra_columns")
+#: frame number, an E57 file's scan number, the GPS time a trajectory is looked up with, a text file's unnamed
+#: extra columns.
+NOT_CARRIED = ("frame", "scan", "gps_time", "extra_columns")
 #: Neighbours a vertex's value is interpolated from. Autzen with 10 % held out (benchmarks/attributes.py; the
 #: same vertices re-interpolated): median |colour - nearest held-out point's| 3 of 255 per channel with 4, 8 or
 #: 16 neighbours (red 4 with 1); mean red 2.67 %, 2.60 %, 2.56 % of full scale with 4, 8, 16.
