@@ -445,3 +445,20 @@ def test_kinect_office_colours_are_read():
     a = read_points(shared_file("indoor", "office1.pcd"), clean=False).attributes
     assert a["red"].dtype == np.uint8 and len(a["red"]) == 307_200
     assert len(np.unique(a["red"])) > 100  # a photograph's colours, not one constant
+
+
+def test_changing_attributes_reuses_the_solves_and_remakes_the_pieces(tiled):
+    """The attribute spill files sit beside the point spill files, which are unchanged: the solves are keyed on
+    those and stay; the pieces are keyed on the attributes too and are made again."""
+    import dataclasses
+    import shutil
+
+    from tiled_gridpull.tiled_job import reconstruct_scene
+
+    d, tiling, first = tiled
+    shutil.copytree(d / "job", d / "job_rgb")
+    rgb = reconstruct_scene([str(d / "g.ply")], d / "rgb.ply", dataclasses.replace(tiling, attributes="rgb"),
+                            SOLVER, d / "job_rgb")
+    assert rgb.metadata["reused"] == {"partition": False, "solves": 4, "meshes": 0}
+    assert list(rgb.vertex_attributes) == ["red", "green", "blue"]
+    assert np.array_equal(rgb.vertex_attributes["red"], first.vertex_attributes["red"])
