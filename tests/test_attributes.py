@@ -462,3 +462,41 @@ def test_changing_attributes_reuses_the_solves_and_remakes_the_pieces(tiled):
     assert rgb.metadata["reused"] == {"partition": False, "solves": 4, "meshes": 0}
     assert list(rgb.vertex_attributes) == ["red", "green", "blue"]
     assert np.array_equal(rgb.vertex_attributes["red"], first.vertex_attributes["red"])
+
+
+@pytest.mark.parametrize("kind", ["COPC", "EPT", "EPT-binary"])
+def test_indexed_inputs_carry_attributes_as_their_stream_does(tmp_path, monkeypatch, kind):
+    """Tiles read from an index (COPC, EPT) keep the same attribute spill files, byte for byte, as one streaming
+    pass over the same file."""
+    from pathlib import Path
+
+    from tiled_gridpull import prepare
+    from tiled_gridpull.io.indexed_write import write_copc, write_ept
+    from tiled_gridpull.jobdir import JobPaths
+    from tiled_gridpull.partition import read_tile_attributes, read_tile_points
+    from tiled_gridpull.tiling import TilingConfig
+
+    xyz = terrain(EXTENT, 30, seed=7)
+    inten = np.round(_ramp(xyz[:, 0], X0, X0 + EXTENT) * 100).astype(np.uint16)
+    if kind == "COPC":
+        pytest.importorskip("copclib", reason="writing COPC test files needs copclib")
+        src = write_copc(tmp_path / "s.copc.laz", xyz, max_node_points=2000, intensity=inten)
+    else:
+        src = write_ept(tmp_path / "ept", xyz, max_node_points=2000, intensity=inten,
+                        data_type="binary" if kind == "EPT-binary" else "laszip")
+    tiling = TilingConfig(voxel_size=0.2, tile_size=6.4, overlap=1.6)
+    _, indexed, scan = prepare.prepare_job([str(src)], tiling, JobPaths(tmp_path / "a"))
+    assert "intensity" in dict(scan["attributes"])
+    with monkeypatch.context() as m:
+        m.setattr(prepare, "all_indexed", lambda inputs: False)
+        _, streamed, _ = prepare.prepare_job([str(src)], tiling, JobPaths(tmp_path / "b"))
+    by_name = {s.name: s for s in streamed}
+    assert sorted(by_name) == sorted(s.name for s in indexed)
+    for spec in indexed:
+        other = by_name[spec.name]
+        assert spec.attributes == other.attributes
+        assert Path(spec.attributes_path).read_bytes() == Path(other.attributes_path).read_bytes()
+        local, _ = read_tile_points(spec)
+        world_x = local[:, 0].astype(np.float64) + spec.block.low_corner[0]
+        got = read_tile_attributes(spec)["intensity"].astype(float)
+        assert np.allclose(got, np.round(_ramp(world_x, X0, X0 + EXTENT) * 100), atol=2)  # float32 offsets

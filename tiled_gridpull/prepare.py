@@ -602,11 +602,11 @@ def _read_indexed(inputs, tiling, paths: JobPaths, check, run_tasks):
         raise degenerate_error(", ".join(map(shown, inputs)), scan["points"], kind)
     out = paths.points()
     out.mkdir(parents=True, exist_ok=True)
-    args = [(sources, plan, t, str(out)) for t in tiles]
+    scan["attributes"] = carried_layout(scan.get("attributes", []), tiling.attributes)
+    args = [(sources, plan, t, str(out), scan["attributes"]) for t in tiles]
     results = run_tasks(read_tile, args) if run_tasks is not None else [read_tile(*a) for a in args]
     specs = [s for s, _ in results if s is not None]
     scan["candidate_tiles"] = len(tiles)
-    scan.setdefault("attributes", [])  # not carried from indexed inputs (COPC, EPT) yet
     owned = sum(n for _, n in results)
     if owned != scan["points"]:
         # every point has one owner tile, whatever the overlaps copy: fewer means a node no candidate tile read

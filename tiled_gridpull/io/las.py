@@ -15,7 +15,7 @@ from ..cloud import PointCloud, concat_clouds, unit_normals
 from ..errors import InputError
 from .input_errors import check_frame
 
-__all__ = ["read", "chunks", "count"]
+__all__ = ["read", "chunks", "count", "carried_dims", "record_attributes"]
 
 _READ_CHUNK = 1_000_000
 
@@ -123,12 +123,13 @@ def _las_normal_dims(point_format) -> tuple[str, str, str] | None:
     return None
 
 
-def _carried_dims(point_format, normal_dims) -> list[tuple[str, str, np.dtype]]:
+def carried_dims(point_format) -> list[tuple[str, str, np.dtype]]:
     """``(attribute name, LAS dimension, type)`` of what a point carries onto mesh vertices: ``red``, ``green``,
     ``blue`` (uint16, as stored), ``intensity`` (uint16), ``classification`` (uint8; the class code, without the
     flags older formats pack beside it) and every one-valued numeric extra dimension but the normals, under its
     own name."""
     names = set(point_format.dimension_names)
+    normal_dims = _las_normal_dims(point_format)
     out = []
     for dim in ("red", "green", "blue", "intensity"):
         if dim in names:
@@ -145,6 +146,11 @@ def _carried_dims(point_format, normal_dims) -> list[tuple[str, str, np.dtype]]:
             scaled = getattr(dim, "scales", None) is not None or getattr(dim, "offsets", None) is not None
             out.append((dim.name, dim.name, np.dtype(np.float64) if scaled else dtype))
     return out
+
+
+def record_attributes(points, point_format) -> dict:
+    """The :func:`carried_dims` of laspy point records ``points``: name to (N,) array of its type."""
+    return {name: np.array(points[dim], dtype=dtype) for name, dim, dtype in carried_dims(point_format)}
 
 
 def laz_backend():
@@ -311,7 +317,7 @@ def _las_chunks(p: Path, chunk_size: int, gps_time: bool = False,
         check_frame(f"{p}: the LAS header's", header.offsets, header.scales, reach=2.0 ** 31)
         crs = _las_crs(header)
         normal_dims = _las_normal_dims(header.point_format)
-        carried = _carried_dims(header.point_format, normal_dims)
+        carried = carried_dims(header.point_format)
         first, last = rows if rows is not None else (0, total)
         if not 0 <= first <= last <= total:
             raise InputError(f"{p}: rows {first}:{last} are outside its {total} points")
@@ -332,7 +338,7 @@ def _las_chunks(p: Path, chunk_size: int, gps_time: bool = False,
             if normal_dims is not None:
                 normals = unit_normals(np.column_stack([np.asarray(chunk[d], dtype=np.float64)
                                                          for d in normal_dims]))
-            attrs = {name: np.array(chunk[dim], dtype=dtype) for name, dim, dtype in carried}
+            attrs = {name: np.array(chunk[dim], dtype=dtype) for name, dim, dtype in carried}  # record_attributes
             if gps_time:
                 attrs["gps_time"] = np.asarray(chunk.gps_time, dtype=np.float64)
             yield PointCloud(xyz, normals=normals, attributes=attrs, crs=crs,
