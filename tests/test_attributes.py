@@ -500,3 +500,34 @@ def test_indexed_inputs_carry_attributes_as_their_stream_does(tmp_path, monkeypa
         world_x = local[:, 0].astype(np.float64) + spec.block.low_corner[0]
         got = read_tile_attributes(spec)["intensity"].astype(float)
         assert np.allclose(got, np.round(_ramp(world_x, X0, X0 + EXTENT) * 100), atol=2)  # float32 offsets
+
+
+def test_dry_run_says_what_is_carried_and_a_config_key_chooses_in_one_shape_mode(tmp_path, capsys):
+    from tiled_gridpull.pipeline.cli import main
+
+    src = _terrain_ply(tmp_path / "g.ply")
+    tiled = ["--voxel-size", "0.2", "--tile-size", "6.4", "--overlap", "1.6", "--set", "refine_m2=6", "--dry-run"]
+    assert main(["reconstruct", str(src), "-o", str(tmp_path / "d.ply"), *tiled]) == 0
+    assert "carrying red, green, blue, classification onto the vertices" in capsys.readouterr().out
+    assert main(["reconstruct", str(src), "-o", str(tmp_path / "d.ply"), *tiled, "--attributes", "none"]) == 0
+    assert "carrying" not in capsys.readouterr().out
+    (tmp_path / "c.yaml").write_text("attributes: rgb\nresolution: 24\niterations: 30\ncoarse_iterations: 30\n")
+    pts = unit_sphere_points(2000, seed=3)
+    cloud_file = tmp_path / "s.ply"
+    write_mesh(Mesh(pts, np.zeros((0, 3)), {}, {"red": np.full(len(pts), 9, np.uint8),
+                                                "green": np.full(len(pts), 8, np.uint8),
+                                                "blue": np.full(len(pts), 7, np.uint8),
+                                                "classification": np.full(len(pts), 6, np.uint8)}), cloud_file)
+    assert main(["reconstruct", str(cloud_file), "-o", str(tmp_path / "o.ply"), "-q", "--config",
+                 str(tmp_path / "c.yaml")]) == 0
+    assert set(read_mesh(tmp_path / "o.ply").vertex_attributes) == {"red", "green", "blue"}
+
+
+def test_float32_ply_keeps_attributes(tmp_path):
+    m = _quad()
+    m.vertices[:] += [500000.0, 4000000.0, 10.0]
+    write_mesh(m, tmp_path / "f.ply", float32=True)
+    back = read_mesh(tmp_path / "f.ply")
+    assert np.allclose(back.vertices, m.vertices, atol=1e-3)
+    for name, values in m.vertex_attributes.items():
+        assert np.array_equal(back.vertex_attributes[name], values)
