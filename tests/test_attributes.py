@@ -531,3 +531,20 @@ def test_float32_ply_keeps_attributes(tmp_path):
     assert np.allclose(back.vertices, m.vertices, atol=1e-3)
     for name, values in m.vertex_attributes.items():
         assert np.array_equal(back.vertex_attributes[name], values)
+
+
+def test_memory_estimate_counts_the_attribute_interpolation():
+    import dataclasses
+
+    from tiled_gridpull.memory import tile_memory
+    from tiled_gridpull.tile_plan import plan_tiles
+    from tiled_gridpull.tiling import TilingConfig
+
+    tiling = TilingConfig(voxel_size=0.2, tile_size=6.4, overlap=1.6)
+    plan = plan_tiles(np.array([[0, 0, 0], [6, 6, 1.0]]), 100_000, tiling)
+    spec = plan.spec((0, 0, 0), n_points=100_000)
+    occ = np.ones(tuple(-(-np.asarray(spec.block.shape) // 8)), bool)
+    plain = tile_memory(spec, occ, SOLVER, tiling)["mesh"]
+    carried = tile_memory(dataclasses.replace(spec, attributes=(("red", "<u2"), ("classification", "|u1"))), occ,
+                          SOLVER, tiling)["mesh"]
+    assert carried > plain  # 100,000 x (24 + 2 x 3) bytes, times the untracked allowance
