@@ -262,7 +262,7 @@ def _scan(chunks) -> dict:
         n += len(chunk)
         has_sensor &= chunk.sensor is not None
         mine = dict(attribute_layout(select_attributes(chunk.attributes, "all")))
-        attrs = mine if attrs is None else {n: t for n, t in attrs.items() if n in mine}
+        attrs = mine if attrs is None else {name: t for name, t in attrs.items() if name in mine}
         # a copy: a strided view would keep every whole chunk alive, i.e. the whole input in memory
         sample.append(chunk.xyz[::SAMPLE_STRIDE].copy())
     return {"lo": lo, "hi": hi, "points": n, "has_sensor": bool(has_sensor), "crs": crs, "crs_source": crs_source,
