@@ -377,6 +377,7 @@ def test_cli_attributes_option_and_render_color(tmp_path, capsys):
     assert not (tmp_path / "x.png").exists()
 
 
+@pytest.mark.slow
 def test_cli_tiled_mode_takes_attributes_rgb(tmp_path, capsys):
     from tiled_gridpull.pipeline.cli import main
 
