@@ -91,6 +91,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "fan of triangles so the mesh is watertight (close), or kept as extracted (keep)")
     r.add_argument("--float32", action="store_true",
                    help="store vertices as float32 relative to an offset recorded in the header (half the size)")
+    r.add_argument("--attributes", choices=("all", "rgb", "none"),
+                   help="per-point values interpolated onto the mesh's vertices: every one the input has (colour, "
+                        "intensity, classification, LAS extra dimensions; default all), the colour only, or none "
+                        "(both modes; config key attributes)")
     t = r.add_argument_group("tiled mode (scenes; enabled by --voxel-size or a config that sets voxel_size)")
     t.add_argument("--voxel-size", metavar="SIZE",
                    help="cell size in the data's units (0.1), or with a unit (0.1m, 0.33ft; m, cm, mm, ft, us-ft) "
@@ -187,6 +191,9 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("--clim", type=float, nargs=2, metavar=("LO", "HI"),
                    help="with --gt: colour range in the mesh's units (default 0 to the 99th percentile)")
     v.add_argument("--edges", action="store_true", help="draw triangle edges")
+    v.add_argument("--color", choices=("rgb", "intensity", "classification"),
+                   help="colour the mesh by its vertex attribute: its colours, intensity (grey ramp, 1st-99th "
+                        "percentile or --clim) or class codes (not with --gt)")
     _add_common(v)
 
     rp = sub.add_parser("report", formatter_class=_Formatter, help="per-tile table of a finished tiled job",
@@ -263,6 +270,11 @@ def resolve_settings(args) -> tuple:
         if "voxel_size" in settings:
             raise ConfigError("--normals applies to one-shape mode (tiles orient estimated normals instead)")
         solver_settings.setdefault("normal_weight", NORMALS_WEIGHT)
+    if getattr(args, "attributes", None) is not None:  # the option wins over a config file's key
+        settings["attributes"] = args.attributes
+    if "attributes" in settings and "voxel_size" not in settings:
+        # one-shape mode takes it as reconstruct's keyword (checked there), not as a tiling setting
+        args.attributes = settings.pop("attributes")
     tiling_keys = set(TilingConfig.__dataclass_fields__) - {"derived", "units", "halo"}  # recorded, not settings
     unknown = set(settings) - tiling_keys
     if unknown:
@@ -322,7 +334,8 @@ def cmd_reconstruct(args) -> int:
     bar = _progress_bar(cfg.total_iterations(cfg.resolution), args)
     try:
         mesh = reconstruct(cloud, config=cfg, progress=bar.update if bar else None,
-                           band_edges=getattr(args, "band_edges", None) or "trim")
+                           band_edges=getattr(args, "band_edges", None) or "trim",
+                           attributes=getattr(args, "attributes", None) or "all")
     finally:
         if bar:
             bar.close()
@@ -560,13 +573,15 @@ def cmd_render(args) -> int:
         from tiled_gridpull.io import read_points
 
         cloud = read_points(args.cloud).xyz
+    if args.gt and args.color:
+        raise ConfigError("--color and --gt both colour the mesh: give one")
     if args.gt:
         gt = read_mesh(args.gt)
     from tiled_gridpull.render import render_mesh
 
     info = render_mesh(mesh, out, size=(w, h), cloud=cloud, gt=gt, clim=tuple(args.clim) if args.clim else None,
                        view=args.view, point_size=args.point_size, max_points=args.max_points,
-                       show_edges=args.edges)
+                       show_edges=args.edges, color=args.color)
     msg = f"wrote {out} ({w} x {h})"
     if "errors" in info:
         e = info["errors"]

@@ -26,7 +26,8 @@ def plan_job(inputs: list[str], tiling: TilingConfig, solver: SolverConfig, work
     from tiled_gridpull.jobdir import JobPaths, check_job_dir
     from tiled_gridpull.memory import estimate_tiles
     from tiled_gridpull.partition import partition
-    from tiled_gridpull.prepare import check_registered, plan_inputs, resolve_units, scan_noise_treatment
+    from tiled_gridpull.prepare import (carried_layout, check_registered, plan_inputs, resolve_units,
+                                        scan_noise_treatment)
     from tiled_gridpull.resume import load_partition, partition_key
     from tiled_gridpull.tiling import check_compatible, with_halo
 
@@ -62,6 +63,8 @@ def plan_job(inputs: list[str], tiling: TilingConfig, solver: SolverConfig, work
     peak = max(est, key=lambda e: e["peak"]) if est else None
     return {
         "inputs": [recorded(p) for p in inputs], "points": int(scan["points"]), "has_sensor": bool(scan["has_sensor"]),
+        # what the tiles will carry onto the vertices (--attributes of what the inputs have)
+        "attributes": [n for n, _ in carried_layout(scan.get("attributes", []), tiling.attributes)],
         "partition_reused": reused is not None, "index_sample": sampled,
         "lattice": {"origin": list(plan.lattice.origin), "cell_size": plan.lattice.cell_size,
                     "shape": list(plan.lattice.shape), "tile_cells": tiling.tile_cells,
@@ -115,7 +118,8 @@ def format_plan(info: dict, max_memory: int | None = None) -> str:
     lines = [
         f"dry run: nothing is solved{source}",
         f"input:    {info['points']:,} points{' with sensor origins' if info['has_sensor'] else ''} "
-        f"in {len(info['inputs'])} file(s)",
+        f"in {len(info['inputs'])} file(s)"
+        + (f"; carrying {', '.join(info['attributes'])} onto the vertices" if info.get("attributes") else ""),
         f"lattice:  cell {cell:g}{units}, origin ({', '.join(f'{v:.10g}' for v in lat['origin'])}), "
         f"{' x '.join(str(v - 1) for v in lat['shape'])} cells, {lat['levels']} solver level(s)",
         f"tiles:    {t['with_points']} with points of {t['planned']} planned "

@@ -19,7 +19,7 @@ from .errors import InputError
 
 __all__ = ["PointCloud", "clean_points", "duplicate_mask", "concat_clouds", "cloud_slices",
            "drop_nonfinite_rows", "unit_normals", "as_points", "degeneracy", "stream_degeneracy",
-           "degenerate_error", "COORDINATE_LIMIT"]
+           "degenerate_error", "COORDINATE_LIMIT", "colors_of"]
 
 # Relative tolerance on singular values for the collinear / coplanar tests (see clean_points).
 _DEGENERATE_RTOL = 1e-9
@@ -426,6 +426,57 @@ def degenerate_error(what: str, n: int, kind: str) -> InputError:
 
 # ------------------------------------------------------------------------------------------------------------
 # point clouds of other libraries
+
+
+def colors_of(obj: Any) -> dict:
+    """Per-point colour (and, from pyvista, intensity and classification) of a pyvista, Open3D or trimesh cloud.
+
+    Parameters
+    ----------
+    obj : object
+        As :func:`as_points` takes it. pyvista: point arrays ``red``, ``green``, ``blue`` (in their type), or
+        ``RGB``/``RGBA`` (N, 3 or 4); and 1-D ``intensity`` and ``classification`` arrays. Open3D: ``colors``
+        when ``has_colors()`` (floats in [0, 1], scaled to 8 bits). trimesh: a ``PointCloud``'s ``colors`` or a
+        ``Trimesh``'s per-vertex ``visual.vertex_colors`` (uint8).
+
+    Returns
+    -------
+    dict of str to (N,) arrays
+        ``red``, ``green``, ``blue`` (uint8 unless pyvista gave another type), ``intensity``, ``classification``
+        as found; empty for anything else (arrays, :class:`PointCloud`) or an object without colour.
+    """
+    if isinstance(obj, (np.ndarray, PointCloud, list, tuple)):
+        return {}
+    out: dict = {}
+    rgb = None
+    if hasattr(obj, "point_data") and hasattr(obj, "points"):  # pyvista.DataSet
+        data = obj.point_data
+        keys = set(data.keys())
+        if {"red", "green", "blue"} <= keys:
+            out.update({c: np.asarray(data[c]).reshape(-1) for c in ("red", "green", "blue")})
+        else:
+            for name in ("RGB", "RGBA"):
+                if name in keys and np.asarray(data[name]).ndim == 2:
+                    rgb = np.asarray(data[name])[:, :3]
+                    break
+        for name in ("intensity", "classification"):
+            if name in keys and np.asarray(data[name]).ndim == 1:
+                out[name] = np.asarray(data[name]).copy()
+    elif callable(getattr(obj, "has_colors", None)) and hasattr(obj, "colors"):  # open3d.geometry.PointCloud
+        if obj.has_colors():
+            rgb = np.clip(np.rint(np.asarray(obj.colors) * 255.0), 0, 255).astype(np.uint8)
+    elif hasattr(obj, "vertices"):  # trimesh
+        colors = getattr(obj, "colors", None) if not hasattr(obj, "faces") else None
+        visual = getattr(obj, "visual", None)
+        if colors is None and visual is not None and getattr(visual, "kind", None) == "vertex":
+            colors = visual.vertex_colors
+        if colors is not None and len(colors) == len(obj.vertices) and len(colors):
+            rgb = np.asarray(colors)[:, :3]
+    if rgb is not None:
+        if rgb.dtype.kind == "f":  # floats in [0, 1]
+            rgb = np.clip(np.rint(rgb * 255.0), 0, 255).astype(np.uint8)
+        out.update({c: np.ascontiguousarray(rgb[:, i]) for i, c in enumerate(("red", "green", "blue"))})
+    return out
 
 
 def as_points(obj: Any) -> tuple[Any, np.ndarray | None]:

@@ -126,8 +126,8 @@ def plan_indexed(inputs: list[str], tiling: TilingConfig,
     -------
     plan : TilePlan
     scan : dict
-        As :func:`tiled_gridpull.prepare.scan_inputs` (bounds, points, ``has_sensor`` False, crs), plus
-        ``indexed``: the inputs' kinds.
+        As :func:`tiled_gridpull.prepare.scan_inputs` (bounds, points, ``has_sensor`` False, crs, the
+        ``attributes`` every input has), plus ``indexed``: the inputs' kinds.
     indexes : list of PointIndex
     """
     indexes = ([cached_index(p) for p in inputs] if sources is None
@@ -142,7 +142,9 @@ def plan_indexed(inputs: list[str], tiling: TilingConfig,
     hi = np.max([ix.bounds[1] for ix in holding], axis=0)
     if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi)) and np.all(lo <= hi)):
         raise InputError(f"{', '.join(map(shown, inputs))}: the header's bounds are not finite or inverted")
-    scan = {"bounds": np.stack([lo, hi]), "points": n, "has_sensor": False,
+    # the attributes every input with points has (the first one's types)
+    layout = [a for a in holding[0].attributes if all(a[0] in dict(ix.attributes) for ix in holding[1:])]
+    scan = {"bounds": np.stack([lo, hi]), "points": n, "has_sensor": False, "attributes": layout,
             "crs": next((ix.crs for ix in indexes if ix.crs), None),
             "indexed": sorted({ix.kind for ix in indexes})}
     return plan_tiles(scan["bounds"], n, tiling), scan, indexes
@@ -211,10 +213,12 @@ def _read_box(plan: TilePlan, tile: tuple) -> tuple[np.ndarray, np.ndarray]:
     return np.where(t == 0, -np.inf, lo), np.where(t == np.asarray(plan.tile_range) - 1, np.inf, hi)
 
 
-def read_tile(inputs: list, plan: TilePlan, tile: tuple, out_dir: str) -> tuple[TileSpec | None, int]:
+def read_tile(inputs: list, plan: TilePlan, tile: tuple, out_dir: str,
+              attributes: list | tuple = ()) -> tuple[TileSpec | None, int]:
     """One tile's task: read its points from the indexed ``inputs`` (:class:`IndexedSource`, or paths and URLs)
     and write its spill file and occupancy in ``out_dir`` (the job's points directory). An input whose octree
-    does not reach the tile's box is not opened.
+    does not reach the tile's box is not opened. ``attributes`` (``[(name, numpy type string)]``): the point
+    attributes to keep beside the spill file (:func:`~tiled_gridpull.partition.partition`).
 
     Returns
     -------
@@ -229,15 +233,15 @@ def read_tile(inputs: list, plan: TilePlan, tile: tuple, out_dir: str) -> tuple[
 
     def chunks():
         nonlocal owned
-        for cloud in _tile_clouds(inputs, plan, tile):
+        for cloud in _tile_clouds(inputs, plan, tile, attributes=bool(attributes)):
             owned += int(_owned(plan, tile, cloud.xyz).sum())
             yield cloud
 
-    specs = partition(chunks(), plan, out_dir, False, only=tile)
+    specs = partition(chunks(), plan, out_dir, False, only=tile, attributes=attributes)
     return (specs[0] if specs else None), owned
 
 
-def _tile_clouds(inputs: list, plan: TilePlan, tile: tuple) -> Iterator[PointCloud]:
+def _tile_clouds(inputs: list, plan: TilePlan, tile: tuple, attributes: bool = False) -> Iterator[PointCloud]:
     """The points of the inputs in the tile's read box (:func:`_read_box`), input by input in stream order."""
     lo, hi = _read_box(plan, tile)
     for src in inputs:
@@ -248,7 +252,8 @@ def _tile_clouds(inputs: list, plan: TilePlan, tile: tuple) -> Iterator[PointClo
             continue
         ix = cached_index(src.path, src.version)
         # an open side (a border tile) reaches as far as the input's octree does
-        yield from read_box(ix, np.where(np.isinf(lo), s_lo, lo), np.where(np.isinf(hi), s_hi, hi))
+        yield from read_box(ix, np.where(np.isinf(lo), s_lo, lo), np.where(np.isinf(hi), s_hi, hi),
+                            attributes=attributes)
 
 
 def _owned(plan: TilePlan, tile: tuple, xyz: np.ndarray) -> np.ndarray:

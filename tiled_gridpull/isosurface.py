@@ -138,7 +138,7 @@ def relax_on_field(mesh: Mesh, fld: Field, iterations: int) -> Mesh:
         moved[~ok] = old[free][~ok]
         v[free] = moved
         _undo_folds(v, old, faces, facing)
-    return Mesh(v, faces, mesh.metadata)
+    return Mesh(v, faces, mesh.metadata, mesh.vertex_attributes)
 
 
 def _normals(v: np.ndarray, faces: np.ndarray) -> np.ndarray:

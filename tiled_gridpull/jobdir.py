@@ -6,7 +6,8 @@ A job directory holds everything a run produces, so a finished or interrupted jo
 * ``manifest.json``: the tile plan and the tiles (:func:`write_manifest`), written last by the partition;
 * ``points/<tile>.points``: each tile's spill file, records of :data:`SPILL_RECORD` (or
   :data:`SPILL_RECORD_SENSOR` when sensor origins are known), and ``points/<tile>.occ.npy``, its occupied-brick
-  mask (:mod:`tiled_gridpull.partition`);
+  mask (:mod:`tiled_gridpull.partition`); ``points/<tile>.attrs`` beside it when the job carries point attributes
+  (one record of them per point, in the spill file's order: :func:`tiled_gridpull.partition.attribute_record`);
 * ``fields/<tile>.npz``: solved tile fields (:mod:`tiled_gridpull.tile_field`);
 * ``pieces/<tile>.npz``: tile meshes (:mod:`tiled_gridpull.stitch`);
 * ``summaries/<step>_<tile>.json``: one JSON per finished tile step, with the key of what produced it;

@@ -101,7 +101,7 @@ class JobView:
         if not p.is_file():
             raise InputError(f"{name}: no mesh piece ({p} missing: tile not solved or not meshed yet)")
         piece = load_piece(p)
-        return Mesh(piece.vertices, piece.faces, {"tile": name})
+        return piece.mesh({"tile": name})
 
     def welded(self, names: list[str]) -> Mesh:
         """The pieces of several tiles welded by edge key, as the job does (shared border vertices merged)."""

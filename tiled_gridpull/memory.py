@@ -68,6 +68,10 @@ KNN_MAX = 64
 NORMALS_CHUNK = 200_000
 NORMALS_BYTES = 750  # per point of a normal-estimation chunk with 16 neighbours: indices, coordinates, covariance
 TRIM_BYTES = 60  # mesh step: the tile's points as float64 and their KD-tree
+# mesh step of a tile that carries point attributes: the centred float64 copy of its points the interpolation's
+# KD-tree is built on (trim's tree is freed by then), plus the attribute records twice (read, then per field);
+# counted from the arrays' sizes, not measured
+ATTRIBUTE_POINT_BYTES = 24
 QUERY_BYTES = 16 * 8 + 16 * 4 + 4 * 4 + 8 + 3 * 4 * 3 + 8 + 4  # slots, grads, losses, centres, q, s, nn
 POOL_BYTES_PER_QUERY = 4  # int32 nearest-point index per pooled query
 UNTRACKED = 1.15  # allocations numpy does not see (KD-trees, numba's per-brick buffers) and heap fragmentation
@@ -193,7 +197,11 @@ def tile_memory(spec: TileSpec, occupancy: np.ndarray, solver: SolverConfig, til
     solve = base + UNTRACKED * (points + max(phases))
     own = bricks[-1]
     fields = (own + sum(neighbor_bricks or [])) * SLOT * FIELD_BYTES_PER_SLOT
-    mesh = base + UNTRACKED * (fields + own * SLOT * BLEND_BYTES_PER_SLOT + n * TRIM_BYTES)
+    carried = 0
+    if getattr(spec, "attributes", ()):
+        record = sum(np.dtype(t).itemsize for _, t in spec.attributes)
+        carried = n * (ATTRIBUTE_POINT_BYTES + 2 * record)
+    mesh = base + UNTRACKED * (fields + own * SLOT * BLEND_BYTES_PER_SLOT + n * TRIM_BYTES + carried)
     return {"solve": float(solve), "mesh": float(mesh), "peak": float(max(solve, mesh)), "bricks": bricks,
             "points": n}
 

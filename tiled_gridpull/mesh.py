@@ -12,9 +12,51 @@ from functools import cached_property
 import numpy as np
 
 from ._optional import require
+from .cloud import colors_of
 from .kernels import graph as kg
 
-__all__ = ["Mesh", "MeshTopology", "edge_groups"]
+__all__ = ["Mesh", "MeshTopology", "edge_groups", "take_attributes", "COLOR_CHANNELS", "color_full_scale",
+           "colors_unit"]
+
+#: The vertex attributes that hold a colour, in order (see :attr:`Mesh.vertex_attributes`).
+COLOR_CHANNELS = ("red", "green", "blue")
+
+
+def take_attributes(attributes: dict, idx) -> dict:
+    """The rows ``idx`` (index array, boolean mask or slice) of every per-vertex array of ``attributes``.
+
+    The one helper every operation that subsets, reorders or duplicates vertices uses to keep
+    :attr:`Mesh.vertex_attributes` aligned with ``vertices``.
+    """
+    return {k: np.asarray(v)[idx] for k, v in attributes.items()}
+
+
+def color_full_scale(attributes: dict) -> float | None:
+    """The value of full intensity of the colour channels of ``attributes`` (None: they have no colour).
+
+    uint8 channels: 255. uint16 channels: 65535, except when no value exceeds 255 -- 8-bit colour stored in
+    LAS's 16-bit fields, as many files (Autzen among them) do although the LAS specification asks for 16-bit
+    values -- then 255. Float channels: 1. Used only to show colours (conversions, pictures): the stored values
+    are never rescaled.
+    """
+    if not all(c in attributes for c in COLOR_CHANNELS):
+        return None
+    rgb = [np.asarray(attributes[c]) for c in COLOR_CHANNELS]
+    if np.issubdtype(rgb[0].dtype, np.floating):
+        return 1.0
+    if rgb[0].dtype == np.uint8:
+        return 255.0
+    top = max((int(c.max()) for c in rgb if c.size), default=0)
+    return 255.0 if top <= 255 else 65535.0
+
+
+def colors_unit(attributes: dict) -> np.ndarray | None:
+    """The colour channels of ``attributes`` as (V, 3) float64 in [0, 1] (:func:`color_full_scale`), or None."""
+    scale = color_full_scale(attributes)
+    if scale is None:
+        return None
+    rgb = np.column_stack([np.asarray(attributes[c], dtype=np.float64) for c in COLOR_CHANNELS])
+    return np.clip(rgb / scale, 0.0, 1.0)
 
 
 @dataclass(frozen=True)
@@ -54,15 +96,36 @@ class Mesh:
     faces : (F, 3) int64
     metadata : dict
         Provenance (config, lattice, version, timings), written beside the mesh.
+    vertex_attributes : dict of str to (V,) arrays
+        Per-vertex values interpolated from the input points (empty when the input had none, or with
+        ``attributes="none"``), row ``i`` belonging to ``vertices[i]``:
+
+        - ``red``, ``green``, ``blue``: (V,) in the input's own type and bit depth, never rescaled: uint16 from
+          LAS/LAZ (the format's type; many files hold 8-bit values in it, see :func:`color_full_scale`),
+          uint8 or uint16 from PLY as its properties are declared;
+        - ``intensity``: (V,) float32, or the input's integer type (uint16 from LAS/LAZ);
+        - ``classification``: (V,) uint8 (the ASPRS class codes; a vertex takes its neighbours' majority);
+        - LAS extra dimensions under their own names, in their own type.
+
+        Every operation that subsets, reorders or adds vertices keeps them aligned (:func:`take_attributes`).
     """
 
     vertices: np.ndarray
     faces: np.ndarray
     metadata: dict = field(default_factory=dict)
+    vertex_attributes: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self.vertices = np.ascontiguousarray(self.vertices, dtype=np.float64).reshape(-1, 3)
         self.faces = np.ascontiguousarray(self.faces, dtype=np.int64).reshape(-1, 3)
+        attrs = {}
+        for name, values in (self.vertex_attributes or {}).items():
+            values = np.ascontiguousarray(values)
+            if values.ndim != 1 or len(values) != len(self.vertices):
+                raise ValueError(f"Mesh: vertex attribute {name!r} has shape {values.shape}, expected "
+                                 f"({len(self.vertices)},)")
+            attrs[str(name)] = values
+        self.vertex_attributes = attrs
 
     @property
     def n_vertices(self) -> int:
@@ -144,7 +207,12 @@ class Mesh:
         """Mesh of the selected faces, unreferenced vertices dropped."""
         faces = self.faces[face_mask]
         used, inverse = np.unique(faces, return_inverse=True)
-        return Mesh(self.vertices[used], inverse.reshape(-1, 3), dict(self.metadata))
+        return Mesh(self.vertices[used], inverse.reshape(-1, 3), dict(self.metadata),
+                    take_attributes(self.vertex_attributes, used))
+
+    def with_vertex_attributes(self, attributes: dict) -> Mesh:
+        """The same mesh (vertices and faces shared, metadata copied) carrying ``attributes`` (name to (V,))."""
+        return Mesh(self.vertices, self.faces, dict(self.metadata), attributes)
 
     # ------------------------------------------------------------------ conversions
     def to_pyvista(self):
@@ -154,10 +222,18 @@ class Mesh:
         -------
         pyvista.PolyData
             ``points`` (V, 3) float64 world coordinates and ``regular_faces`` (F, 3) int64, in this mesh's
-            order.
+            order; every vertex attribute as a point-data array of its name, and the colours as ``"RGB"``
+            (V, 3) uint8 (scaled by :func:`color_full_scale`) when the mesh has them.
         """
         pv = require("pyvista", "Mesh.to_pyvista")
-        return pv.PolyData.from_regular_faces(self.vertices, self.faces)
+        poly = pv.PolyData.from_regular_faces(self.vertices, self.faces)
+        for name, values in self.vertex_attributes.items():
+            poly.point_data[name] = values
+        rgb = colors_unit(self.vertex_attributes)
+        if rgb is not None:
+            # what ``plot(scalars="RGB", rgb=True)`` shows
+            poly.point_data["RGB"] = np.round(rgb * 255).astype(np.uint8)
+        return poly
 
     def to_trimesh(self):
         """The mesh as a :class:`trimesh.Trimesh` (needs trimesh).
@@ -166,10 +242,19 @@ class Mesh:
         -------
         trimesh.Trimesh
             ``vertices`` (V, 3) float64 world coordinates and ``faces`` (F, 3) int64, in this mesh's order:
-            built with ``process=False`` so trimesh neither merges vertices nor drops faces.
+            built with ``process=False`` so trimesh neither merges vertices nor drops faces. Colours become
+            ``visual.vertex_colors`` (V, 4) uint8 (scaled by :func:`color_full_scale`, alpha 255); every vertex
+            attribute is in ``vertex_attributes`` under its name, as stored.
         """
         tm = require("trimesh", "Mesh.to_trimesh")
-        return tm.Trimesh(vertices=self.vertices.copy(), faces=self.faces.copy(), process=False)
+        rgb = colors_unit(self.vertex_attributes)
+        colors = None
+        if rgb is not None:
+            colors = np.full((self.n_vertices, 4), 255, np.uint8)
+            colors[:, :3] = np.round(rgb * 255).astype(np.uint8)
+        attrs = {k: v.copy() for k, v in self.vertex_attributes.items()}
+        return tm.Trimesh(vertices=self.vertices.copy(), faces=self.faces.copy(), process=False,
+                          vertex_colors=colors, vertex_attributes=attrs)
 
     def to_open3d(self):
         """The mesh as an :class:`open3d.geometry.TriangleMesh` (needs open3d).
@@ -178,11 +263,17 @@ class Mesh:
         -------
         open3d.geometry.TriangleMesh
             ``vertices`` (V, 3) float64 world coordinates and ``triangles`` (F, 3) int32 (Open3D's index
-            type), in this mesh's order.
+            type), in this mesh's order; ``vertex_colors`` (V, 3) float64 in [0, 1] (scaled by
+            :func:`color_full_scale`) when the mesh has colours. Open3D's mesh has no place for the other
+            attributes.
         """
         o3d = require("open3d", "Mesh.to_open3d")
-        return o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(self.vertices),
-                                         o3d.utility.Vector3iVector(self.faces.astype(np.int32)))
+        out = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(self.vertices),
+                                        o3d.utility.Vector3iVector(self.faces.astype(np.int32)))
+        rgb = colors_unit(self.vertex_attributes)
+        if rgb is not None:
+            out.vertex_colors = o3d.utility.Vector3dVector(rgb)
+        return out
 
     @classmethod
     def from_trimesh(cls, mesh) -> Mesh:
@@ -196,9 +287,11 @@ class Mesh:
         Returns
         -------
         Mesh
-            ``vertices`` (V, 3) float64, ``faces`` (F, 3) int64.
+            ``vertices`` (V, 3) float64, ``faces`` (F, 3) int64; per-vertex colours (``visual.vertex_colors``)
+            as ``red``, ``green``, ``blue`` uint8 vertex attributes.
         """
-        return cls(np.array(mesh.vertices, dtype=np.float64), np.array(mesh.faces, dtype=np.int64))
+        return cls(np.array(mesh.vertices, dtype=np.float64), np.array(mesh.faces, dtype=np.int64), {},
+                   colors_of(mesh))
 
     @classmethod
     def from_pyvista(cls, poly, *, triangulate: bool = False) -> Mesh:
@@ -216,7 +309,8 @@ class Mesh:
         Returns
         -------
         Mesh
-            ``vertices`` (V, 3) float64, ``faces`` (F, 3) int64.
+            ``vertices`` (V, 3) float64, ``faces`` (F, 3) int64; colour, intensity and classification point
+            arrays (:func:`~tiled_gridpull.cloud.colors_of`) as vertex attributes.
 
         Raises
         ------
@@ -237,7 +331,7 @@ class Mesh:
             poly = poly.triangulate()
             has_polys = poly.faces.size > 0
         faces = poly.regular_faces if has_polys else np.empty((0, 3), dtype=np.int64)
-        return cls(np.array(poly.points, dtype=np.float64), np.array(faces, dtype=np.int64))
+        return cls(np.array(poly.points, dtype=np.float64), np.array(faces, dtype=np.int64), {}, colors_of(poly))
 
     @classmethod
     def from_open3d(cls, mesh) -> Mesh:
@@ -251,10 +345,15 @@ class Mesh:
         Returns
         -------
         Mesh
-            ``vertices`` (V, 3) float64, ``faces`` (F, 3) int64.
+            ``vertices`` (V, 3) float64, ``faces`` (F, 3) int64; ``vertex_colors`` (floats in [0, 1]) as
+            ``red``, ``green``, ``blue`` uint8 vertex attributes.
         """
+        attrs = {}
+        if mesh.has_vertex_colors():
+            rgb = np.clip(np.rint(np.asarray(mesh.vertex_colors) * 255.0), 0, 255).astype(np.uint8)
+            attrs = {c: np.ascontiguousarray(rgb[:, i]) for i, c in enumerate(("red", "green", "blue"))}
         return cls(np.asarray(mesh.vertices, dtype=np.float64).copy(),
-                   np.asarray(mesh.triangles, dtype=np.int64).copy())
+                   np.asarray(mesh.triangles, dtype=np.int64).copy(), {}, attrs)
 
     @classmethod
     def from_any(cls, obj, *, triangulate: bool = False) -> Mesh:

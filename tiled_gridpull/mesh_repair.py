@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .attributes import mean_attributes
 from .kernels import graph as kg
 from .mesh import Mesh, edge_groups
 
@@ -122,9 +123,14 @@ def close_holes(mesh: Mesh, loops: list[np.ndarray]) -> Mesh:
         return mesh
     verts = [mesh.vertices]
     faces = [mesh.faces]
+    attrs = {name: [values] for name, values in mesh.vertex_attributes.items()}
     n = mesh.n_vertices
     for k, loop in enumerate(loops):
         verts.append(mesh.vertices[loop].mean(axis=0, keepdims=True))
         centre = np.full(len(loop), n + k, np.int64)
         faces.append(np.stack([np.roll(loop, -1), loop, centre], axis=1))
-    return Mesh(np.concatenate(verts), np.concatenate(faces), dict(mesh.metadata))
+        # the centre's attributes: the loop's mean (its most common class)
+        for name, value in mean_attributes(mesh.vertex_attributes, loop).items():
+            attrs[name].append(value)
+    return Mesh(np.concatenate(verts), np.concatenate(faces), dict(mesh.metadata),
+                {name: np.concatenate(parts) for name, parts in attrs.items()})

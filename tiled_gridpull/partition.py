@@ -19,13 +19,14 @@ from .jobdir import spill_record
 from .kernels import BRICK
 from .tile_plan import TilePlan, TileSpec
 
-__all__ = ["partition", "merge_segments", "read_occupancy", "read_tile_points"]
+__all__ = ["partition", "merge_segments", "read_occupancy", "read_tile_points", "read_tile_attributes",
+           "attribute_record"]
 
 
 
 def partition(chunks: Iterable, plan: TilePlan, out_dir: str | Path | None, has_sensor: bool,
               flush_points: int = 2_000_000, occupancy: dict | None = None,
-              only: tuple[int, int, int] | None = None) -> list[TileSpec]:
+              only: tuple[int, int, int] | None = None, attributes: list | tuple = ()) -> list[TileSpec]:
     """Stream point chunks into per-tile spill files (the partition pass).
 
     Parameters
@@ -46,6 +47,9 @@ def partition(chunks: Iterable, plan: TilePlan, out_dir: str | Path | None, has_
         Write this tile alone and ignore the chunks' points in other tiles: one tile's task reading its region
         of an indexed input (:mod:`tiled_gridpull.indexed_inputs`). Its spill file is the one a whole partition
         of the same stream writes for it, byte for byte.
+    attributes : list of (name, numpy type string)
+        Per-point attributes of the chunks to keep (:func:`tiled_gridpull.attributes.attribute_layout`): each
+        tile also gets ``<tile>.attrs``, one record of them per point of its spill file, in the same order.
 
     Returns
     -------
@@ -58,6 +62,10 @@ def partition(chunks: Iterable, plan: TilePlan, out_dir: str | Path | None, has_
         out.mkdir(parents=True, exist_ok=True)
     exact = plan.exact_offsets
     dtype = spill_record(has_sensor, exact)
+    attributes = tuple((str(n), str(t)) for n, t in attributes)
+    adtype = attribute_record(attributes)
+    attr_buffers: dict[tuple, list] = {}
+    attr_hashes: dict[tuple, hashlib._Hash] = {}
     counts: dict[tuple, int] = {}
     halo_counts: dict[tuple, int] = {}
     buffers: dict[tuple, list] = {}
@@ -81,16 +89,30 @@ def partition(chunks: Iterable, plan: TilePlan, out_dir: str | Path | None, has_
                     data = part.tobytes()
                     h.update(data)
                     fh.write(data)
+        for key, parts in attr_buffers.items():
+            h = attr_hashes.setdefault(key, hashlib.sha256())
+            if not write:
+                for part in parts:
+                    h.update(part.tobytes())
+                continue
+            path = tmp_paths.setdefault(("attrs", key), out / f".{plan.spec(key).name}.attrs.partial")
+            with naming(out / f"{plan.spec(key).name}.attrs"), open_no_follow(path, "ab") as fh:
+                for part in parts:
+                    data = part.tobytes()
+                    h.update(data)
+                    fh.write(data)
         buffers.clear()
+        attr_buffers.clear()
         buffered = 0
 
     started = False
     for chunk in chunks:
         if not started and write:
             # other tiles' tasks may be writing beside a one-tile partition: remove only its own leftovers
-            pattern = f".{plan.spec(only).name}.points.partial" if only is not None else ".*.points.partial"
-            for stale in out.glob(pattern):
-                stale.unlink()
+            for kind in ("points", "attrs"):
+                pattern = f".{plan.spec(only).name}.{kind}.partial" if only is not None else f".*.{kind}.partial"
+                for stale in out.glob(pattern):
+                    stale.unlink()
         started = True
         xyz = np.asarray(chunk.xyz, dtype=np.float64)
         if len(xyz) == 0:
@@ -129,6 +151,11 @@ def partition(chunks: Iterable, plan: TilePlan, out_dir: str | Path | None, has_
                 # the points read for the denoising halo only (what the solve crops them to: tile_solve._denoise)
                 halo_counts[t] = halo_counts.get(t, 0) + int((~spec.in_block(rec["xyz"])).sum())
             buffers.setdefault(t, []).append(rec)
+            if attributes:
+                arec = np.empty(len(sel), adtype)
+                for name, _ in attributes:
+                    arec[name] = chunk.attributes[name][sel]
+                attr_buffers.setdefault(t, []).append(arec)
             counts[t] = counts.get(t, 0) + len(sel)
             buffered += len(sel)
         if buffered >= flush_points:
@@ -142,18 +169,22 @@ def partition(chunks: Iterable, plan: TilePlan, out_dir: str | Path | None, has_
         if write:
             final = out / f"{spec.name}.points"
             replace_file(tmp_paths[t], final)
+            if attributes:
+                replace_file(tmp_paths[("attrs", t)], final.with_suffix(".attrs"))
             path = str(final)
             write_occupancy(final.with_suffix(".occ.npy"), grid)
         if occupancy is not None:
             occupancy[t] = grid
         specs.append(plan.spec(t, n_points=counts[t], points_path=path, has_sensor=has_sensor,
                                points_sha256=hashes[t].hexdigest(), occupied_bricks=int(grid.sum()),
-                               halo_points=halo_counts.get(t, 0)))
+                               halo_points=halo_counts.get(t, 0), attributes=attributes,
+                               attributes_sha256=attr_hashes[t].hexdigest() if attributes else ""))
     return specs
 
 
 def merge_segments(parts: list[list[TileSpec]], plan: TilePlan, out_dir: str | Path | None, has_sensor: bool,
-                   occupancy: dict | None = None, part_occupancy: list[dict] | None = None) -> list[TileSpec]:
+                   occupancy: dict | None = None, part_occupancy: list[dict] | None = None,
+                   attributes: list | tuple = ()) -> list[TileSpec]:
     """Join the partitions of consecutive segments of the input stream (each written by :func:`partition` into
     a directory of its own, in stream order) into the partition of the whole stream.
 
@@ -171,7 +202,10 @@ def merge_segments(parts: list[list[TileSpec]], plan: TilePlan, out_dir: str | P
         Filled with the joined masks, as :func:`partition` fills it.
     part_occupancy : list of dict, optional
         Each segment's masks (a counting pass, nothing on disk); by default read beside the segments' files.
+    attributes : list of (name, numpy type string)
+        The attribute layout the segments were partitioned with: their ``.attrs`` files are joined alike.
     """
+    attributes = tuple((str(n), str(t)) for n, t in attributes)
     by_tile: dict[tuple, list[tuple[int, TileSpec]]] = {}
     for k, specs in enumerate(parts):
         for spec in specs:
@@ -188,6 +222,7 @@ def merge_segments(parts: list[list[TileSpec]], plan: TilePlan, out_dir: str | P
         spec = plan.spec(t)
         # a counting pass hashed each segment's records apart: the hash of their join is not known there
         path, digest = "", pieces[0][1].points_sha256 if len(pieces) == 1 else ""
+        attr_digest = pieces[0][1].attributes_sha256 if len(pieces) == 1 else ""
         if out is not None:
             final = out / f"{spec.name}.points"
             h = hashlib.sha256()
@@ -197,16 +232,28 @@ def merge_segments(parts: list[list[TileSpec]], plan: TilePlan, out_dir: str | P
                         for block in iter(lambda: src.read(1 << 22), b""):
                             h.update(block)
                             fh.write(block)
+            if attributes:
+                ha = hashlib.sha256()
+                with atomic_open(final.with_suffix(".attrs")) as fh:
+                    for _, piece in pieces:
+                        with open(piece.attributes_path, "rb") as src:
+                            for block in iter(lambda: src.read(1 << 22), b""):
+                                ha.update(block)
+                                fh.write(block)
+                attr_digest = ha.hexdigest()
             write_occupancy(final.with_suffix(".occ.npy"), grid)
             path, digest = str(final), h.hexdigest()
             for _, piece in pieces:
                 Path(piece.points_path).unlink(missing_ok=True)
                 Path(piece.occupancy_path).unlink(missing_ok=True)
+                if piece.attributes_path:
+                    Path(piece.attributes_path).unlink(missing_ok=True)
         if occupancy is not None:
             occupancy[t] = grid
         merged.append(plan.spec(t, n_points=n, points_path=path, has_sensor=has_sensor, points_sha256=digest,
                                 occupied_bricks=int(grid.sum()),
-                                halo_points=sum(piece.halo_points for _, piece in pieces)))
+                                halo_points=sum(piece.halo_points for _, piece in pieces),
+                                attributes=attributes, attributes_sha256=attr_digest if attributes else ""))
     return merged
 
 
@@ -228,6 +275,21 @@ def read_occupancy(spec: TileSpec) -> np.ndarray:
     bshape = tuple(int(v) for v in -(-np.asarray(spec.block.shape) // BRICK))
     bits = np.load(spec.occupancy_path)
     return np.unpackbits(bits, count=int(np.prod(bshape))).astype(bool).reshape(bshape)
+
+
+def attribute_record(attributes) -> np.dtype:
+    """The record of an attribute spill file: one field per ``(name, numpy type string)`` of ``attributes``."""
+    return np.dtype([(str(n), np.dtype(t)) for n, t in attributes])
+
+
+def read_tile_attributes(spec: TileSpec) -> dict:
+    """A tile's per-point attributes (name to (N,) array, the spill file's order); empty when it keeps none."""
+    if not spec.attributes:
+        return {}
+    rec = np.fromfile(spec.attributes_path, dtype=attribute_record(spec.attributes))
+    if len(rec) != spec.n_points:
+        raise ValueError(f"{spec.attributes_path}: {len(rec)} attribute records for {spec.n_points} points")
+    return {name: np.ascontiguousarray(rec[name]) for name, _ in spec.attributes}
 
 
 def read_tile_points(spec: TileSpec) -> tuple[np.ndarray, np.ndarray | None]:

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from ._version import __version__
+from .attributes import attribute_layout, select_attributes
 from .config import SCAN_NOISE_SETTINGS, SolverConfig
 from .crs import check_same_crs, crs_name
 from .errors import ConfigError, InputError
@@ -243,6 +244,7 @@ def _scan(chunks) -> dict:
     n = 0
     sample = []
     has_sensor = True
+    attrs: dict | None = None  # name -> type of the attributes every chunk so far has
     crs = crs_source = bare_source = None  # the first chunk declaring a CRS, and the first declaring none
     for chunk in chunks:
         if chunk.crs:
@@ -259,10 +261,12 @@ def _scan(chunks) -> dict:
         hi = np.maximum(hi, chunk.xyz.max(axis=0))
         n += len(chunk)
         has_sensor &= chunk.sensor is not None
+        mine = dict(attribute_layout(select_attributes(chunk.attributes, "all")))
+        attrs = mine if attrs is None else {name: t for name, t in attrs.items() if name in mine}
         # a copy: a strided view would keep every whole chunk alive, i.e. the whole input in memory
         sample.append(chunk.xyz[::SAMPLE_STRIDE].copy())
     return {"lo": lo, "hi": hi, "points": n, "has_sensor": bool(has_sensor), "crs": crs, "crs_source": crs_source,
-            "bare_source": bare_source, "sample": sample}
+            "bare_source": bare_source, "sample": sample, "attributes": list((attrs or {}).items())}
 
 
 def _joined_scan(parts: list[dict], inputs) -> dict:
@@ -275,7 +279,10 @@ def _joined_scan(parts: list[dict], inputs) -> dict:
         raise InputError(f"{', '.join(map(shown, inputs))}: no points")
     lo = np.min([p["lo"] for p in parts], axis=0)
     hi = np.max([p["hi"] for p in parts], axis=0)
-    return {"bounds": np.stack([lo, hi]), "points": n,
+    # the attributes every point has (the first segment's types)
+    with_points = [dict(p.get("attributes", [])) for p in parts if p["points"]]
+    attrs = [(a, t) for a, t in with_points[0].items() if all(a in w for w in with_points[1:])]
+    return {"bounds": np.stack([lo, hi]), "points": n, "attributes": attrs,
             "has_sensor": all(p["has_sensor"] for p in parts if p["points"]),
             "crs": next((p["crs"] for p in parts if p["crs"]), None),
             "sample": np.concatenate([x for p in parts for x in p["sample"]])}
@@ -328,16 +335,23 @@ def _rechunk(clouds, size: int, source: str):
     """``clouds`` (with sensor origins) as consecutive chunks of ``size`` points, the last one shorter; at most
     ``size`` points plus one cloud are held at a time."""
     xyz, sensor, held = [], [], 0
+    attrs: dict | None = None  # the per-point attributes every cloud so far has (a KITTI scan's intensity)
     for c in clouds:
         xyz.append(c.xyz)
         sensor.append(c.sensor)
+        mine = select_attributes(c.attributes, "all")
+        attrs = ({n: [v] for n, v in mine.items()} if attrs is None
+                 else {n: parts + [mine[n]] for n, parts in attrs.items() if n in mine})
         held += len(c)
         while held >= size:
             x, o = np.concatenate(xyz), np.concatenate(sensor)
-            yield PointCloud(x[:size], sensor=o[:size], source=source)
+            a = {n: np.concatenate(parts) for n, parts in attrs.items()}
+            yield PointCloud(x[:size], sensor=o[:size], source=source, attributes={n: v[:size] for n, v in a.items()})
             xyz, sensor, held = [x[size:]], [o[size:]], held - size
+            attrs = {n: [v[size:]] for n, v in a.items()}
     if held:
-        yield PointCloud(np.concatenate(xyz), sensor=np.concatenate(sensor), source=source)
+        yield PointCloud(np.concatenate(xyz), sensor=np.concatenate(sensor), source=source,
+                         attributes={n: np.concatenate(parts) for n, parts in (attrs or {}).items()})
 
 
 def _with_sensor(chunks, trajectory: Trajectory, path):
@@ -402,12 +416,13 @@ def scan_segment(seg: Segment, chunk_size: int, frames=None, trajectory: Traject
 
 
 def partition_segment(seg: Segment, plan: TilePlan, out_dir: str | None, has_sensor: bool, chunk_size: int,
-                      frames=None, trajectory: Trajectory | None = None) -> tuple[list[TileSpec], dict | None]:
+                      frames=None, trajectory: Trajectory | None = None,
+                      attributes: list | tuple = ()) -> tuple[list[TileSpec], dict | None]:
     """One task of the partition run in segments: :func:`~tiled_gridpull.partition.partition` of the segment's
     points into ``out_dir`` (its own directory), or counted only (``out_dir`` None; its masks returned)."""
     occupancy: dict | None = {} if out_dir is None else None
     specs = partition(_segment_chunks(seg, chunk_size, frames, trajectory), plan, out_dir, has_sensor,
-                      occupancy=occupancy)
+                      occupancy=occupancy, attributes=attributes if out_dir is not None else ())
     return specs, occupancy
 
 
@@ -443,6 +458,7 @@ def plan_inputs(inputs: list[str], tiling: TilingConfig, *, chunk_size: int = 2_
         scan = scan_inputs(inputs, chunk_size, frames, traj)
     if traj is not None:
         scan["trajectory"] = str(Path(trajectory).resolve())
+    scan["attributes"] = carried_layout(scan.get("attributes", []), tiling.attributes)
     sample = scan.pop("sample")
     # the body is only needed to drop far points or to explain a refused span: no quantiles on a plain job
     box = body_box(sample, pad=tiling.tile_size) if tiling.drop_outliers else None
@@ -478,6 +494,13 @@ def plan_inputs(inputs: list[str], tiling: TilingConfig, *, chunk_size: int = 2_
     if kind is not None:
         raise degenerate_error(", ".join(map(shown, inputs)), scan["points"], kind)
     return plan, scan, chunks
+
+
+def carried_layout(layout: list, mode: str) -> list[tuple[str, str]]:
+    """Of the attribute ``layout`` (``[(name, numpy type string)]``) the inputs have, those ``--attributes mode``
+    carries (:func:`~tiled_gridpull.attributes.select_attributes`)."""
+    dummy = {str(n): np.zeros(0, np.dtype(t)) for n, t in layout}
+    return [(n, str(t)) for n, t in layout if n in select_attributes(dummy, mode)]
 
 
 def prepare_job(inputs: list[str], tiling: TilingConfig, paths: JobPaths, *, frames=None,
@@ -525,7 +548,7 @@ def prepare_job(inputs: list[str], tiling: TilingConfig, paths: JobPaths, *, fra
         if check is not None:
             occupancy: dict = {}
             check(partition(chunks(), plan, None, scan["has_sensor"], occupancy=occupancy), occupancy)
-        specs = partition(chunks(), plan, paths.points(), scan["has_sensor"])
+        specs = partition(chunks(), plan, paths.points(), scan["has_sensor"], attributes=scan["attributes"])
     write_manifest(paths.manifest, plan, specs, {"inputs": [recorded(p) for p in inputs],
                                                  "crs": scan["crs"], "version": __version__,
                                                  "partition_key": key, "scan": scan_record(scan)})
@@ -559,10 +582,11 @@ def _partition_in_segments(inputs, tiling, paths: JobPaths, segments, chunk_size
     out = paths.points()
     parts = out / ".segments"  # one directory per segment; removed once joined
     shutil.rmtree(parts, ignore_errors=True)
-    written = run_tasks(partition_segment, [(seg, plan, str(parts / str(k)), has_sensor, chunk_size, frames, traj)
-                                            for k, seg in enumerate(segments)])
+    layout = scan["attributes"]
+    written = run_tasks(partition_segment, [(seg, plan, str(parts / str(k)), has_sensor, chunk_size, frames, traj,
+                                             layout) for k, seg in enumerate(segments)])
     out.mkdir(parents=True, exist_ok=True)
-    specs = merge_segments([w[0] for w in written], plan, out, has_sensor)
+    specs = merge_segments([w[0] for w in written], plan, out, has_sensor, attributes=layout)
     shutil.rmtree(parts, ignore_errors=True)
     scan["segments"] = len(segments)
     return plan, scan, specs
@@ -578,7 +602,8 @@ def _read_indexed(inputs, tiling, paths: JobPaths, check, run_tasks):
         raise degenerate_error(", ".join(map(shown, inputs)), scan["points"], kind)
     out = paths.points()
     out.mkdir(parents=True, exist_ok=True)
-    args = [(sources, plan, t, str(out)) for t in tiles]
+    scan["attributes"] = carried_layout(scan.get("attributes", []), tiling.attributes)
+    args = [(sources, plan, t, str(out), scan["attributes"]) for t in tiles]
     results = run_tasks(read_tile, args) if run_tasks is not None else [read_tile(*a) for a in args]
     specs = [s for s, _ in results if s is not None]
     scan["candidate_tiles"] = len(tiles)

@@ -16,7 +16,8 @@ from typing import Any
 import numpy as np
 
 from ._version import __version__
-from .cloud import PointCloud, as_points, clean_points
+from .attributes import ATTRIBUTE_NEIGHBORS, attribute_layout, check_mode, interpolate_attributes, select_attributes
+from .cloud import PointCloud, as_points, clean_points, colors_of
 from .config import NOISE_PRESETS, NOISE_SETTINGS, NORMALS_WEIGHT, SolverConfig, split_settings
 from .errors import ConfigError, InputError
 from .isosurface import extract_mesh, relax_on_field
@@ -106,6 +107,13 @@ def prepare_points(points: Any, normals: np.ndarray | None = None, *, what: str 
     report : dict
         What cleaning did.
     """
+    cloud = _prepare_cloud(points, normals, what=what, reject_planar=reject_planar)
+    return cloud.xyz, cloud.normals, dict(cloud.report)
+
+
+def _prepare_cloud(points: Any, normals: np.ndarray | None = None, *, what: str | None = None,
+                   reject_planar: bool = True) -> PointCloud:
+    """:func:`prepare_points`, returning the cleaned cloud (its attributes filtered with the points)."""
     if isinstance(points, PointCloud):
         cloud = points
         what = what or cloud.source or "input"
@@ -125,8 +133,7 @@ def prepare_points(points: Any, normals: np.ndarray | None = None, *, what: str 
             if nrm.shape != xyz.shape:
                 raise InputError(f"{what}: normals must have the shape of the points, got {nrm.shape}")
         cloud = PointCloud(xyz=xyz, normals=nrm, source=what)
-    cloud = clean_points(cloud, what=what, reject_planar=reject_planar)
-    return cloud.xyz, cloud.normals, dict(cloud.report)
+    return clean_points(cloud, what=what, reject_planar=reject_planar)
 
 
 def _noise_treatment(cfg: SolverConfig, xyz: np.ndarray):
@@ -154,7 +161,8 @@ def _noise_treatment(cfg: SolverConfig, xyz: np.ndarray):
 
 def reconstruct(points: Any, *, config: SolverConfig | None = None, normals: np.ndarray | None = None,
                 lattice: Lattice | None = None, progress: ProgressFn | None = None,
-                min_component_cells: float = 2.0, band_edges: str = "trim", **options: Any) -> Mesh:
+                min_component_cells: float = 2.0, band_edges: str = "trim", attributes: str = "all",
+                **options: Any) -> Mesh:
     """Reconstruct a triangle mesh from a point cloud with GridPull.
 
     Parameters
@@ -162,7 +170,8 @@ def reconstruct(points: Any, *, config: SolverConfig | None = None, normals: np.
     points : (N, 3) array_like, PointCloud, or a pyvista, Open3D or trimesh point cloud or mesh
         World coordinates (any magnitude: the solver works in lattice-local coordinates); normals come with
         the object when it has them (see :func:`~tiled_gridpull.cloud.as_points`) and, like a ``PointCloud``'s,
-        are used when ``normal_weight > 0``.
+        are used when ``normal_weight > 0``; so do its colours (:func:`~tiled_gridpull.cloud.colors_of`), carried
+        onto the vertices like a file's (``attributes``).
     config : SolverConfig, optional
         Solver settings (defaults: the schedule we ship, see :class:`~tiled_gridpull.config.SolverConfig`).
         Keyword ``options`` override single fields, e.g. ``resolution=128, iterations=800, seed=1``.
@@ -193,12 +202,17 @@ def reconstruct(points: Any, *, config: SolverConfig | None = None, normals: np.
         what it did (before the small closed pieces of ``min_component_cells`` are dropped). Replaces the
         ``close_band_holes`` keyword of earlier versions (True: ``close``, False: ``keep``; still accepted,
         with a ``DeprecationWarning``).
+    attributes : {"all", "rgb", "none"}
+        Which per-point attributes of a ``PointCloud`` (colour, intensity, classification, LAS extra
+        dimensions) are interpolated onto the vertices (:mod:`~tiled_gridpull.attributes`): every one it has
+        (default), the colour only, or none. They land in ``mesh.vertex_attributes``; the metadata's
+        ``vertex_attributes`` records the rule and what was carried.
 
     Returns
     -------
     Mesh
         Vertices float64 in the input's coordinates, faces int64 oriented outward; ``metadata`` holds the
-        config, lattice, version, timings and solve statistics.
+        config, lattice, version, timings and solve statistics; ``vertex_attributes`` the carried attributes.
     """
     t0 = time.perf_counter()
     cfg = config or SolverConfig()
@@ -216,15 +230,21 @@ def reconstruct(points: Any, *, config: SolverConfig | None = None, normals: np.
         cfg = cfg.replace(normal_weight=NORMALS_WEIGHT)
     if min_component_cells < 0:
         raise ConfigError(f"min_component_cells must be >= 0, got {min_component_cells!r}")
+    check_mode(attributes)
     if band_edges not in BAND_EDGES:
         raise ConfigError(f"band_edges must be one of {', '.join(BAND_EDGES)}, got {band_edges!r}")
     if cfg.mode == "udf" and band_edges != "trim":
         raise ConfigError(f"band_edges {band_edges!r} applies to signed mode (udf mode ends its sheets at the data "
                           "already)")
+    colors = colors_of(points)
     points, own_normals = as_points(points)
+    if colors:  # a pyvista, Open3D or trimesh cloud with colour: carried like a file's
+        points = PointCloud(np.asarray(points, dtype=np.float64), attributes=colors, source="input")
     # an open flat patch is a surface for the unsigned mode (a sheet); the signed mode needs an inside
-    xyz, nrm, report = prepare_points(points, own_normals if normals is None else normals,
-                                      reject_planar=cfg.mode == "sdf")
+    cleaned = _prepare_cloud(points, own_normals if normals is None else normals, reject_planar=cfg.mode == "sdf")
+    xyz, nrm, report = cleaned.xyz, cleaned.normals, dict(cleaned.report)
+    # interpolated from the cleaned points where they were read (not where denoising moves them)
+    point_attrs, attr_xyz = select_attributes(cleaned.attributes, attributes), xyz
     if cfg.losses.normal_weight > 0 and nrm is None:
         raise InputError("normal_weight > 0 needs input normals, but the cloud has none")
     cfg, treatment, raw_noise = _noise_treatment(cfg, xyz)
@@ -266,6 +286,8 @@ def reconstruct(points: Any, *, config: SolverConfig | None = None, normals: np.
     removed = 0
     if min_component_cells > 0 and mesh.n_faces:
         mesh, removed = remove_small_components(mesh, min_component_cells * lattice.cell_size)
+    if point_attrs:
+        mesh = mesh.with_vertex_attributes(interpolate_attributes(mesh.vertices, attr_xyz, point_attrs))
     t_mesh = time.perf_counter()
     info = {k: v for k, v in fld.info.items() if k != "history"}
     mesh.metadata.update({
@@ -284,6 +306,8 @@ def reconstruct(points: Any, *, config: SolverConfig | None = None, normals: np.
         "orientation_flipped": flipped,
         "band_edges": edges,
         "relaxed": int(cfg.relax) if cfg.mode == "sdf" else 0,
+        "vertex_attributes": {"rule": attributes, "carried": attribute_layout(point_attrs),
+                              "neighbors": ATTRIBUTE_NEIGHBORS},
         "timings_s": {"prepare": t_prep - t0, "solve": t_solve - t_prep, "mesh": t_mesh - t_solve,
                       "total": t_mesh - t0},
     })
@@ -347,7 +371,7 @@ def _end_signed_mesh(mesh: Mesh, points: np.ndarray, reach: float, cut: float,
         mesh, record["unsupported_pieces_removed"] = _drop_unsupported_pieces(mesh, points, UDF_MIN_SUPPORT,
                                                                               among=cut_vertices)
     if flipped:
-        mesh = Mesh(mesh.vertices, mesh.faces[:, ::-1].copy(), mesh.metadata)
+        mesh = Mesh(mesh.vertices, mesh.faces[:, ::-1].copy(), mesh.metadata, mesh.vertex_attributes)
     return mesh, flipped, record
 
 

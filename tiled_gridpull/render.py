@@ -25,9 +25,10 @@ import numpy as np
 from ._optional import require
 from .errors import ConfigError, InputError, MissingDependencyError
 from .images import check_size, save_png
-from .mesh import Mesh
+from .mesh import Mesh, colors_unit
 
-__all__ = ["render_mesh", "render_mesh_image", "render_meshes_image", "vertex_errors", "VIEWS"]
+__all__ = ["render_mesh", "render_mesh_image", "render_meshes_image", "vertex_errors", "VIEWS", "COLOR_BY",
+           "attribute_colors"]
 
 VIEWS = ("iso", "top", "front", "side")
 MESH_COLOR = "#d8c7a6"
@@ -148,7 +149,8 @@ def render_meshes_image(meshes: Sequence[Mesh], *, size: Sequence[int] = (1024, 
                         clim: tuple[float, float] | None = None, scalar_title: str = "distance to ground truth",
                         cmap: str = "viridis", view: str = "iso", point_size: float = 2.0,
                         point_color: str = POINT_COLOR, max_points: int = 200_000, show_edges: bool = False,
-                        centre: np.ndarray | None = None, seed: int = 0) -> np.ndarray:
+                        centre: np.ndarray | None = None, seed: int = 0,
+                        rgb: np.ndarray | None = None) -> np.ndarray:
     """Render several meshes (and optionally a point cloud) into one off-screen image.
 
     Parameters
@@ -183,6 +185,9 @@ def render_meshes_image(meshes: Sequence[Mesh], *, size: Sequence[int] = (1024, 
         World point moved to the origin before rendering (default: centre of the geometry's bounding box).
     seed : int
         Seed of the point subsample.
+    rgb : (V, 3) uint8, optional
+        Per-vertex colours of the *first* mesh, drawn as they are (e.g. :func:`attribute_colors`); ``scalars``
+        wins when both are given.
 
     Returns
     -------
@@ -196,6 +201,10 @@ def render_meshes_image(meshes: Sequence[Mesh], *, size: Sequence[int] = (1024, 
         scalars = np.asarray(scalars, dtype=np.float64).reshape(-1)
         if not meshes or len(scalars) != meshes[0].n_vertices:
             raise InputError(f"scalars: need one value per vertex of the first mesh, got {len(scalars)}")
+    if rgb is not None:
+        rgb = np.asarray(rgb, dtype=np.uint8).reshape(-1, 3)
+        if not meshes or len(rgb) != meshes[0].n_vertices:
+            raise InputError(f"rgb: need one colour per vertex of the first mesh, got {len(rgb)}")
     drawn = [m for m in meshes if m.n_faces > 0]
     pts = _subsample(_points_array(cloud), int(max_points), seed) if cloud is not None else None
     if not drawn and (pts is None or len(pts) == 0):
@@ -228,6 +237,9 @@ def render_meshes_image(meshes: Sequence[Mesh], *, size: Sequence[int] = (1024, 
                                              "n_labels": 4, "title_font_size": 16, "label_font_size": 13,
                                              "vertical": False, "position_x": 0.25, "position_y": 0.02,
                                              "width": 0.5, "height": 0.09})
+            elif i == 0 and rgb is not None:
+                poly.point_data["RGB"] = rgb
+                pl.add_mesh(poly, scalars="RGB", rgb=True, **kw)
             else:
                 pl.add_mesh(poly, color=colors[i % len(colors)], **kw)
         if pts is not None and len(pts):
@@ -240,10 +252,59 @@ def render_meshes_image(meshes: Sequence[Mesh], *, size: Sequence[int] = (1024, 
     return _snapshot(pl, size)
 
 
+#: what ``render --color`` colours a mesh by (its vertex attributes)
+COLOR_BY = ("rgb", "intensity", "classification")
+
+
+def attribute_colors(mesh: Mesh, color: str) -> dict:
+    """How :func:`render_meshes_image` shows the vertex attribute ``color`` of ``mesh``.
+
+    Parameters
+    ----------
+    mesh : Mesh
+    color : {"rgb", "intensity", "classification"}
+        ``rgb``: the colour as it is (scaled by :func:`~tiled_gridpull.mesh.color_full_scale`);
+        ``intensity``: a grey ramp from its 1st to its 99th percentile; ``classification``: a qualitative map of
+        the class codes.
+
+    Returns
+    -------
+    dict
+        Keyword arguments of :func:`render_meshes_image`: ``rgb``, or ``scalars``, ``clim``, ``cmap`` and
+        ``scalar_title``.
+
+    Raises
+    ------
+    ConfigError
+        ``color`` is not one of :data:`COLOR_BY`.
+    InputError
+        The mesh does not carry that attribute.
+    """
+    if color not in COLOR_BY:
+        raise ConfigError(f"color must be one of {', '.join(COLOR_BY)}, got {color!r}")
+    attrs = mesh.vertex_attributes
+    if color == "rgb":
+        unit = colors_unit(attrs)
+        if unit is None:
+            raise InputError(f"{mesh.metadata.get('source', 'mesh')}: has no vertex colours (red, green, blue) to "
+                             "render; reconstruct a coloured cloud with --attributes all or rgb")
+        return {"rgb": np.round(unit * 255).astype(np.uint8)}
+    if color not in attrs:
+        raise InputError(f"{mesh.metadata.get('source', 'mesh')}: has no vertex {color} to render; reconstruct a "
+                         f"cloud that has it with --attributes all")
+    values = np.asarray(attrs[color], dtype=np.float64)
+    if color == "intensity":
+        lo, hi = (np.percentile(values, [1, 99]) if len(values) else (0.0, 1.0))
+        return {"scalars": values, "clim": (float(lo), float(hi) if hi > lo else float(lo) + 1.0), "cmap": "gray",
+                "scalar_title": "intensity"}
+    hi = float(values.max()) if len(values) else 1.0
+    return {"scalars": values, "clim": (0.0, max(hi, 1.0)), "cmap": "tab20", "scalar_title": "classification"}
+
+
 def render_mesh_image(mesh: Mesh, *, size: Sequence[int] = (1024, 768), cloud=None, gt: Mesh | None = None,
                       errors: np.ndarray | None = None, clim: tuple[float, float] | None = None,
                       view: str = "iso", point_size: float = 2.0, max_points: int = 200_000,
-                      show_edges: bool = False) -> np.ndarray:
+                      show_edges: bool = False, color: str | None = None) -> np.ndarray:
     """Render one mesh off-screen, optionally with its point cloud and an error colour map.
 
     Parameters
@@ -266,11 +327,22 @@ def render_mesh_image(mesh: Mesh, *, size: Sequence[int] = (1024, 768), cloud=No
     max_points : int
         Cloud points drawn at most.
     show_edges : bool
+    color : {"rgb", "intensity", "classification"}, optional
+        Colour the mesh by this vertex attribute (:func:`attribute_colors`) instead of one colour; not with
+        ``gt`` or ``errors``. ``clim``, when given, bounds intensity and classification.
 
     Returns
     -------
     (H, W, 3) uint8
     """
+    if color is not None:
+        if gt is not None or errors is not None:
+            raise ConfigError("colour by an attribute or by the distance to a ground truth, not both")
+        kw = attribute_colors(mesh, color)
+        if clim is not None and "scalars" in kw:
+            kw["clim"] = clim
+        return render_meshes_image([mesh], size=size, cloud=cloud, view=view, point_size=point_size,
+                                   max_points=max_points, show_edges=show_edges, **kw)
     if errors is None and gt is not None:
         errors = vertex_errors(mesh, gt)
     return render_meshes_image([mesh], size=size, cloud=cloud, scalars=errors, clim=clim, view=view,
@@ -279,7 +351,8 @@ def render_mesh_image(mesh: Mesh, *, size: Sequence[int] = (1024, 768), cloud=No
 
 def render_mesh(mesh: Mesh, path: str | Path, *, size: Sequence[int] = (1024, 768), cloud=None,
                 gt: Mesh | None = None, clim: tuple[float, float] | None = None, view: str = "iso",
-                point_size: float = 2.0, max_points: int = 200_000, show_edges: bool = False) -> dict:
+                point_size: float = 2.0, max_points: int = 200_000, show_edges: bool = False,
+                color: str | None = None) -> dict:
     """Render a mesh to a PNG file (see :func:`render_mesh_image`).
 
     Parameters
@@ -289,7 +362,7 @@ def render_mesh(mesh: Mesh, path: str | Path, *, size: Sequence[int] = (1024, 76
         Output PNG, written atomically.
     size : (W, H) int
         Pixels.
-    cloud, gt, clim, view, point_size, max_points, show_edges
+    cloud, gt, clim, view, point_size, max_points, show_edges, color
         As in :func:`render_mesh_image`.
 
     Returns
@@ -301,9 +374,13 @@ def render_mesh(mesh: Mesh, path: str | Path, *, size: Sequence[int] = (1024, 76
     path = Path(path)
     if path.suffix.lower() != ".png":
         raise ConfigError(f"{path}: pictures are written as PNG (use a .png file name)")
+    if color is not None:
+        attribute_colors(mesh, color)  # refused before any rendering
+        if gt is not None:
+            raise ConfigError("colour by an attribute or by the distance to a ground truth, not both")
     errors = vertex_errors(mesh, gt) if gt is not None else None
     img = render_mesh_image(mesh, size=size, cloud=cloud, errors=errors, clim=clim, view=view,
-                            point_size=point_size, max_points=max_points, show_edges=show_edges)
+                            point_size=point_size, max_points=max_points, show_edges=show_edges, color=color)
     save_png(img, path)
     out: dict = {"path": str(path), "size": [int(img.shape[1]), int(img.shape[0])]}
     if errors is not None and len(errors):

@@ -46,6 +46,7 @@ from .io.atomic import json_default, write_json
 from .io.outputs import load_json_file
 from .io.remote import is_url, validators
 from .jobdir import JobPaths, spill_record
+from .partition import attribute_record
 from .stitch import mesh_tile
 from .tile_plan import TileSpec, plan_tiles
 from .tile_solve import orientation_rule, solve_tile
@@ -137,6 +138,8 @@ def partition_key(inputs: list, tiling: TilingConfig, frames=None, trajectory=No
     if tiling.halo:  # likewise; such a partition stores exact (float64) offsets
         facts["halo"] = tiling.halo
         facts["exact_offsets"] = True
+    if tiling.attributes != "none":  # what the attribute spill files hold
+        facts["attributes"] = tiling.attributes
     return digest(facts)
 
 
@@ -168,11 +171,18 @@ def load_partition(paths: JobPaths, key: str, tiling: TilingConfig):
             # the spill's content is what every solve key stands on: a damaged one means partitioning again
             if file_sha256(spill) != spec.points_sha256:
                 return None
+            if spec.attributes:  # the attribute spill file beside it, likewise
+                attrs = Path(spec.attributes_path)
+                size = attribute_record(spec.attributes).itemsize * spec.n_points
+                if (attrs.is_symlink() or not attrs.is_file() or attrs.stat().st_size != size
+                        or file_sha256(attrs) != spec.attributes_sha256):
+                    return None
             specs.append(spec)
     except (KeyError, TypeError, ValueError):
         return None
     facts = {"bounds": bounds, "points": int(scan["points"]), "has_sensor": bool(scan["has_sensor"]),
-             "crs": scan.get("crs"), "partition_reused": True}
+             "crs": scan.get("crs"), "partition_reused": True,
+             "attributes": [(str(n), str(t)) for n, t in scan.get("attributes", [])]}
     return plan, specs, facts
 
 
@@ -181,6 +191,7 @@ def scan_record(scan: dict) -> dict:
     return {"bounds": np.asarray(scan["bounds"]).tolist(), "points": int(scan["points"]),
             "has_sensor": bool(scan["has_sensor"]), "crs": scan.get("crs"),
             "far_points_dropped": int(scan.get("far_points_dropped", 0)),
+            "attributes": [list(a) for a in scan.get("attributes", [])],
             **({"trajectory": scan["trajectory"]} if scan.get("trajectory") else {})}
 
 
@@ -210,7 +221,10 @@ def mesh_key(spec: TileSpec, field_sha: str, neighbors: list[tuple[str, str]], t
                    "block": spec.block.to_dict(), "mesh_lo": list(spec.mesh_lo), "mesh_hi": list(spec.mesh_hi),
                    "overlap_cells": tiling.overlap_cells, "trim_distance": tiling.trim_distance,
                    "points_sha256": spec.points_sha256 if tiling.trim_distance > 0 else None,
-                   "key_ref": [int(v) for v in np.asarray(key_ref)], "version": __version__})
+                   "key_ref": [int(v) for v in np.asarray(key_ref)], "version": __version__,
+                   # only when carried: keys of pieces without attributes stay as they were
+                   **({"attributes": [list(a) for a in spec.attributes],
+                       "attributes_sha256": spec.attributes_sha256} if spec.attributes else {})})
 
 
 def _reusable(summary_path: Path, key: str, statuses: tuple, output: str | Path) -> tuple[dict | None, str | None]:

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .attributes import interpolate_attributes
 from .band import Band, dense_brick_table
 from .blend import blend_into
 from .bridge import bridged_cells
@@ -25,10 +26,10 @@ from .kernels import BRICK
 from .kernels.band import brick_neighbors
 from .kernels.graph import vertex_components
 from .memory import peak_rss_mb, reset_peak_rss
-from .mesh import Mesh
+from .mesh import Mesh, take_attributes
 from .mesh_repair import boundary_edges
 from .nearest import distances_to_cloud
-from .partition import read_tile_points
+from .partition import read_tile_attributes, read_tile_points
 from .tile_field import load_tile_field
 
 __all__ = ["MeshPiece", "trim_faces", "save_piece", "load_piece", "weld_pieces"]
@@ -45,12 +46,20 @@ class MeshPiece:
     faces : (F, 3) int64
     keys : (V,) int64
         Edge key of each vertex (>= 0), or a negative id for vertices private to the piece (loop centres).
+    attributes : dict of str to (V,) arrays
+        Vertex attributes interpolated from the tile's points (its overlap included), as
+        :attr:`~tiled_gridpull.mesh.Mesh.vertex_attributes`.
     """
 
     vertices: np.ndarray
     faces: np.ndarray
     keys: np.ndarray
     info: dict = field(default_factory=dict)
+    attributes: dict = field(default_factory=dict)
+
+    def mesh(self, metadata: dict | None = None) -> Mesh:
+        """The piece as a :class:`~tiled_gridpull.mesh.Mesh` (its attributes included)."""
+        return Mesh(self.vertices, self.faces, dict(metadata or {}), self.attributes)
 
 
 def trim_faces(mesh: Mesh, keys: np.ndarray | None, points: np.ndarray, max_distance: float,
@@ -87,30 +96,42 @@ def trim_faces(mesh: Mesh, keys: np.ndarray | None, points: np.ndarray, max_dist
         far[far] = drop[region]
     faces = mesh.faces[~far]
     used, inverse = np.unique(faces, return_inverse=True)
-    trimmed = Mesh(mesh.vertices[used], inverse.reshape(-1, 3), dict(mesh.metadata))
+    trimmed = Mesh(mesh.vertices[used], inverse.reshape(-1, 3), dict(mesh.metadata),
+                   take_attributes(mesh.vertex_attributes, used))
     return trimmed, (None if keys is None else keys[used])
 
 
 def save_piece(piece: MeshPiece, path: str | Path) -> None:
-    """Write a piece (``.npz``) atomically."""
+    """Write a piece (``.npz``) atomically; each vertex attribute is stored as ``attribute/<name>``."""
+    arrays = {f"{_ATTRIBUTE_PREFIX}{name}": values for name, values in piece.attributes.items()}
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as fh:
-            np.savez(fh, vertices=piece.vertices, faces=piece.faces, keys=piece.keys)
+            np.savez(fh, vertices=piece.vertices, faces=piece.faces, keys=piece.keys, **arrays)
 
 
 def load_piece(path: str | Path) -> MeshPiece:
-    """Read a piece written by :func:`save_piece`."""
+    """Read a piece written by :func:`save_piece` (one of an earlier version has no attributes)."""
     with np.load(path) as z:
-        return MeshPiece(z["vertices"], z["faces"], z["keys"])
+        attrs = {name[len(_ATTRIBUTE_PREFIX):]: z[name] for name in z.files if name.startswith(_ATTRIBUTE_PREFIX)}
+        return MeshPiece(z["vertices"], z["faces"], z["keys"], attributes=attrs)
+
+
+_ATTRIBUTE_PREFIX = "attribute/"
 
 
 def weld_pieces(pieces: list[MeshPiece]) -> Mesh:
     """One mesh from tile pieces, welding vertices that share an edge key.
 
     Vertices with the same key come from the same lattice edge with bit-identical blended values, so their
-    positions agree; the first occurrence is kept.
+    positions agree; the first occurrence is kept, with its attributes (each tile interpolated them from its own
+    points, its overlap included, so a shared vertex's values agree up to the float32 rounding of the tiles'
+    spill coordinates). Attributes that some piece with vertices lacks are dropped.
     """
     verts, faces, keys = [], [], []
+    with_vertices = [p for p in pieces if len(p.vertices)]
+    names = [n for n in (with_vertices[0].attributes if with_vertices else {})
+             if all(n in p.attributes for p in with_vertices)]
+    attrs: dict = {n: [] for n in names}
     base = 0
     private = 0
     for p in pieces:
@@ -120,6 +141,8 @@ def weld_pieces(pieces: list[MeshPiece]) -> Mesh:
         k[neg] = -1 - (private + np.arange(int(neg.sum())))
         private += int(neg.sum())
         verts.append(p.vertices)
+        for n in names:
+            attrs[n].append(p.attributes[n] if len(p.vertices) else np.zeros(0, with_vertices[0].attributes[n].dtype))
         faces.append(p.faces + base)
         keys.append(k)
         base += len(p.vertices)
@@ -129,7 +152,7 @@ def weld_pieces(pieces: list[MeshPiece]) -> Mesh:
     F = np.concatenate(faces)
     K = np.concatenate(keys)
     uniq, first, inverse = np.unique(K, return_index=True, return_inverse=True)
-    return Mesh(V[first], inverse[F])
+    return Mesh(V[first], inverse[F], {}, {n: np.concatenate(parts)[first] for n, parts in attrs.items()})
 
 
 def mesh_tile(spec, neighbors: list, tiling, key_ref: np.ndarray, field_path: str | Path,
@@ -171,6 +194,7 @@ def mesh_tile(spec, neighbors: list, tiling, key_ref: np.ndarray, field_path: st
     mesh, keys = extract_mesh(fld, 0.0, mesh_lo - off, mesh_hi - off, off - np.asarray(key_ref, np.int64),
                               with_keys=True)
     n_raw = mesh.n_faces
+    pts = None
     if tiling.trim_distance > 0 and mesh.n_faces:
         xyz, _ = read_tile_points(spec)
         pts = xyz.astype(np.float64) + block.low_corner
@@ -179,7 +203,15 @@ def mesh_tile(spec, neighbors: list, tiling, key_ref: np.ndarray, field_path: st
             centroid = (mesh.vertices[mesh.faces].mean(axis=1) - block.low_corner) / block.cell_size
             keep = bridged_cells(fld, np.floor(centroid).astype(np.int64))
         mesh, keys = trim_faces(mesh, keys, pts, tiling.trim_distance * block.cell_size, keep=keep)
-    save_piece(MeshPiece(mesh.vertices, mesh.faces, keys), piece_path)
+    attrs: dict = {}
+    if spec.attributes:
+        # from this tile's own points, its overlap included: a vertex on a shared face has the same neighbours
+        # in both tiles (the overlap is far wider than a vertex's nearest points are apart)
+        if pts is None:
+            xyz, _ = read_tile_points(spec)
+            pts = xyz.astype(np.float64) + block.low_corner
+        attrs = interpolate_attributes(mesh.vertices, pts, read_tile_attributes(spec)) if len(pts) else {}
+    save_piece(MeshPiece(mesh.vertices, mesh.faces, keys, attributes=attrs), piece_path)
     return {"tile": spec.name, "faces": mesh.n_faces, "vertices": mesh.n_vertices, "trimmed": n_raw - mesh.n_faces,
             "blended_vertices": changed, "piece_path": str(piece_path), "time_s": time.perf_counter() - t0,
             "blend_s": t_blend - t0,

@@ -50,6 +50,11 @@ class TileSpec:
     halo_points : int
         Of ``n_points``, those outside the block, read for a denoising job's halo only (:attr:`block_points` are
         the ones the tile solves).
+    attributes : tuple of (name, numpy type string)
+        The per-point attributes of the tile's attribute spill file (:attr:`attributes_path`, one record per
+        point of the spill file, in its order), carried onto the tile's mesh vertices; empty: none.
+    attributes_sha256 : str
+        SHA-256 of the attribute spill file (what the tile's mesh piece is keyed on).
     """
 
     index: tuple[int, int, int]
@@ -65,6 +70,13 @@ class TileSpec:
     occupied_bricks: int = 0
     exact_offsets: bool = False
     halo_points: int = 0
+    attributes: tuple = ()
+    attributes_sha256: str = ""
+
+    @property
+    def attributes_path(self) -> str:
+        """The attribute spill file, beside the spill file (``<tile>.attrs``); empty when none is kept."""
+        return str(Path(self.points_path).with_suffix(".attrs")) if self.points_path and self.attributes else ""
 
     @property
     def block_points(self) -> int:
@@ -95,6 +107,9 @@ class TileSpec:
         if self.exact_offsets:  # only when set: manifests of other jobs stay as they were
             d["exact_offsets"] = True
             d["halo_points"] = self.halo_points
+        if self.attributes:  # likewise
+            d["attributes"] = [list(a) for a in self.attributes]
+            d["attributes_sha256"] = self.attributes_sha256
         return d
 
     @classmethod
@@ -102,7 +117,8 @@ class TileSpec:
         return cls(tuple(d["index"]), tuple(d["core_lo"]), tuple(d["core_hi"]), Lattice.from_dict(d["block"]),
                    int(d["n_points"]), d["points_path"], bool(d["has_sensor"]), tuple(d["mesh_lo"]),
                    tuple(d["mesh_hi"]), str(d.get("points_sha256", "")), int(d.get("occupied_bricks", 0)),
-                   bool(d.get("exact_offsets", False)), int(d.get("halo_points", 0)))
+                   bool(d.get("exact_offsets", False)), int(d.get("halo_points", 0)),
+                   tuple((str(n), str(t)) for n, t in d.get("attributes", ())), str(d.get("attributes_sha256", "")))
 
     @property
     def occupancy_path(self) -> str:

@@ -25,6 +25,7 @@ import numpy as np
 from tqdm import tqdm
 
 from ._version import __version__
+from .attributes import ATTRIBUTE_NEIGHBORS
 from .config import SolverConfig
 from .errors import InputError, TileFailedError
 from .io import write_mesh, write_mesh_and_sidecar
@@ -388,7 +389,7 @@ def finish_job(pieces: Iterable[Path], metadata: dict, *, float32: bool = False,
         out_dir.mkdir(parents=True, exist_ok=True)
         for p, piece in loaded:
             if len(piece.faces):
-                write_mesh(Mesh(piece.vertices, piece.faces), out_dir / f"{p.stem}.ply", float32=float32)
+                write_mesh(piece.mesh(), out_dir / f"{p.stem}.ply", float32=float32)
     mesh = weld_pieces([piece for _, piece in loaded])
     mesh.metadata.update(metadata)
     mesh.metadata["mesh"] = mesh.topology.to_dict()
@@ -429,6 +430,8 @@ def job_metadata(plan: TilePlan, tiling: TilingConfig, solver: SolverConfig, sca
                   "has_sensor": scan["has_sensor"],
                   **({"trajectory": scan["trajectory"]} if scan.get("trajectory") else {})},
         "crs": scan.get("crs"),
+        "vertex_attributes": {"rule": tiling.attributes, "carried": [list(a) for a in scan.get("attributes", [])],
+                              "neighbors": ATTRIBUTE_NEIGHBORS},
         "tiles": {"planned": int(np.prod(plan.tile_range)), "with_points": len(solve_summaries),
                   "solved": len(solve_summaries) - len(failed),
                   "not_solved": [{"tile": s["tile"], "status": s["status"], "reason": s.get("reason")}

@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 from dataclasses import asdict, dataclass, field, fields, replace
 
+from .attributes import ATTRIBUTE_MODES
 from .config import SolverConfig, finite_number
 from .crs import LENGTH_UNITS, LinearUnit, parse_length
 from .spacing import Spacing
@@ -90,6 +91,10 @@ class TilingConfig:
         Cells beyond the overlap whose points a tile reads but does not solve: what its denoising needs to move
         every point of its block as any other tiling would. Set by the job from the solver (:func:`with_halo`);
         0 without denoising.
+    attributes : {"all", "rgb", "none"}
+        Which per-point attributes (colour, intensity, classification, LAS extra dimensions) the tiles carry
+        onto the mesh's vertices (:mod:`tiled_gridpull.attributes`): every one the input has (default), the
+        colour only, or none. Each tile interpolates them from its own points, its overlap included.
     voxel_unit : str, optional
         The unit ``voxel_size`` was given in, until it is converted to the data's units (None: data units).
     derived : tuple of str
@@ -110,6 +115,7 @@ class TilingConfig:
     normal_neighbors: int = 16
     drop_outliers: bool = False
     halo: int = 0
+    attributes: str = "all"
     voxel_unit: str | None = None
     derived: tuple[str, ...] = field(default=(), compare=False)
     units: str | None = field(default=None, compare=False)
@@ -211,6 +217,8 @@ class TilingConfig:
             raise ConfigError(f"halo must be a whole number of cells (0 to {MAX_TILE_CELLS}), got {self.halo!r}")
         if not isinstance(self.drop_outliers, bool):
             raise ConfigError(f"drop_outliers must be true or false, got {self.drop_outliers!r}")
+        if self.attributes not in ATTRIBUTE_MODES:
+            raise ConfigError(f"attributes must be one of {', '.join(ATTRIBUTE_MODES)}; got {self.attributes!r}")
         if self.orientation not in ORIENTATIONS:
             raise ConfigError(f"orientation must be one of {', '.join(ORIENTATIONS)}; got {self.orientation!r}")
 

@@ -50,8 +50,9 @@ def columns_cloud(p: Path, data: np.ndarray, source: str, *, pts: bool = False,
         # Leica PTS: x y z intensity [r g b]
         if k >= 4:
             attrs["intensity"] = np.asarray(data[:, 3], dtype=np.float32)
-        if k >= 7:
-            attrs["rgb"] = np.asarray(data[:, 4:7], dtype=np.float32)
+        if k >= 7:  # 8-bit colour
+            for j, c in enumerate(("red", "green", "blue")):
+                attrs[c] = np.clip(np.rint(np.nan_to_num(data[:, 4 + j])), 0, 255).astype(np.uint8)
         return PointCloud(xyz, attributes=attrs, source=source)
     if normals is None:
         normals = columns_are_normals(p, data)

@@ -50,13 +50,17 @@ def _scans(p: Path) -> Iterator[PointCloud]:
         done = 0
         for i in range(e57.scan_count):
             _check_pose(p, i, e57.get_header(i))
-            data = e57.read_scan(i, intensity=True, ignore_missing_fields=True)
+            data = e57.read_scan(i, intensity=True, colors=True, ignore_missing_fields=True)
             xyz = np.column_stack([np.asarray(data[k], dtype=np.float64)
                                    for k in ("cartesianX", "cartesianY", "cartesianZ")])
             origin = np.asarray(e57.scan_position(i), dtype=np.float64).reshape(3)
             attrs = {"scan": np.full(len(xyz), i, np.int32)}
             if "intensity" in data:
                 attrs["intensity"] = np.asarray(data["intensity"], dtype=np.float32)
+            if all(f"color{c}" in data for c in ("Red", "Green", "Blue")):
+                # uint8 as pye57 reads them (the colour limits of most files are 0-255)
+                for c in ("Red", "Green", "Blue"):
+                    attrs[c.lower()] = np.asarray(data[f"color{c}"]).copy()
             yield PointCloud(xyz, sensor=np.broadcast_to(origin, xyz.shape).copy(), attributes=attrs, crs=crs,
                              source=f"{p}[scan {i}]", report={"points_read": len(xyz)})
             done += len(xyz)

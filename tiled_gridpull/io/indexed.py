@@ -112,6 +112,9 @@ class PointIndex:
         a region does not walk the file's pages again. None for an EPT.
     step : (3,) float64 or None
         The scale of the stored coordinates (X Y Z): how far a point may lie outside ``bounds`` by rounding.
+    attributes : tuple of (name, numpy type string)
+        The per-point attributes its points carry onto a mesh (colour, intensity, classification, and a COPC
+        file's extra dimensions), as :func:`read_box` reads them with ``attributes=True``.
     """
 
     path: str
@@ -125,6 +128,7 @@ class PointIndex:
     counts: np.ndarray
     chunks: np.ndarray | None = None
     step: np.ndarray | None = None
+    attributes: tuple = ()
 
     def overlapping(self, lo, hi) -> np.ndarray:
         """Rows of the nodes whose cube overlaps the box [lo, hi] (closed), in stream order."""
@@ -154,12 +158,15 @@ def read_index(path: str | os.PathLike) -> PointIndex:
 # ---------------------------------------------------------------- COPC
 
 
-def _copc_reader(p, stream=None):
-    """laspy's COPC reader of ``p`` (a path or a URL), or of ``stream``, an open file of it (left open)."""
+def _copc_reader(p, stream=None, attributes: bool = False):
+    """laspy's COPC reader of ``p`` (a path or a URL), or of ``stream``, an open file of it (left open); with
+    ``attributes``, decoding colour, intensity, classification and extra bytes too."""
     from laspy import CopcReader, DecompressionSelection
 
     sel = DecompressionSelection
     selection = sel.XY_RETURNS_CHANNEL | sel.Z
+    if attributes:
+        selection = selection | sel.RGB | sel.INTENSITY | sel.CLASSIFICATION | sel.ALL_EXTRA_BYTES
     if stream is not None:
         return CopcReader(stream, close_fd=False, decompression_selection=selection)
     if is_url(p):
@@ -205,10 +212,13 @@ def _copc_index_read(p, crs: str | None, stream) -> PointIndex:
         check_frame(f"{where}: the COPC header's", header.offsets, header.scales, reach=2.0 ** 31)
         bounds = np.stack([np.asarray(header.mins, np.float64), np.asarray(header.maxs, np.float64)])
         step = np.abs(np.asarray(header.scales, np.float64))
+        from .las import carried_dims
+
+        layout = tuple((name, dtype.str) for name, _, dtype in carried_dims(header.point_format))
     if counts.sum() != declared:
         raise InputError(f"{shown(p)}: corrupted COPC file (its hierarchy holds {int(counts.sum())} points, its header "
                          f"declares {declared})")
-    return PointIndex(str(p), "COPC", bounds, declared, crs, keys, lo, hi, counts, chunks, step)
+    return PointIndex(str(p), "COPC", bounds, declared, crs, keys, lo, hi, counts, chunks, step, layout)
 
 
 def _stream_size(source) -> int:
@@ -341,13 +351,16 @@ def _resolved_page(index: PointIndex):
     return page
 
 
-def _copc_points(index: PointIndex, lo=None, hi=None, depth: int | None = None) -> np.ndarray:
+def _copc_points(index: PointIndex, lo=None, hi=None, depth: int | None = None,
+                 attributes: bool = False) -> tuple[np.ndarray, dict]:
     """(N, 3) float64 of the nodes overlapping the box [lo, hi] (padded by a few of the file's scale steps, so
     that no node touching it is missed; the caller filters exactly), or of the nodes above ``depth``, in file
-    order."""
+    order; and with ``attributes`` their :attr:`PointIndex.attributes` (else an empty dict)."""
     from laspy.copc import Bounds
 
-    with _copc_reader(index.path) as reader:
+    from .las import record_attributes
+
+    with _copc_reader(index.path, attributes=attributes) as reader:
         reader.root_page = _resolved_page(index)
         bounds = None
         if lo is not None:
@@ -355,9 +368,10 @@ def _copc_points(index: PointIndex, lo=None, hi=None, depth: int | None = None) 
             bounds = Bounds(np.asarray(lo, np.float64) - pad, np.asarray(hi, np.float64) + pad)
         pts = reader.query(bounds=bounds, level=None if depth is None else range(0, depth))
         if not len(pts):
-            return np.empty((0, 3))
-        return np.column_stack([np.asarray(pts.x, np.float64), np.asarray(pts.y, np.float64),
-                                np.asarray(pts.z, np.float64)])
+            return np.empty((0, 3)), {}
+        xyz = np.column_stack([np.asarray(pts.x, np.float64), np.asarray(pts.y, np.float64),
+                               np.asarray(pts.z, np.float64)])
+        return xyz, (record_attributes(pts, reader.header.point_format) if attributes else {})
 
 
 # ---------------------------------------------------------------- EPT
@@ -526,20 +540,31 @@ def _ept_index(p) -> PointIndex:
         raise InputError(f"{shown(p)}: corrupted EPT (its hierarchy holds {int(counts.sum())} points, ept.json "
                          f"declares {declared})")
     return PointIndex(str(p), "EPT", conforming.reshape(2, 3), declared, _ept_crs(meta), keys, lo, hi, counts,
-                      step=_ept_steps(meta))
+                      step=_ept_steps(meta), attributes=_ept_layout(meta))
 
 
-def _ept_node(p, meta: dict, key: np.ndarray, count: int) -> np.ndarray:
+def _ept_node(p, meta: dict, key: np.ndarray, count: int, attributes: bool = False) -> tuple[np.ndarray, dict]:
     name = "-".join(str(int(v)) for v in key)
     f = _beside(p, "ept-data", f"{name}.{'laz' if meta['dataType'] == 'laszip' else 'bin'}")
     with input_errors(f, "EPT node", "damaged EPT node"):
-        xyz = _ept_node_points(f, meta, count)
+        xyz, attrs = _ept_node_points(f, meta, count, attributes)
     if len(xyz) != count:
         raise InputError(f"{shown(f)}: truncated EPT node (holds {len(xyz)} points, the hierarchy says {count})")
-    return xyz
+    return xyz, attrs
 
 
-def _ept_node_points(f, meta: dict, count: int) -> np.ndarray:
+#: an EPT schema's dimensions carried onto a mesh (PDAL's names), and the types they are kept in
+_EPT_CARRIED = {"Red": ("red", np.uint16), "Green": ("green", np.uint16), "Blue": ("blue", np.uint16),
+                "Intensity": ("intensity", np.uint16), "Classification": ("classification", np.uint8)}
+
+
+def _ept_layout(meta: dict) -> tuple:
+    """:attr:`PointIndex.attributes` of an EPT: the :data:`_EPT_CARRIED` dimensions its schema has."""
+    names = {d.get("name") for d in meta["schema"]}
+    return tuple((name, np.dtype(t).str) for dim, (name, t) in _EPT_CARRIED.items() if dim in names)
+
+
+def _ept_node_points(f, meta: dict, count: int, attributes: bool = False) -> tuple[np.ndarray, dict]:
     if meta["dataType"] == "laszip":
         import io
 
@@ -552,21 +577,33 @@ def _ept_node_points(f, meta: dict, count: int) -> np.ndarray:
             check_frame(f"{shown(f)}: the LAZ header's", reader.header.offsets, reader.header.scales,
                         reach=2.0 ** 31)
             pts = reader.read_points(count)
-        return np.column_stack([np.asarray(pts.x, np.float64), np.asarray(pts.y, np.float64),
-                                np.asarray(pts.z, np.float64)])
+        xyz = np.column_stack([np.asarray(pts.x, np.float64), np.asarray(pts.y, np.float64),
+                               np.asarray(pts.z, np.float64)])
+        attrs = {}
+        if attributes:  # the schema's names, from the node's LAS dimensions
+            dims = set(pts.point_format.dimension_names)
+            attrs = {name: np.array(pts[name], dtype=t) for name, t in _ept_layout(meta) if name in dims}
+        return xyz, attrs
     dtype = np.dtype([(d["name"], _EPT_TYPES[(d["type"], int(d["size"]))]) for d in meta["schema"]])
     raw = np.frombuffer(fetch(f), dtype=dtype) if is_url(f) else np.fromfile(f, dtype=dtype)
     xyz = np.empty((len(raw), 3))
     for d in meta["schema"]:
         if d["name"] in ("X", "Y", "Z"):
             xyz[:, "XYZ".index(d["name"])] = raw[d["name"]] * d.get("scale", 1.0) + d.get("offset", 0.0)
-    return xyz
+    attrs = {}
+    if attributes:
+        for d in meta["schema"]:
+            if d["name"] in _EPT_CARRIED:
+                name, t = _EPT_CARRIED[d["name"]]
+                values = raw[d["name"]] * d.get("scale", 1.0) + d.get("offset", 0.0)
+                attrs[name] = np.clip(np.rint(values), np.iinfo(t).min, np.iinfo(t).max).astype(t)
+    return xyz, attrs
 
 
-def _ept_points(index: PointIndex, rows: np.ndarray) -> Iterator[np.ndarray]:
+def _ept_points(index: PointIndex, rows: np.ndarray, attributes: bool = False) -> Iterator[tuple[np.ndarray, dict]]:
     meta = _ept_meta(index.path)
     for r in rows:
-        yield _ept_node(index.path, meta, index.keys[r], int(index.counts[r]))
+        yield _ept_node(index.path, meta, index.keys[r], int(index.counts[r]), attributes)
 
 
 # ---------------------------------------------------------------- reading
@@ -594,20 +631,21 @@ def _check_inside(index: PointIndex, xyz: np.ndarray) -> None:
 
 def _clouds(index: PointIndex, parts) -> Iterator[PointCloud]:
     with input_errors(index.path, index.kind, f"damaged {index.kind}"):
-        for xyz in parts:
+        for xyz, attrs in parts:
             _check_inside(index, xyz)
             if len(xyz):
-                yield PointCloud(xyz, crs=index.crs, source=index.path, report={"points_read": len(xyz)})
+                yield PointCloud(xyz, attributes=attrs, crs=index.crs, source=index.path,
+                                 report={"points_read": len(xyz)})
 
 
-def read_box(index: PointIndex, lo, hi) -> Iterator[PointCloud]:
+def read_box(index: PointIndex, lo, hi, attributes: bool = False) -> Iterator[PointCloud]:
     """The points inside the closed box [lo, hi] (file units), in stream order: only the nodes overlapping it
-    are read."""
+    are read. ``attributes``: with their :attr:`PointIndex.attributes` (decoded only then)."""
     lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
     if index.kind == "COPC":
-        parts = _lazy(_copc_points, index, lo, hi)
+        parts = _lazy(_copc_points, index, lo, hi, attributes=attributes)
     else:
-        parts = _ept_points(index, index.overlapping(lo, hi))
+        parts = _ept_points(index, index.overlapping(lo, hi), attributes)
     for cloud in _clouds(index, parts):
         inside = np.all((cloud.xyz >= lo) & (cloud.xyz <= hi), axis=1)
         if inside.all():
@@ -616,17 +654,18 @@ def read_box(index: PointIndex, lo, hi) -> Iterator[PointCloud]:
             yield cloud.take(np.flatnonzero(inside))
 
 
-def read_levels(index: PointIndex, depth: int) -> Iterator[PointCloud]:
+def read_levels(index: PointIndex, depth: int, attributes: bool = False) -> Iterator[PointCloud]:
     """The points of the nodes shallower than ``depth``: an even subsample of the whole input (each level of
-    detail keeps about one point per cell of a grid over its node), in stream order."""
+    detail keeps about one point per cell of a grid over its node), in stream order; ``attributes`` as in
+    :func:`read_box`."""
     if index.kind == "COPC":
-        parts = _lazy(_copc_points, index, depth=depth)
+        parts = _lazy(_copc_points, index, depth=depth, attributes=attributes)
     else:
-        parts = _ept_points(index, np.flatnonzero(index.keys[:, 0] < depth))
+        parts = _ept_points(index, np.flatnonzero(index.keys[:, 0] < depth), attributes)
     yield from _clouds(index, parts)
 
 
-def _lazy(fn, *args, **kwargs) -> Iterator[np.ndarray]:
+def _lazy(fn, *args, **kwargs) -> Iterator[tuple[np.ndarray, dict]]:
     yield fn(*args, **kwargs)
 
 
@@ -637,10 +676,11 @@ def chunks(p: Path, chunk_size: int) -> Iterator[PointCloud]:
     """An EPT streamed node by node in key order (the stream order), at most ``chunk_size`` points a chunk."""
     index = read_index(p)
     done = 0
-    for cloud in _clouds(index, _ept_points(index, np.arange(len(index.keys)))):
+    for cloud in _clouds(index, _ept_points(index, np.arange(len(index.keys)), True)):
         for s in range(0, len(cloud), chunk_size):
             part = cloud.xyz[s:s + chunk_size]
-            yield PointCloud(part, crs=index.crs, source=f"{p}[{done}:{done + len(part)}]",
+            yield PointCloud(part, attributes={k: v[s:s + chunk_size] for k, v in cloud.attributes.items()},
+                             crs=index.crs, source=f"{p}[{done}:{done + len(part)}]",
                              report={"points_read": len(part)})
             done += len(part)
 

@@ -109,7 +109,7 @@ def _quantized(xyz: np.ndarray, scale: float | None) -> tuple[np.ndarray, np.nda
     return ints * scales + offsets, scales, offsets
 
 
-def _format6_records(xyz: np.ndarray, scales, offsets, gps_time=None):
+def _format6_records(xyz: np.ndarray, scales, offsets, gps_time=None, intensity=None):
     """Point format 6 records (LAS 1.4) of ``xyz``, as a laspy ScaleAwarePointRecord."""
     import laspy
 
@@ -120,14 +120,17 @@ def _format6_records(xyz: np.ndarray, scales, offsets, gps_time=None):
     rec.number_of_returns[:] = 1
     if gps_time is not None:
         rec.gps_time = gps_time
+    if intensity is not None:
+        rec.intensity = intensity
     return rec
 
 
 def write_copc(path: str | os.PathLike, xyz, *, wkt: str | None = None, scale: float | None = None,
-               max_node_points: int = 50_000, gps_time=None) -> Path:
+               max_node_points: int = 50_000, gps_time=None, intensity=None) -> Path:
     """Write ``xyz`` as a COPC file (``*.copc.laz``) with copclib; returns the path.
 
-    Points keep their input order within a node; nodes are written depth first in key order.
+    Points keep their input order within a node; nodes are written depth first in key order. ``gps_time``
+    and ``intensity`` ((N,) float64 and uint16), when given, fill those fields of each point.
     """
     copc = require("copclib", "writing COPC files")
     path = Path(path)
@@ -147,7 +150,8 @@ def write_copc(path: str | os.PathLike, xyz, *, wkt: str | None = None, scale: f
     try:
         for k, key in enumerate(keys):
             rows = order[bounds[k]:bounds[k + 1]]
-            rec = _format6_records(xyz[rows], scales, offsets, None if gps_time is None else gps_time[rows])
+            rec = _format6_records(xyz[rows], scales, offsets, None if gps_time is None else gps_time[rows],
+                                   None if intensity is None else intensity[rows])
             raw = np.frombuffer(rec.array.tobytes(), np.int8)  # copclib takes the records as signed chars
             writer.AddNode(copc.VoxelKey(*(int(v) for v in key)), copc.VectorChar(raw))
     finally:
@@ -156,13 +160,15 @@ def write_copc(path: str | os.PathLike, xyz, *, wkt: str | None = None, scale: f
 
 
 def write_ept(directory: str | os.PathLike, xyz, *, wkt: str | None = None, scale: float | None = None,
-              max_node_points: int = 50_000, data_type: str = "laszip") -> Path:
+              max_node_points: int = 50_000, data_type: str = "laszip", intensity=None) -> Path:
     """Write ``xyz`` as Entwine Point Tiles under ``directory``; returns the path of its ``ept.json``.
 
     Parameters
     ----------
     data_type : {"laszip", "binary"}
         Node files as LAZ (``.laz``) or as packed binary records of the schema (``.bin``).
+    intensity : (N,) uint16, optional
+        Each point's intensity, listed in the schema as ``Intensity``.
     """
     import laspy
 
@@ -178,17 +184,21 @@ def write_ept(directory: str | os.PathLike, xyz, *, wkt: str | None = None, scal
     hierarchy = {}
     for k, key in enumerate(keys):
         name = "-".join(str(int(v)) for v in key)
-        pts = xyz[order[bounds[k]:bounds[k + 1]]]
+        rows = order[bounds[k]:bounds[k + 1]]
+        pts = xyz[rows]
         hierarchy[name] = len(pts)
         if data_type == "laszip":
             header = laspy.LasHeader(point_format=6, version="1.4")
             header.scales, header.offsets = scales, offsets
             las = laspy.LasData(header)
-            las.points = _format6_records(pts, scales, offsets)
+            las.points = _format6_records(pts, scales, offsets, None, None if intensity is None else intensity[rows])
             las.write(str(root / "ept-data" / f"{name}.laz"))
         else:
-            ints = np.round((pts - offsets) / scales).astype("<i4")
-            (root / "ept-data" / f"{name}.bin").write_bytes(ints.tobytes())
+            rec = np.empty(len(pts), [("xyz", "<i4", (3,))] + ([("i", "<u2")] if intensity is not None else []))
+            rec["xyz"] = np.round((pts - offsets) / scales)
+            if intensity is not None:
+                rec["i"] = intensity[rows]
+            (root / "ept-data" / f"{name}.bin").write_bytes(rec.tobytes())
     # a node every reader reaches has its ancestors listed (with 0 points when they hold none)
     for key in keys:
         d, x, y, z = (int(v) for v in key)
@@ -199,6 +209,8 @@ def write_ept(directory: str | os.PathLike, xyz, *, wkt: str | None = None, scal
     cube = np.r_[center - halfsize, center + halfsize]
     schema = [{"name": axis, "type": "signed", "size": 4, "scale": float(s), "offset": float(o)}
               for axis, s, o in zip("XYZ", scales, offsets)]
+    if intensity is not None:
+        schema.append({"name": "Intensity", "type": "unsigned", "size": 2})
     meta = {"bounds": cube.tolist(), "boundsConforming": np.r_[xyz.min(axis=0), xyz.max(axis=0)].tolist(),
             "dataType": data_type, "hierarchyType": "json", "points": int(len(xyz)), "schema": schema,
             "span": SPAN, "srs": {"wkt": wkt} if wkt else {}, "version": "1.0.0"}

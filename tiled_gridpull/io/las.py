@@ -15,7 +15,7 @@ from ..cloud import PointCloud, concat_clouds, unit_normals
 from ..errors import InputError
 from .input_errors import check_frame
 
-__all__ = ["read", "chunks", "count"]
+__all__ = ["read", "chunks", "count", "carried_dims", "record_attributes"]
 
 _READ_CHUNK = 1_000_000
 
@@ -121,6 +121,36 @@ def _las_normal_dims(point_format) -> tuple[str, str, str] | None:
         if all(t in extra for t in trio):
             return tuple(extra[t] for t in trio)
     return None
+
+
+def carried_dims(point_format) -> list[tuple[str, str, np.dtype]]:
+    """``(attribute name, LAS dimension, type)`` of what a point carries onto mesh vertices: ``red``, ``green``,
+    ``blue`` (uint16, as stored), ``intensity`` (uint16), ``classification`` (uint8; the class code, without the
+    flags older formats pack beside it) and every one-valued numeric extra dimension but the normals, under its
+    own name."""
+    names = set(point_format.dimension_names)
+    normal_dims = _las_normal_dims(point_format)
+    out = []
+    for dim in ("red", "green", "blue", "intensity"):
+        if dim in names:
+            out.append((dim, dim, np.dtype(np.uint16)))
+    if "classification" in names:
+        out.append(("classification", "classification", np.dtype(np.uint8)))
+    skip = set(normal_dims or ())
+    for dim in point_format.extra_dimensions:
+        if dim.name in skip or dim.name in {n for n, _, _ in out}:
+            continue
+        dtype = np.dtype(dim.dtype)
+        if dtype.kind in "uif" and dtype.shape == () and getattr(dim, "num_elements", 1) == 1:
+            # scaled extra bytes come out of laspy as float64 values
+            scaled = getattr(dim, "scales", None) is not None or getattr(dim, "offsets", None) is not None
+            out.append((dim.name, dim.name, np.dtype(np.float64) if scaled else dtype))
+    return out
+
+
+def record_attributes(points, point_format) -> dict:
+    """The :func:`carried_dims` of laspy point records ``points``: name to (N,) array of its type."""
+    return {name: np.array(points[dim], dtype=dtype) for name, dim, dtype in carried_dims(point_format)}
 
 
 def laz_backend():
@@ -261,9 +291,10 @@ def _las_chunks(p: Path, chunk_size: int, gps_time: bool = False,
 
     n_chunks = _las_precheck(p)
     sel = laspy.DecompressionSelection
-    # LAS 1.4 point formats 6-10 are compressed in layers: skip decoding the fields we do not keep (RGB, GPS
-    # time, classification, ...), which makes the decode about 40% faster. Older formats decode everything.
-    wanted = sel.XY_RETURNS_CHANNEL | sel.Z | sel.INTENSITY | sel.ALL_EXTRA_BYTES
+    # LAS 1.4 point formats 6-10 are compressed in layers: skip decoding the fields we do not keep (GPS time,
+    # flags, scan angle, ...), which makes the decode faster. Older formats decode everything.
+    wanted = (sel.XY_RETURNS_CHANNEL | sel.Z | sel.INTENSITY | sel.ALL_EXTRA_BYTES | sel.RGB
+              | sel.CLASSIFICATION)
     if gps_time:
         wanted = wanted | sel.GPS_TIME
     with laspy.open(str(p), laz_backend=laz_backend(), decompression_selection=wanted) as reader:
@@ -286,7 +317,7 @@ def _las_chunks(p: Path, chunk_size: int, gps_time: bool = False,
         check_frame(f"{p}: the LAS header's", header.offsets, header.scales, reach=2.0 ** 31)
         crs = _las_crs(header)
         normal_dims = _las_normal_dims(header.point_format)
-        has_intensity = "intensity" in header.point_format.dimension_names
+        carried = carried_dims(header.point_format)
         first, last = rows if rows is not None else (0, total)
         if not 0 <= first <= last <= total:
             raise InputError(f"{p}: rows {first}:{last} are outside its {total} points")
@@ -307,7 +338,7 @@ def _las_chunks(p: Path, chunk_size: int, gps_time: bool = False,
             if normal_dims is not None:
                 normals = unit_normals(np.column_stack([np.asarray(chunk[d], dtype=np.float64)
                                                          for d in normal_dims]))
-            attrs = {"intensity": np.array(chunk.intensity)} if has_intensity else {}
+            attrs = {name: np.array(chunk[dim], dtype=dtype) for name, dim, dtype in carried}  # record_attributes
             if gps_time:
                 attrs["gps_time"] = np.asarray(chunk.gps_time, dtype=np.float64)
             yield PointCloud(xyz, normals=normals, attributes=attrs, crs=crs,

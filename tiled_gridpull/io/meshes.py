@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..mesh import Mesh
+from ..mesh import Mesh, colors_unit
 from .atomic import atomic_open
 
 __all__ = ["read_mesh", "write_mesh"]
@@ -21,6 +21,13 @@ __all__ = ["read_mesh", "write_mesh"]
 
 def write_mesh(mesh: Mesh, path: str | Path, *, float32: bool = False, offset: np.ndarray | None = None) -> Path:
     """Write a mesh as binary little-endian PLY (``.ply``) or OBJ (``.obj``), atomically.
+
+    Vertex attributes (:attr:`Mesh.vertex_attributes`) go into a PLY as vertex properties after ``x y z``, in
+    their own type: ``red green blue`` (uchar or ushort), ``intensity``, ``classification`` (uchar), extra
+    dimensions under their names (characters other than letters, digits and ``_`` become ``_``; 64-bit integers
+    are written as double, which PLY has instead). An OBJ has room for colour only: ``v x y z r g b`` with
+    ``r g b`` in [0, 1] (:func:`~tiled_gridpull.mesh.color_full_scale`), the extension MeshLab, Open3D and
+    trimesh read.
 
     Parameters
     ----------
@@ -92,21 +99,56 @@ def _write_ply(mesh: Mesh, fh, float32: bool, offset) -> None:
         comments.append("generator tiled_gridpull.io")
     header = ["ply", "format binary_little_endian 1.0"]
     header += [f"comment {c}" for c in comments]
-    header += [f"element vertex {len(V)}", f"property {vtype} x", f"property {vtype} y", f"property {vtype} z",
-               f"element face {len(mesh.faces)}", "property list uchar int vertex_indices", "end_header"]
+    props = _ply_attribute_props(mesh.vertex_attributes)
+    header += [f"element vertex {len(V)}", f"property {vtype} x", f"property {vtype} y", f"property {vtype} z"]
+    header += [f"property {ptype} {name}" for name, ptype, _, _ in props]
+    header += [f"element face {len(mesh.faces)}", "property list uchar int vertex_indices", "end_header"]
     faces = np.empty(len(mesh.faces), dtype=[("n", "u1"), ("v", "<i4", (3,))])
     faces["n"] = 3
     faces["v"] = mesh.faces
     fh.write(("\n".join(header) + "\n").encode("ascii"))
-    fh.write(np.ascontiguousarray(verts).tobytes())
+    if props:
+        rows = np.empty(len(V), dtype=[("xyz", verts.dtype, (3,))] + [(name, dt) for name, _, dt, _ in props])
+        rows["xyz"] = verts
+        for name, _, dt, values in props:
+            rows[name] = values.astype(dt)
+        fh.write(rows.tobytes())
+    else:
+        fh.write(np.ascontiguousarray(verts).tobytes())
     fh.write(faces.tobytes())
+
+
+#: numpy type kind and size -> PLY scalar type
+_PLY_SCALAR = {("u", 1): "uchar", ("i", 1): "char", ("u", 2): "ushort", ("i", 2): "short", ("u", 4): "uint",
+               ("i", 4): "int", ("f", 4): "float", ("f", 8): "double", ("b", 1): "uchar"}
+
+
+def _ply_attribute_props(attributes: dict) -> list[tuple[str, str, str, np.ndarray]]:
+    """``(property name, PLY type, little-endian numpy type, values)`` of each vertex attribute."""
+    out, seen = [], {"x", "y", "z"}
+    for name, values in attributes.items():
+        values = np.asarray(values)
+        prop = "".join(ch if ch.isascii() and (ch.isalnum() or ch == "_") else "_" for ch in name) or "_"
+        while prop in seen:
+            prop += "_"
+        seen.add(prop)
+        key = (values.dtype.kind, values.dtype.itemsize)
+        ptype = _PLY_SCALAR.get(key, "double")
+        np_type = "<f8" if ptype == "double" else ("u1" if key == ("b", 1) else "<" + values.dtype.kind
+                                                   + str(values.dtype.itemsize))
+        out.append((prop, ptype, np_type, values))
+    return out
 
 
 def _write_obj(mesh: Mesh, fh) -> None:
     # the marker io.outputs looks for before replacing a file (one line, like the PLY header's comment)
     gen = str(mesh.metadata.get("generator", "tiled_gridpull")).splitlines()[0]
     fh.write(f"# generator {gen}\n")
-    np.savetxt(fh, mesh.vertices, fmt="v %.17g %.17g %.17g")
+    rgb = colors_unit(mesh.vertex_attributes)
+    if rgb is None:
+        np.savetxt(fh, mesh.vertices, fmt="v %.17g %.17g %.17g")
+    else:
+        np.savetxt(fh, np.column_stack([mesh.vertices, rgb]), fmt="v %.17g %.17g %.17g %.6g %.6g %.6g")
     np.savetxt(fh, mesh.faces + 1, fmt="f %d %d %d")
 
 
@@ -121,7 +163,8 @@ def read_mesh(path: str | Path) -> Mesh:
     -------
     Mesh
         ``vertices`` (V, 3) float64 (a float32 PLY written by this package gets its recorded offset back),
-        ``faces`` (F, 3) int64.
+        ``faces`` (F, 3) int64; a PLY's other scalar vertex properties (colour, intensity, classification, ...)
+        in ``vertex_attributes``, in their own type.
 
     Raises
     ------
@@ -132,9 +175,10 @@ def read_mesh(path: str | Path) -> Mesh:
     if not path.is_file():
         raise InputError(f"{path}: file not found")
     suffix = path.suffix.lower()
+    attrs: dict = {}
     try:
         if suffix == ".ply":
-            V, F = _read_ply(path)
+            V, F, attrs = _read_ply(path)
         elif suffix == ".obj":
             V, F = _read_obj(path)
         elif suffix == ".off":
@@ -154,7 +198,7 @@ def read_mesh(path: str | Path) -> Mesh:
         raise InputError(f"{path}: face indices out of range")
     if not np.all(np.isfinite(V)):
         raise InputError(f"{path}: mesh has non-finite vertex coordinates")
-    return Mesh(V, F, {"source": str(path)})
+    return Mesh(V, F, {"source": str(path)}, attrs)
 
 
 def _fan(polys) -> np.ndarray:
@@ -178,8 +222,14 @@ def _read_ply(path: Path):
     offset = ply_offset(ply.comments, str(path))
     if offset is not None:
         V = V + offset
+    attrs = {}
+    for name in v.dtype.names:
+        if name in ("x", "y", "z", "nx", "ny", "nz") or v.dtype[name].shape or v.dtype[name].kind not in "uifb":
+            continue
+        col = np.asarray(v[name])
+        attrs[name] = col.astype(col.dtype.newbyteorder("="))
     if "face" not in names:
-        return V, np.zeros((0, 3), np.int64)
+        return V, np.zeros((0, 3), np.int64), attrs
     fdata = ply["face"].data
     key = "vertex_indices" if "vertex_indices" in fdata.dtype.names else fdata.dtype.names[0]
     polys = fdata[key]
@@ -189,7 +239,7 @@ def _read_ply(path: Path):
             F = _fan(polys)
     except ValueError:
         F = _fan(polys)
-    return V, F
+    return V, F, attrs
 
 
 def ply_offset(comments: list[str], where: str = "PLY") -> np.ndarray | None:

@@ -97,6 +97,13 @@ def read(p: Path) -> PointCloud:
     attrs = {}
     if "intensity" in names:
         attrs["intensity"] = np.asarray(data[names["intensity"]], dtype=np.float32)
+    for name in ("rgb", "rgba"):
+        if name in names and np.asarray(data[names[name]]).dtype.itemsize == 4:
+            # PCL packs 8-bit colour in one 4-byte field (a float's bits, or uint32 for rgba): 0x00RRGGBB
+            packed = np.ascontiguousarray(data[names[name]]).view(np.uint32)
+            for shift, c in ((16, "red"), (8, "green"), (0, "blue")):
+                attrs[c] = ((packed >> shift) & 0xFF).astype(np.uint8)
+            break
     sensor = None
     if view is not None:
         height = (h.get("HEIGHT") or ["1"])[0]

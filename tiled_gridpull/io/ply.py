@@ -162,6 +162,18 @@ def _ply_cloud(p: Path, cols: dict, rows: slice, source: str) -> PointCloud:
         if name in cols:
             attrs["intensity"] = np.asarray(cols[name][rows], dtype=np.float32)
             break
+    # colour in the type the header declares (uchar: 8-bit, ushort: 16-bit), as Open3D and CloudCompare write it
+    for prefix in ("", "diffuse_"):
+        if all(prefix + c in cols for c in ("red", "green", "blue")):
+            for c in ("red", "green", "blue"):
+                values = np.asarray(cols[prefix + c][rows])
+                attrs[c] = values.astype(values.dtype.newbyteorder("="))
+            break
+    for name in ("classification", "scalar_classification"):
+        if name in cols:
+            values = np.asarray(cols[name][rows], dtype=np.float64)
+            attrs["classification"] = np.clip(np.nan_to_num(values), 0, 255).astype(np.uint8)
+            break
     return PointCloud(xyz, normals=normals, attributes=attrs, source=source)
 
 
@@ -216,7 +228,9 @@ def _ply_vertex_columns(p: Path) -> tuple[dict, int]:
         if table.shape[1] != len(names):
             raise InputError(f"{p}: corrupted PLY file (vertex rows have {table.shape[1]} values, "
                              f"header declares {len(names)})")
-        cols = {a: table[:, j] for j, a in enumerate(names)}
+        # integer properties (colour, classification) in their declared type, as the binary paths give them
+        cols = {a: table[:, j].astype(pr.type) if np.dtype(pr.type).kind in "ui" else table[:, j]
+                for j, (a, pr) in enumerate(zip(names, vertex.props))}
     else:
         cols = _ply_vertex_plyfile(p, n)
     offset = ply_offset(hdr.comments, str(p))

@@ -82,7 +82,7 @@ def _read_url(url: str) -> PointCloud:
     if indexed_kind(url) is None:
         raise InputError(f"{shown(url)}: only COPC files and EPTs are read from a URL; download it and give its path")
     index = read_index(url)
-    parts = list(read_levels(index, int(index.keys[:, 0].max(initial=0)) + 1))
+    parts = list(read_levels(index, int(index.keys[:, 0].max(initial=0)) + 1, attributes=True))
     if not parts:
         raise InputError(f"{shown(url)}: no points")
     return concat_clouds(parts, shown(url))
