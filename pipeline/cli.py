@@ -365,8 +365,7 @@ def _check_tiles3d(args, reads: list, out: Path) -> None:
             raise ConfigError(f"--3d-tiles {d} overlaps {p}: the tileset directory is replaced as a whole; "
                               "choose a directory of its own")
     check_tileset_dir(d)
-    if not args.dry_run:
-        resolve_tileset_crs(args.inputs, args.tiles3d_crs)
+    resolve_tileset_crs(args.inputs, args.tiles3d_crs)  # the dry run refuses it too
 
 
 def _parse_frames(text):
