@@ -274,6 +274,27 @@ def test_16_bit_colours_holding_8_bit_values_and_meshes_without_attributes(tmp_p
     assert g["gltf"].extensionsUsed in (None, [])
 
 
+def test_levels_over_a_row_of_tiles_and_a_stacked_column(tmp_path):
+    """Five tiles in a row (one of them with a second tile above it): three coarser levels, every tile reached
+    once, a coarse node alone in its block passed up rather than simplified again."""
+    row = _grid_tiles(n=5, attrs=False)
+    tiles = [t for t in row if t.index[1] == 0]  # (0..4, 0, 0)
+    above = Mesh(tiles[2].mesh.vertices + [0.0, 0.0, 10.0], tiles[2].mesh.faces)
+    tiles.append(TileMesh("tile_2_0_1", (2, 0, 1), above))
+    summary = write_tileset(tiles, tmp_path / "ts", UTM)
+    doc = json.loads((tmp_path / "ts" / "tileset.json").read_text())
+    assert summary["levels"] == 3 and [lv["nodes"] for lv in summary["per_level"]] == [6, 3, 2, 1]
+    leaves = sorted(leaf["content"]["uri"] for leaf in _leaves(doc))
+    assert leaves == sorted(f"tiles/{t.name}.glb" for t in tiles)
+    uris = [n["content"]["uri"] for n, _, _ in _nodes(doc["root"])]
+    # 6 tiles, 3 level-1 nodes, one new level-2 node, the root: the lone level-1 node of tile 4 is level 2's too
+    assert len(uris) == len(set(uris)) == 6 + 3 + 1 + 1
+    assert not any(u.startswith("lod/lod_2_1") for u in uris)
+    stacked = next(n for n, _, _ in _nodes(doc["root"]) if n.get("content", {}).get("uri") == "lod/lod_1_1_0.glb")
+    assert sorted(c["content"]["uri"] for c in stacked["children"]) == [
+        "tiles/tile_2_0_0.glb", "tiles/tile_2_0_1.glb", "tiles/tile_3_0_0.glb"]
+
+
 def test_crs_in_feet_and_one_without_a_place(tmp_path):
     # NAD83 / Oregon GIC Lambert (ft), the Autzen survey's CRS: heights in feet too
     tiles = _grid_tiles(n=1, origin=(637000.0, 851000.0, 400.0), attrs=False)

@@ -8,7 +8,8 @@ Layout of a tileset directory::
 
 The levels form a quadtree over the tile grid's (I, J) footprint: a level-L node holds the tiles whose indices
 shifted right by L are (A, B), its children are the level L-1 nodes inside it, and level 1's children are the
-tiles themselves (every K of the column). The top level holds the whole scene in about as many triangles as one
+tiles themselves (every K of the column); a coarse node alone in its block stands for the next level too (no
+second simplification of the same tiles). The top level holds the whole scene in about as many triangles as one
 tile, so a viewer opens a city block without loading every tile and refines (``REPLACE``) as it zooms in.
 Each coarse node's geometric error is the simplification's measured deviation from the finest surface: the
 larger of the farthest finest vertex from the simplified surface and the farthest simplified vertex from the
@@ -565,6 +566,11 @@ def write_tileset(tiles: Sequence[TileMesh], out_dir: str | Path, crs: str, *, m
                 groups.setdefault(key, []).append(nb)
             made, errors, n_faces = [], [], 0
             for key, kids in sorted(groups.items()):
+                if len(kids) == 1 and level > 1:  # a coarse node alone in its block: it is this level's too
+                    made.append({**kids[0], "key": key})
+                    errors.append(kids[0]["error"])
+                    n_faces += kids[0]["faces"]
+                    continue
                 members = sorted({i for k in kids for i in k["leaves"]})
                 fv, ff, fa = _weld([leaves[i]["local"] for i in members], [leaves[i]["faces"] for i in members],
                                    [leaves[i]["attrs"] for i in members])
@@ -579,7 +585,7 @@ def write_tileset(tiles: Sequence[TileMesh], out_dir: str | Path, crs: str, *, m
                 node = {"boundingVolume": {"box": _box(lo_all, hi_all)}, "geometricError": error,
                         "content": {"uri": f"lod/{name}.glb"}, "children": [k["node"] for k in kids]}
                 made.append({"key": key, "leaves": members, "node": node, "error": error, "lo": lo_all,
-                             "hi": hi_all})
+                             "hi": hi_all, "faces": len(cf)})
                 errors.append(error)
                 n_faces += len(cf)
             summary_levels.append({"level": level, "nodes": len(made), "faces": n_faces,
