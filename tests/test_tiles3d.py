@@ -2,7 +2,7 @@
 add up to the written mesh, coarser levels carry their measured deviation, the georeferencing agrees with a direct
 pyproj transform, vertex attributes become COLOR_0 and EXT_structural_metadata property attributes, and VTK's
 3D Tiles reader (vtkCesium3DTilesReader, from the vtk wheel on PyPI) opens the tileset at every level and draws it
-off-screen."""
+off-screen; Debian's gltfpack (cgltf's validator) loads every glb when it is installed."""
 
 import json
 import os
@@ -206,6 +206,31 @@ def test_vtk_3d_tiles_reader_opens_every_level_and_draws_it(job, tmp_path):
     plotter.close()
     lit = (image.max(axis=2) > 40).mean()
     assert 0.05 < lit < 0.99  # the tiles were drawn and fill part of the picture
+
+
+def test_every_glb_passes_gltfpack(job, tmp_path):
+    """Debian's gltfpack (``apt-get install gltfpack``) loads every glb through cgltf's parser and validator
+    (accessor and buffer bounds, index ranges); a glb with one accessor past its buffer is refused."""
+    import shutil
+    import subprocess
+
+    exe = shutil.which("gltfpack")
+    if exe is None:
+        pytest.skip("gltfpack not installed (Debian: apt-get install gltfpack)")
+    d, _, _ = job
+    files = sorted((d / "tiles").rglob("*.glb"))
+    assert len(files) == 16 + 4 + 1
+    for f in files:
+        r = subprocess.run([exe, "-i", str(f), "-o", str(tmp_path / "o.glb")], capture_output=True, text=True)
+        assert r.returncode == 0, (f, r.stderr)
+    import pygltflib
+
+    g = pygltflib.GLTF2().load_binary(str(files[0]))
+    g.accessors[0].count += 10
+    g.save_binary(str(tmp_path / "bad.glb"))
+    r = subprocess.run([exe, "-i", str(tmp_path / "bad.glb"), "-o", str(tmp_path / "o.glb")], capture_output=True,
+                       text=True)
+    assert r.returncode != 0 and "buffer too short" in r.stderr
 
 
 # ------------------------------------------------------------------------------------------ attributes, units
