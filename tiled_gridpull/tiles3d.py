@@ -718,7 +718,8 @@ def job_tiles(pieces: Sequence[tuple[str, Sequence[int], str | Path]]) -> list[T
     for name, index, path in pieces:
         piece = load_piece(path)
         mesh = Mesh(piece.vertices, piece.faces)
-        attrs = getattr(piece, "vertex_attributes", None)
+        # the piece's per-vertex values, under either name (MeshPiece.attributes, Mesh.vertex_attributes)
+        attrs = getattr(piece, "attributes", None) or getattr(piece, "vertex_attributes", None)
         if attrs:
             mesh = _with_attributes(mesh, dict(attrs))
         out.append(TileMesh(name, tuple(int(i) for i in index), mesh))
