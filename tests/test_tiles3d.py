@@ -399,6 +399,18 @@ def test_cli_refuses_before_solving(tmp_path, capsys):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["foreign", "g.npy"]  # nothing solved, nothing written
 
 
+def test_cli_says_which_extra_is_missing(tmp_path, capsys, monkeypatch):
+    import sys
+
+    np.save(tmp_path / "g.npy", terrain(6.4, 20))
+    monkeypatch.setitem(sys.modules, "pygltflib", None)  # as if not installed: import raises ImportError
+    code = main(["reconstruct", str(tmp_path / "g.npy"), "-o", str(tmp_path / "m.ply"), "-q", "--voxel-size", "0.2",
+                 "--3d-tiles", str(tmp_path / "ts"), "--3d-tiles-crs", UTM])
+    assert code == 4
+    assert "tiled-gridpull[tiles3d]" in _one_error_line(capsys.readouterr().err)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["g.npy"]
+
+
 @pytest.mark.slow
 def test_cli_takes_the_crs_of_a_las_input(tmp_path):
     from tiled_gridpull.synthetic.lidar_files import write_las
