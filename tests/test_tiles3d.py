@@ -340,6 +340,10 @@ def test_crs_in_feet_and_one_without_a_place(tmp_path):
     assert height == pytest.approx(400 * 0.3048, abs=3)  # ~122 m above the ellipsoid, not 400 m
     with pytest.raises(ConfigError, match="not a coordinate reference system"):
         write_tileset(tiles, tmp_path / "bad", "EPSG:999999")
+    with pytest.raises(ConfigError, match="places no point on the earth"):
+        write_tileset(tiles, tmp_path / "bad", "EPSG:5714")  # heights above mean sea level, nothing else
+    with pytest.raises(ConfigError, match="cannot transform"):
+        write_tileset(tiles, tmp_path / "bad", "IAU_2015:30100")  # the Moon
     assert not (tmp_path / "bad").exists()
 
 

@@ -179,16 +179,21 @@ def georeference(crs: str, centre: Sequence[float]) -> Georeference:
     pyproj = require("pyproj", "3D Tiles output")
     c = parse_crs(crs)
     if not (c.is_projected or c.is_geographic or c.is_geocentric or c.is_compound):
-        raise ConfigError(f"3D Tiles: {crs_label(crs)} is a local CRS with no place on the earth; give "
-                          "--3d-tiles-crs with the CRS the coordinates are really in")
+        raise ConfigError(f"3D Tiles: {crs_label(crs)} places no point on the earth (a local, engineering or "
+                          "vertical-only CRS); give --3d-tiles-crs with the CRS the coordinates are really in")
     z_factor = 1.0
     if len(c.axis_info) == 2:  # 2D: heights in the horizontal unit, above the ellipsoid
         if c.is_projected:
             z_factor = float(c.axis_info[0].unit_conversion_factor)
         c = c.to_3d()
     ecef = pyproj.CRS.from_epsg(4978)
-    to_ecef = pyproj.Transformer.from_crs(c, ecef, always_xy=True)
-    from_ecef = pyproj.Transformer.from_crs(ecef, c, always_xy=True)
+    try:
+        to_ecef = pyproj.Transformer.from_crs(c, ecef, always_xy=True)
+        from_ecef = pyproj.Transformer.from_crs(ecef, c, always_xy=True)
+    except pyproj.exceptions.ProjError as exc:  # e.g. a CRS of another celestial body
+        reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise ConfigError(f"3D Tiles: pyproj cannot transform {crs_label(crs)} to earth-centred coordinates "
+                          f"({reason})") from None
     centre = np.asarray(centre, np.float64).reshape(3)
     x, y, z = to_ecef.transform(centre[0], centre[1], centre[2] * z_factor)
     origin = np.array([x, y, z], np.float64)
