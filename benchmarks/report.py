@@ -387,7 +387,9 @@ def main() -> None:
         parts += ["## 3D Tiles output (`benchmarks/tiles3d.py`)", "",
                   "A finished job's mesh pieces written as a 3D Tiles 1.1 tileset (`--3d-tiles`): one glb per tile, "
                   "coarser levels over the tile grid decimated to about one tile's faces each, with their measured "
-                  "deviation from the finest surface as geometric error. `write s` includes the simplification and "
+                  "deviation from the finest surface as geometric error (the farthest vertex either way, which small "
+                  "parts the decimation drops decide; the 99th percentile of the finest vertices' distances says how "
+                  "far the bulk of the surface moved). `write s` includes the simplification and "
                   "the deviation's exact distances (most of it) on the shared machine, at the load average shown; "
                   "`root content MB` is what a viewer loads first, against every finest tile's glb.", "",
                   tiles3d_bench.table(tiles3d_rows), ""]

@@ -5,7 +5,8 @@ Usage::
 
     python -m benchmarks.tiles3d JOB_DIR CRS LABEL     # appends one row to benchmarks/results/tiles3d.jsonl
 
-``JOB_DIR`` is a finished job's directory (its ``pieces/``), ``CRS`` the input's (``EPSG:32632``).
+``JOB_DIR`` is a finished job's directory (its ``pieces/``), ``CRS`` the input's (``EPSG:32632``, or the input file
+whose CRS to read).
 """
 
 from __future__ import annotations
@@ -42,7 +43,7 @@ def measure(job_dir: Path, crs: str, label: str) -> dict:
         finest = sum(f.stat().st_size for f in (out / "tiles").glob("*.glb"))
         coarse = sum(f.stat().st_size for f in (out / "lod").glob("*.glb"))
         root = (out / doc["root"]["content"]["uri"]).stat().st_size
-    return {"label": label, "job": str(job_dir), "crs": crs, "tiles": summary["tiles"],
+    return {"label": label, "job": str(job_dir), "crs": summary["crs"], "tiles": summary["tiles"],
             "faces": summary["per_level"][0]["faces"], "levels": summary["levels"],
             "per_level": summary["per_level"], "load_s": t1 - t0, "write_s": t2 - t1,
             "finest_mb": finest / 1e6, "coarse_mb": coarse / 1e6, "root_mb": root / 1e6,
@@ -54,17 +55,24 @@ def measure(job_dir: Path, crs: str, label: str) -> dict:
 def table(rows: list[dict]) -> str:
     """BENCHMARKS.md table: one row per measured job."""
     shown = [{**r, "faces_per_level": " / ".join(f"{lv['faces']:,}" for lv in r["per_level"]),
-              "errors": " / ".join(f"{lv['geometric_error']:.3f}" for lv in r["per_level"])} for r in rows]
+              "errors": " / ".join(f"{lv['geometric_error']:.3f}" for lv in r["per_level"]),
+              "p99": " / ".join(f"{lv['deviation_p99']:.3f}" if "deviation_p99" in lv else "-"
+                                for lv in r["per_level"])} for r in rows]
     return markdown_table(shown, [
         ("label", "job", ""), ("date", "date", ""), ("tiles", "tiles", ""), ("faces", "faces", ",d"),
         ("faces_per_level", "faces per level, finest first", ""),
-        ("errors", "geometric error per level (m)", ""), ("write_s", "write s", ".1f"),
+        ("errors", "geometric error per level (m)", ""), ("p99", "99th percentile deviation (m)", ""),
+        ("write_s", "write s", ".1f"),
         ("finest_mb", "finest tiles MB", ".1f"), ("coarse_mb", "coarser levels MB", ".1f"),
         ("root_mb", "root content MB", ".2f"), ("load_avg", "load avg", ".1f")])
 
 
 def main() -> None:
     job_dir, crs, label = Path(sys.argv[1]), sys.argv[2], sys.argv[3]
+    if Path(crs).is_file():  # an input file: the CRS it declares
+        from tiled_gridpull.io import read_crs
+
+        crs = read_crs(crs)
     row = measure(job_dir, crs, label)
     RESULTS.parent.mkdir(parents=True, exist_ok=True)
     with open(RESULTS, "a") as fh:

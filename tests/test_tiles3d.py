@@ -120,6 +120,7 @@ def test_coarser_levels_are_smaller_and_their_error_is_measured(job):
     assert [lv["nodes"] for lv in levels] == [16, 4, 1]
     assert levels[2]["faces"] < levels[1]["faces"] < levels[0]["faces"] == mesh.n_faces
     assert doc["geometricError"] >= doc["root"]["geometricError"] > 0
+    assert all(0 <= lv["deviation_p99"] <= lv["geometric_error"] for lv in levels)
     for node, _, parent in _nodes(doc["root"]):
         if not node.get("children"):
             assert node["geometricError"] == 0

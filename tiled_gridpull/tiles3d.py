@@ -448,21 +448,34 @@ def _simplify(v: np.ndarray, f: np.ndarray, target_faces: int) -> tuple[np.ndarr
 
 
 def _deviation(fine_v: np.ndarray, fine_f: np.ndarray, coarse_v: np.ndarray, coarse_f: np.ndarray,
-               max_samples: int = 200_000, seed: int = 0) -> float:
-    """Symmetric vertex-to-surface Hausdorff distance (metres) between two meshes (exact distances to the
-    other surface; at most ``max_samples`` vertices of each side, chosen at random)."""
+               max_samples: int = 200_000, seed: int = 0) -> tuple[float, float]:
+    """How far a simplified mesh strays from the finest one (metres).
+
+    Returns
+    -------
+    hausdorff : float
+        Symmetric vertex-to-surface Hausdorff distance: the larger of the farthest finest vertex from the coarse
+        surface and the farthest coarse vertex from the finest surface (exact distances to the other surface; at
+        most ``max_samples`` vertices of each side, chosen at random).
+    p99 : float
+        The 99th percentile of the finest vertices' distances to the coarse surface (small parts the
+        simplification dropped make the maximum; this says how far the bulk of the surface moved).
+    """
     from .metrics import point_to_mesh
 
     if len(coarse_f) == 0 or len(fine_f) == 0:
-        return 0.0
+        return 0.0, 0.0
     rng = np.random.default_rng(seed)
-    worst = 0.0
-    for pts, v, f in ((fine_v, coarse_v, coarse_f), (coarse_v, fine_v, fine_f)):
+    worst, p99 = 0.0, 0.0
+    for side, (pts, v, f) in enumerate(((fine_v, coarse_v, coarse_f), (coarse_v, fine_v, fine_f))):
         if len(pts) > max_samples:
             pts = pts[rng.choice(len(pts), max_samples, replace=False)]
         d, _ = point_to_mesh(pts, Mesh(v, f))
-        worst = max(worst, float(d.max()) if len(d) else 0.0)
-    return worst
+        if len(d):
+            worst = max(worst, float(d.max()))
+            if side == 0:
+                p99 = float(np.percentile(d, 99))
+    return worst, p99
 
 
 def check_tileset_dir(path: str | Path) -> None:
@@ -560,27 +573,30 @@ def write_tileset(tiles: Sequence[TileMesh], out_dir: str | Path, crs: str, *, m
         levels = max(1, math.ceil(math.log2(span))) if span > 1 else 1
         faces_per_leaf = max(int(np.median([len(leaf["faces"]) for leaf in leaves])), 64)
         summary_levels = [{"level": 0, "nodes": len(leaves), "faces": int(sum(len(x["faces"]) for x in leaves)),
-                           "geometric_error": 0.0}]
+                           "geometric_error": 0.0, "deviation_p99": 0.0}]
         # coarser levels: group by (I, J) >> L
-        nodes_below = [{"key": tuple(k), "leaves": [i], "node": leaf["node"], "error": 0.0,
+        nodes_below = [{"key": tuple(k), "leaves": [i], "node": leaf["node"], "error": 0.0, "p99": 0.0,
                         "lo": leaf["lo"], "hi": leaf["hi"]} for i, (k, leaf) in enumerate(zip(ij0, leaves))]
         for level in range(1, levels + 1):
             groups: dict[tuple, list] = {}
             for nb in nodes_below:
                 key = (int(nb["key"][0]) >> 1, int(nb["key"][1]) >> 1)
                 groups.setdefault(key, []).append(nb)
-            made, errors, n_faces = [], [], 0
+            made, errors, p99s, n_faces = [], [], [], 0
             for key, kids in sorted(groups.items()):
                 if len(kids) == 1 and level > 1:  # a coarse node alone in its block: it is this level's too
                     made.append({**kids[0], "key": key})
                     errors.append(kids[0]["error"])
+                    p99s.append(kids[0]["p99"])
                     n_faces += kids[0]["faces"]
                     continue
                 members = sorted({i for k in kids for i in k["leaves"]})
                 fv, ff, fa = _weld([leaves[i]["local"] for i in members], [leaves[i]["faces"] for i in members],
                                    [leaves[i]["attrs"] for i in members])
                 cv, cf = _simplify(fv, ff, faces_per_leaf)
-                error = max(_deviation(fv, ff, cv, cf), max(k["error"] for k in kids))
+                hausdorff, p99 = _deviation(fv, ff, cv, cf)
+                error = max(hausdorff, max(k["error"] for k in kids))
+                p99s.append(p99)
                 ca = _nearest_attributes(fv, fa, cv)
                 name = f"lod_{level}_{key[0]}_{key[1]}"
                 lo_n, hi_n = write_glb(_with_attributes(Mesh(cv, cf), ca), tmp / "lod" / f"{name}.glb", cv, plan,
@@ -590,11 +606,11 @@ def write_tileset(tiles: Sequence[TileMesh], out_dir: str | Path, crs: str, *, m
                 node = {"boundingVolume": {"box": _box(lo_all, hi_all)}, "geometricError": error,
                         "content": {"uri": f"lod/{name}.glb"}, "children": [k["node"] for k in kids]}
                 made.append({"key": key, "leaves": members, "node": node, "error": error, "lo": lo_all,
-                             "hi": hi_all, "faces": len(cf)})
+                             "hi": hi_all, "faces": len(cf), "p99": p99})
                 errors.append(error)
                 n_faces += len(cf)
             summary_levels.append({"level": level, "nodes": len(made), "faces": n_faces,
-                                   "geometric_error": float(max(errors))})
+                                   "geometric_error": float(max(errors)), "deviation_p99": float(max(p99s))})
             nodes_below = made
         (root,) = nodes_below
         root_node = dict(root["node"])
