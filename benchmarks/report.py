@@ -380,6 +380,19 @@ def main() -> None:
                   "at 4M, one segment's worth of overhead), index reads 0.89-1.14x (every tile's task decompresses "
                   "the octree nodes its block overlaps, including the shallow ones that span the whole survey). "
                   "Time is what more workers buy: the driver's share is the join, or nothing.", ""]
+    tiles3d_rows = load("tiles3d")
+    if tiles3d_rows:
+        from benchmarks import tiles3d as tiles3d_bench
+
+        parts += ["## 3D Tiles output (`benchmarks/tiles3d.py`)", "",
+                  "A finished job's mesh pieces written as a 3D Tiles 1.1 tileset (`--3d-tiles`): one glb per tile, "
+                  "coarser levels over the tile grid decimated to about one tile's faces each, with their measured "
+                  "deviation from the finest surface as geometric error (the farthest vertex either way, which small "
+                  "parts the decimation drops decide; the 99th percentile of the finest vertices' distances says how "
+                  "far the bulk of the surface moved). `write s` includes the simplification and "
+                  "the deviation's exact distances (most of it) on the shared machine, at the load average shown; "
+                  "`root content MB` is what a viewer loads first, against every finest tile's glb.", "",
+                  tiles3d_bench.table(tiles3d_rows), ""]
     estimates_table = estimate.render(load("estimates"))
     if estimates_table:
         parts += ["## The dry run's time estimate against finished jobs (`benchmarks/estimate.py`)", "",

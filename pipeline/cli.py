@@ -116,6 +116,13 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--drop-outliers", action="store_true", default=None,
                    help="drop points far from the rest of the input (a stray (0,0,0) in a UTM cloud) before planning")
     t.add_argument("--tile-meshes", metavar="DIR", help="also write one PLY per tile into DIR")
+    t.add_argument("--3d-tiles", dest="tiles3d", metavar="DIR",
+                   help="also write the mesh as an OGC 3D Tiles 1.1 tileset into DIR (tileset.json, one glb per "
+                        "tile, coarser levels of detail above them) for CesiumJS, deck.gl or iTowns, georeferenced "
+                        "from the input's CRS (needs the tiles3d extra)")
+    t.add_argument("--3d-tiles-crs", dest="tiles3d_crs", metavar="CRS",
+                   help="with --3d-tiles: the CRS of the input's coordinates (EPSG:32632, or WKT) when the input "
+                        "declares none, or to use instead of the one it declares")
     t.add_argument("--max-memory", metavar="SIZE",
                    help="memory one worker may use for one tile, e.g. 2GB or 1500MB: tiles estimated to need more "
                         "are refused before anything is solved")
@@ -315,10 +322,14 @@ def cmd_reconstruct(args) -> int:
         reads = [*args.inputs, *([args.trajectory] if getattr(args, "trajectory", None) else [])]
         check_outputs(reads, out, work_dir=args.work_dir or out.with_suffix(".job"),
                       tile_meshes=args.tile_meshes, overwrite=args.overwrite)
+        _check_tiles3d(args, reads, out)
     else:
         check_outputs(args.inputs, out, overwrite=args.overwrite)
     if tiling is not None:
         return _reconstruct_tiled(args, out, cfg, tiling)
+    for opt, flag in (("tiles3d", "--3d-tiles"), ("tiles3d_crs", "--3d-tiles-crs")):
+        if getattr(args, opt, None) is not None:
+            raise ConfigError(f"{flag} applies to tiled mode: give --voxel-size too")
     for opt in ("workers", "scheduler", "work_dir", "frames", "max_memory", "trajectory"):
         if getattr(args, opt, None) is not None:
             raise ConfigError(f"--{opt.replace('_', '-')} applies to tiled mode: give --voxel-size too")
@@ -350,6 +361,31 @@ def cmd_reconstruct(args) -> int:
              topo.components, "watertight" if topo.watertight else f"{topo.boundary_edges} boundary edges",
              mesh.metadata["timings_s"]["total"])
     return 0
+
+
+def _check_tiles3d(args, reads: list, out: Path) -> None:
+    """``--3d-tiles`` and ``--3d-tiles-crs`` checked before anything is read or solved: a directory that is not
+    an input's nor holds one, nor someone else's files; a CRS (the input's or the option's) pyproj reads."""
+    from tiled_gridpull.errors import ConfigError
+
+    d = getattr(args, "tiles3d", None)
+    if d is None:
+        if getattr(args, "tiles3d_crs", None) is not None:
+            raise ConfigError("--3d-tiles-crs applies with --3d-tiles")
+        return
+    from tiled_gridpull.io.remote import is_url
+    from tiled_gridpull.tiles3d import check_tileset_dir, resolve_tileset_crs
+
+    rd = Path(d).resolve()
+    for p in [*reads, out, args.work_dir or out.with_suffix(".job"), args.tile_meshes]:
+        if p is None or is_url(str(p)):
+            continue
+        rp = Path(p).resolve()
+        if rd == rp or rd in rp.parents or (p not in reads and rp in rd.parents and p != out):
+            raise ConfigError(f"--3d-tiles {d} overlaps {p}: the tileset directory is replaced as a whole; "
+                              "choose a directory of its own")
+    check_tileset_dir(d)
+    resolve_tileset_crs(args.inputs, args.tiles3d_crs)  # the dry run refuses it too
 
 
 def _parse_frames(text):
@@ -416,7 +452,7 @@ def _reconstruct_tiled(args, out: Path, solver, tiling) -> int:
             check_memory(None, tiling, solver, max_memory, estimates=info["estimates"])
         return 0
     opts = JobOptions(workers=args.workers, scheduler=args.scheduler, fail_fast=args.fail_fast,
-                      tile_meshes=args.tile_meshes,
+                      tile_meshes=args.tile_meshes, tiles3d=args.tiles3d, tiles3d_crs=args.tiles3d_crs,
                       float32=args.float32, progress=not args.quiet, max_memory=max_memory)
     mesh = run_job(args.inputs, out, tiling, solver, work, opts, frames=frames, trajectory=args.trajectory)
     topo = mesh.topology

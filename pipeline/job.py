@@ -74,6 +74,10 @@ class JobOptions:
         Bytes one worker may use for one tile; the job is refused up front if a tile's estimate exceeds it.
     window : int
         Most tasks in flight at once (:func:`run_tiles`); tiles are submitted as a sliding window in tile order.
+    tiles3d : str, optional
+        Directory to also write the mesh into as an OGC 3D Tiles 1.1 tileset.
+    tiles3d_crs : str, optional
+        The tileset's CRS when the inputs declare none (or instead of theirs), e.g. ``EPSG:32632``.
     no_worker_timeout : float
         Seconds the job waits without any worker (an external scheduler none joined, or a cluster whose workers
         were all killed) before it stops with a clear message.
@@ -90,6 +94,8 @@ class JobOptions:
     max_memory: int | None = None
     window: int = DEFAULT_WINDOW
     no_worker_timeout: float = NO_WORKER_TIMEOUT_S
+    tiles3d: str | None = None
+    tiles3d_crs: str | None = None
 
 
 def _threads_for(workers: int) -> int:
@@ -308,7 +314,8 @@ def run_job(inputs: list[str], output: str | Path, tiling: TilingConfig, solver:
     return run_tiled_job(inputs, output, tiling, solver, work_dir, DaskExecutor(options), frames=frames,
                          trajectory=trajectory,
                          float32=options.float32, tile_meshes=options.tile_meshes, fail_fast=options.fail_fast,
-                         max_memory=options.max_memory, progress=options.progress)
+                         max_memory=options.max_memory, progress=options.progress, tiles3d=options.tiles3d,
+                         tiles3d_crs=options.tiles3d_crs)
 
 
 class DaskExecutor:

@@ -1,4 +1,5 @@
-"""Soft imports for heavy optional dependencies (pyvista, manifold3d, open3d, pye57, pyproj, copclib).
+"""Soft imports for heavy optional dependencies (pyvista, manifold3d, open3d, pye57, pyproj, copclib, pygltflib,
+fast_simplification).
 
 ``import tiled_gridpull`` never imports them; the first use raises a one-line
 :class:`~tiled_gridpull.errors.MissingDependencyError` telling the user what to install.
@@ -20,6 +21,8 @@ _HINTS = {
     "pye57": "pip install 'tiled-gridpull[e57]'",
     "pyproj": "pip install 'tiled-gridpull[geo]'",
     "copclib": "pip install 'tiled-gridpull[copc]'",
+    "pygltflib": "pip install 'tiled-gridpull[tiles3d]'",
+    "fast_simplification": "pip install 'tiled-gridpull[tiles3d]'",
 }
 
 

@@ -174,7 +174,8 @@ def reconstruct_scene(inputs: list[str], output: str | Path | None, tiling: Tili
                       work_dir: str | Path, *, frames=None, trajectory: str | Path | None = None,
                       float32: bool = False, log: Callable[[str], None] | None = None,
                       tile_meshes: str | Path | None = None, fail_fast: bool = False,
-                      max_memory: int | None = None) -> Mesh:
+                      max_memory: int | None = None, tiles3d: str | Path | None = None,
+                      tiles3d_crs: str | None = None) -> Mesh:
     """Tiled reconstruction, one tile after the other in this process (no Dask): :func:`run_tiled_job` with a
     :class:`SerialExecutor`.
 
@@ -205,6 +206,10 @@ def reconstruct_scene(inputs: list[str], output: str | Path | None, tiling: Tili
         Stop at the first failed tile instead of meshing around it.
     max_memory : int, optional
         Bytes the job may use; refused before the partition when a tile's estimate exceeds it.
+    tiles3d : str or Path, optional
+        Also write the mesh as an OGC 3D Tiles 1.1 tileset in this directory (:mod:`tiled_gridpull.tiles3d`).
+    tiles3d_crs : str, optional
+        The CRS of the tileset's georeferencing (``EPSG:32632``) when the inputs declare none, or instead of it.
 
     Returns
     -------
@@ -214,14 +219,14 @@ def reconstruct_scene(inputs: list[str], output: str | Path | None, tiling: Tili
     """
     return run_tiled_job(inputs, output, tiling, solver, work_dir, SerialExecutor(log), frames=frames,
                          trajectory=trajectory, float32=float32, tile_meshes=tile_meshes, fail_fast=fail_fast,
-                         max_memory=max_memory, progress=False)
+                         max_memory=max_memory, progress=False, tiles3d=tiles3d, tiles3d_crs=tiles3d_crs)
 
 
 def run_tiled_job(inputs: list[str], output: str | Path | None, tiling: TilingConfig, solver: SolverConfig,
                   work_dir: str | Path, executor: TileExecutor, *, frames=None,
                   trajectory: str | Path | None = None, float32: bool = False,
                   tile_meshes: str | Path | None = None, fail_fast: bool = False, max_memory: int | None = None,
-                  progress: bool = True) -> Mesh:
+                  progress: bool = True, tiles3d: str | Path | None = None, tiles3d_crs: str | None = None) -> Mesh:
     """A tiled reconstruction whose tiles ``executor`` runs; writes ``output`` (when given) with its sidecar and
     the job's report, returns the welded mesh.
 
@@ -248,7 +253,18 @@ def run_tiled_job(inputs: list[str], output: str | Path | None, tiling: TilingCo
         Bytes one tile may use; the job is refused up front if a tile's estimate exceeds it.
     progress : bool
         Show a progress bar with an ETA.
+    tiles3d : str or Path, optional
+        Also write an OGC 3D Tiles 1.1 tileset of the mesh into this directory (one glb per tile, coarser
+        levels of detail, georeferenced from the inputs' CRS or ``tiles3d_crs``).
+    tiles3d_crs : str, optional
+        The tileset's CRS (``EPSG:XXXX`` or WKT) instead of the inputs' (needed when they declare none).
     """
+    tileset = None
+    if tiles3d is not None:  # refused before anything is read or solved: no CRS, a directory not ours
+        from .tiles3d import check_tileset_dir, resolve_tileset_crs
+
+        check_tileset_dir(tiles3d)
+        tileset = (Path(tiles3d), *resolve_tileset_crs(inputs, tiles3d_crs))
     check_job_dir(work_dir)  # a user's own files and linked folders, before anything is read or written
     check_registered(inputs)  # before a KITTI scan's points are read to measure them
     check_remote(inputs, trajectory, tiling)  # before the cell size or the noise reads a URL
@@ -262,7 +278,8 @@ def run_tiled_job(inputs: list[str], output: str | Path | None, tiling: TilingCo
         try:
             return _run(inputs, output, tiling, solver, JobPaths(work_dir), executor, frames=frames,
                         trajectory=trajectory, float32=float32, noise=noise,
-                        tile_meshes=tile_meshes, fail_fast=fail_fast, max_memory=max_memory, progress=progress)
+                        tile_meshes=tile_meshes, fail_fast=fail_fast, max_memory=max_memory, progress=progress,
+                        tileset=tileset)
         finally:
             close = getattr(executor, "close", None)  # executors written before close() existed have none
             if close is not None:
@@ -270,7 +287,8 @@ def run_tiled_job(inputs: list[str], output: str | Path | None, tiling: TilingCo
 
 
 def _run(inputs, output, tiling: TilingConfig, solver: SolverConfig, paths: JobPaths, executor: TileExecutor, *,
-         frames, trajectory, float32, tile_meshes, fail_fast, max_memory, progress, noise=None) -> Mesh:
+         frames, trajectory, float32, tile_meshes, fail_fast, max_memory, progress, noise=None,
+         tileset: tuple | None = None) -> Mesh:
     t0 = time.perf_counter()
     check = None
     if max_memory is not None:
@@ -321,6 +339,18 @@ def _run(inputs, output, tiling: TilingConfig, solver: SolverConfig, paths: JobP
     pieces = [paths.piece(by_index[tuple(m["index"])]) for m in mesh_summaries if m.get("status") == "meshed"]
     mesh = finish_job(pieces, meta, float32=float32, tile_meshes=tile_meshes)
     mesh.metadata["timings_s"]["merge"] = time.perf_counter() - t_mesh
+    if tileset is not None:
+        from .tiles3d import job_tiles, write_tileset
+
+        t_tiles = time.perf_counter()
+        out_dir, crs, crs_source = tileset
+        meshed = [by_index[tuple(m["index"])] for m in mesh_summaries if m.get("status") == "meshed"]
+        summary = write_tileset(job_tiles([(s.name, s.index, paths.piece(s)) for s in meshed]), out_dir, crs,
+                                metadata=mesh.metadata, crs_source=crs_source)
+        mesh.metadata["tiles3d"] = {"dir": str(out_dir), **summary}
+        mesh.metadata["timings_s"]["tiles3d"] = time.perf_counter() - t_tiles
+        log.info("wrote 3D Tiles %s: %d tiles, %d coarser level(s), in %.1f s", out_dir, summary["tiles"],
+                 summary["levels"], mesh.metadata["timings_s"]["tiles3d"])
     mesh.metadata["timings_s"]["total"] = time.perf_counter() - t0
     if output is not None:
         # one commit: a sidecar that cannot be written leaves no mesh behind
