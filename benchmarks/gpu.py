@@ -336,3 +336,54 @@ def main(argv=None) -> int:
 
 if __name__ == "__main__":
     raise SystemExit(main())
+
+
+def table(rows: list[dict]) -> str:
+    """Markdown tables of ``results/gpu.jsonl`` (BENCHMARKS.md, "GPU"): the latest run's rows of each stage."""
+    runs = sorted({r.get("run", 0) for r in rows})
+    last = [r for r in rows if r.get("run", 0) == runs[-1]]
+    env = next((r for r in reversed(last) if r["stage"] == "env" and "card" in r), {})
+    lines = [f"Card: {env.get('card')}, copy bandwidth {env.get('copy_gbps', 0):,.0f} GB/s (device to device, read + "
+             f"write); {env.get('cpu_count')} CPU cores; numba {env.get('numba')}, numba-cuda {env.get('numba_cuda')}, "
+             f"numpy {env.get('numpy')}.", ""]
+    lines += ["| band | form | ms / iteration | ns / slot | GB/s (41 B/slot fused step, 54 sqrt) | share of copy | "
+              "queries | query ms |", "|---|---|---|---|---|---|---|---|"]
+    for run in runs:
+        for r in (x for x in rows if x.get("run", 0) == run and x["stage"] == "step" and "error" not in x):
+            for form in ("squared", "sqrt"):
+                f = r[form]
+                lines.append(f"| {r['band']} (run {run}) | {form} | {f['ms_per_iteration']:.3f} | "
+                             f"{f['ns_per_slot']:.4f} | {f['effective_gbps']:,.0f} | {f['share_of_copy']:.0%} | "
+                             f"{r['queries']:,} | {r['query_ms']:.2f} |")
+    lines += ["", "| job | device | run | wall s | solve task-s | solve s per level (summed over tiles) | "
+              "sampled CD-L1 | sampled F@0.1 | sampled NC |", "|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        if r["stage"] not in ("shape", "wide", "street") or "wall_s" not in r:
+            continue
+        dev = r["device"] if isinstance(r["device"], str) else (r["device"] or {}).get("device")
+        if dev is None and r.get("devices"):
+            dev = ", ".join(r["devices"])
+        if "task_s_per_level" in r:
+            per = " / ".join(f"{v['time_solve_s']:.0f}" for _, v in sorted(r["task_s_per_level"].items()))
+            task = f"{r['solve_task_s']:.0f}"
+        else:
+            per = " / ".join(f"{v['time_solve_s']:.2f}" for v in r.get("solve_levels", []))
+            task = f"{(r.get('timings_s') or {}).get('solve', 0):.1f}"
+        name = {"shape": "torus 100k, R = 256", "wide": "grid of streets 1M, 0.1 m", "street": "street 14M"}[r["stage"]]
+        f = r.get("fscore_sampled@0.1")
+        lines.append(f"| {name} | {dev} | {r.get('run', 0)} | {r['wall_s']:.1f} | {task} | {per} | "
+                     f"{r.get('chamfer_l1_sampled', float('nan')):.4g} | {'' if f is None else f'{f:.3f}'} | "
+                     f"{r.get('normal_consistency_sampled', float('nan')):.4f} |")
+    agree = [r for r in rows if r["stage"] == "agree" and "error" not in r]
+    if agree:
+        lines += ["", "| agreement (20k-point sphere) | run | near-surface field mean / max diff (cells) | "
+                  "mesh CD (cells, sampled) | card repeats field / mesh bit for bit | solve s CPU / card |",
+                  "|---|---|---|---|---|---|"]
+        for r in agree:
+            mean = r.get("near_surface_mean_abs_diff_cells", r["field_mean_abs_diff_cells"])
+            top = r.get("near_surface_max_abs_diff_cells", r["field_max_abs_diff_cells"])
+            where = "" if "near_surface_mean_abs_diff_cells" in r else " (every parameter)"
+            lines.append(f"| R = {r['resolution']} | {r['run']} | {mean:.3f} / {top:.3f}{where} | "
+                         f"{r['mesh_chamfer_cells']:.3f} | {r['field_bitwise_repeat']} / {r['mesh_bitwise_repeat']} | "
+                         f"{r['solve_s_cpu']:.1f} / {r['solve_s_cuda_second']:.2f} |")
+    return "\n".join(lines)
