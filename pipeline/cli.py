@@ -309,10 +309,11 @@ def cmd_reconstruct(args) -> int:
     if out.suffix.lower() not in (".ply", ".obj"):
         raise ConfigError(f"output {out}: use a .ply or .obj file name")
     cfg, tiling = resolve_settings(args)  # validated before any file is read
-    if cfg.device == "cuda":
+    if cfg.device == "cuda" and not getattr(args, "scheduler", None):
         from tiled_gridpull.device import resolve as resolve_device
 
-        resolve_device(cfg.device)  # no card: one line, exit 2, before any file is read
+        # no card: one line, exit 2, before any file is read (a --scheduler's workers hold their own cards)
+        resolve_device(cfg.device)
     _set_min_transfer_rate(args)
     if tiling is not None and getattr(args, "band_edges", None) is not None:
         raise ConfigError("--band-edges applies to one-shape mode (tiled mode removes every face farther than "

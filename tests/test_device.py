@@ -166,3 +166,23 @@ def test_one_launch_per_level_equals_one_launch_per_step(monkeypatch, caplog):
     for a, b in zip(h1, h2):
         assert a["valid_queries"] == b["valid_queries"]
         assert a["pull"] == pytest.approx(b["pull"], rel=1e-9) and a["tv"] == pytest.approx(b["tv"], rel=1e-9)
+
+
+@needs_cuda
+@pytest.mark.parametrize("message,kind", [("CUDA_ERROR_OUT_OF_MEMORY", "MemoryBudgetError"),
+                                          ("CUDA_ERROR_LAUNCH_FAILED", "GridPullError")])
+def test_a_card_failure_is_one_line(monkeypatch, message, kind):
+    from numba.cuda.cudadrv.driver import CudaAPIError
+
+    from tiled_gridpull import errors
+    from tiled_gridpull.solver_cuda import CudaBackend
+
+    def fail(self, run):
+        raise CudaAPIError(2, f"Call to cuMemAlloc results in {message}\n(more)")
+
+    monkeypatch.setattr(CudaBackend, "_iterate", fail)
+    P = unit_sphere_points(300)
+    with pytest.raises(errors.GridPullError) as e:
+        solve(P, Lattice.fit(P, 20, 3), SolverConfig(**TINY), device="cuda")
+    assert type(e.value).__name__ == kind
+    assert "\n" not in str(e.value) and "CUDA" in str(e.value)

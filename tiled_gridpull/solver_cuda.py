@@ -20,6 +20,7 @@ import numpy as np
 
 from .band import Band
 from .device import cuda_card, cuda_module
+from .errors import GridPullError, MemoryBudgetError
 from .field import Field
 from .kernels import CELL_PULL
 from .kernels import sampling as ksamp
@@ -114,7 +115,23 @@ class CudaBackend:
         return out.copy_to_host().reshape(band.n_bricks, 512)
 
     def iterate(self, run: LevelRun) -> tuple[np.ndarray, dict]:
-        """Run the level's iterations on the card; the optimized ``(n_slots,)`` field (on the host) and timings."""
+        """Run the level's iterations on the card; the optimized ``(n_slots,)`` field (on the host) and timings.
+
+        A failure of the card's driver (out of memory, a lost device) is a one-line
+        :class:`~tiled_gridpull.errors.MemoryBudgetError` or :class:`~tiled_gridpull.errors.GridPullError`."""
+        from numba.cuda.cudadrv.driver import CudaAPIError
+
+        try:
+            return self._iterate(run)
+        except CudaAPIError as exc:
+            text = " ".join(str(exc).split())
+            band = f"{run.band.n_slots:,} slots, {run.st.queries:,} queries"
+            if "OUT_OF_MEMORY" in text.upper():
+                raise MemoryBudgetError(f"the CUDA card ({cuda_card()}) ran out of memory for a band of {band}: "
+                                        f"use smaller tiles or --device cpu") from None
+            raise GridPullError(f"CUDA error on {cuda_card()} ({band}): {text[:300]}") from None
+
+    def _iterate(self, run: LevelRun) -> tuple[np.ndarray, dict]:
         cuda, k = self.cuda, self.k
         t0 = time.perf_counter()
         band, cfg, st = run.band, run.cfg, run.st
