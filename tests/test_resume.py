@@ -38,7 +38,7 @@ def _names(specs):
     return [(s.name, s.n_points, s.points_sha256) for s in specs]
 
 
-OTHER_CHOICE = {"tv_form": "squared", "refine_tv_form": "sqrt", "mode": "udf"}
+OTHER_CHOICE = {"tv_form": "squared", "refine_tv_form": "sqrt", "mode": "udf", "device": "cpu"}
 
 
 def _changed(name: str, value):
@@ -61,7 +61,7 @@ def test_solve_key_follows_exactly_the_settings_marked_solve(tmp_path, ground):
               for name, (sec, fname) in SETTINGS.items()}
     assert all(set(f.metadata) == {"solve", "sphere_only"} for f in fields.values())  # every setting classified
     assert {n for n, f in fields.items() if not f.metadata["solve"]} == {"resolution", "margin", "normal_weight",
-                                                                                "noise_auto", "relax"}
+                                                                                "noise_auto", "relax", "device"}
     assert {n for n, f in fields.items() if f.metadata["sphere_only"]} == {"init_radius"}
     for tiling in (TILING, sphere):
         base = solve_key(s, tiling, SOLVER)
