@@ -194,3 +194,26 @@ def test_device_functions_are_the_cpu_helpers_recompiled():
     assert K._ENV["query_one"].py_func.__code__ is kl.query_one.py_func.__code__
     assert K._ENV["locate"].py_func.__code__ is ki.locate.py_func.__code__
     assert K._ENV["draw_one"].py_func.__code__ is ksamp.draw_one.py_func.__code__
+
+
+def test_the_draw_hashes_the_key_as_uint64_whatever_type_it_arrives_in(setup):
+    """A kernel's Python-int argument is typed int64 on a card when it is below 2^63 (uint64 above): the device
+    draw must still hash it as a uint64, or the card draws other queries than the ones the host found the nearest
+    points of. numba's typing (the same for both targets; the simulator runs NumPy's instead) checked with njit."""
+    from numba import njit
+
+    P = setup[0]
+    draw = njit(ksamp.draw_one.py_func)
+    nq, sigma = 40, np.float32(0.8)
+    seen = set()
+    for it in range(8):
+        key = ksamp.iteration_key(3, it)
+        centres = np.empty(nq, np.int64)
+        q = np.empty((nq, 3), np.float32)
+        ksamp.draw_queries(P, 3, it, sigma, centres, q)
+        typed = np.int64(key) if key < 2 ** 63 else np.uint64(key)
+        seen.add(type(typed))
+        for i in range(nq):
+            c, x, y, z = draw(P, typed, i, len(P) / nq, sigma, ksamp.NORMALS)
+            assert c == centres[i] and (x, y, z) == tuple(q[i])
+    assert seen == {np.int64, np.uint64}

@@ -191,7 +191,7 @@ class CudaBackend:
                 fresh.copy_to_device(run.nn.query(q, centres)[0].astype(np.int32))
                 nearest = fresh
             want = run.records(it)
-            key = ksamp.iteration_key(seed, run.it0 + batch)
+            key = np.uint64(ksamp.iteration_key(seed, run.it0 + batch))  # one kernel type for every key
             k.query_scatter[qb, qt](d_a, flags, table, nx, ny, nz, points, normals, use_normals, nearest, key, step,
                                     sigma, self._normals, CELL_PULL, float(run.beta), float(run.gamma),
                                     float(cfg.losses.normal_weight), acc, counts, it, loss_sums, want)

@@ -102,7 +102,8 @@ def query_scatter(values, flags, table, nx, ny, nz, points, normals, use_normals
     nearest : (Nq,) int32
         Nearest point of each query (this iteration's pool batch).
     key : uint64
-        :func:`.sampling.iteration_key` of the batch.
+        :func:`.sampling.iteration_key` of the batch (pass ``np.uint64``: a Python int below 2^63 is typed int64, a
+        second compilation; :func:`.sampling.draw_one` hashes it as a uint64 either way).
     step, sigma : float
         ``N / Nq`` and the query spread (cells).
     normal_table : (65536,) float32
