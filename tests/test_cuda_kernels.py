@@ -217,3 +217,31 @@ def test_the_draw_hashes_the_key_as_uint64_whatever_type_it_arrives_in(setup):
             c, x, y, z = draw(P, typed, i, len(P) / nq, sigma, ksamp.NORMALS)
             assert c == centres[i] and (x, y, z) == tuple(q[i])
     assert seen == {np.int64, np.uint64}
+
+
+def test_the_udf_clamp_projects_every_slot_as_on_the_cpu(setup):
+    """UDF mode projects the whole field onto d >= 0 (:func:`.step.tv_adam_step`), non-parameters included: a start
+    that is negative outside the parameters (``solve(init=...)`` in udf mode) is clamped alike on both devices."""
+    P, band, values, _ = setup
+    n = band.n_slots
+    flags = band.flags.reshape(-1)
+    par = (flags & 1) != 0
+    d0 = -values  # negative beyond the band's outer side
+    assert np.any(d0[~par] < 0)
+    m, v, qgrad = _step_inputs(band, d0)
+    acc = np.floor(qgrad.astype(np.float64) * 37 * K.FIXED_SCALE + 0.5).astype(np.int64)
+    qgrad_fixed = (acc.astype(np.float32) * np.float32(1.0 / K.FIXED_SCALE / 37)).astype(np.float32)
+    d_cpu = np.empty_like(d0)
+    ks.tv_adam_step(d0, d_cpu, m.copy(), v.copy(), qgrad_fixed, flags, band.neighbors, np.zeros(1, np.float32),
+                    ks.TV_SQUARED, np.float32(0.01), np.float32(0.05), np.float32(0.9), np.float32(0.999),
+                    np.float32(1e-8), True)
+    out = cuda.device_array(n, np.float32)
+    K.tv_adam[launch(n)](cuda.to_device(d0), out, cuda.to_device(m), cuda.to_device(v), cuda.to_device(acc),
+                         cuda.to_device(np.array([37], np.int32)), 0, cuda.to_device(flags),
+                         cuda.to_device(band.neighbors), cuda.to_device(np.zeros(1, np.float32)), 0,
+                         np.float32(0.01), np.float32(0.05), np.float32(0.9), np.float32(0.999), np.float32(1e-8),
+                         True, cuda.to_device(np.zeros(1, np.float64)), False)
+    got = out.copy_to_host()
+    assert d_cpu.min() >= 0.0
+    np.testing.assert_array_equal(got[~par], d_cpu[~par])
+    np.testing.assert_allclose(got, d_cpu, rtol=0, atol=1e-5)

@@ -225,7 +225,9 @@ def _adam_item(s, d_in, d_out, m, v, acc, scale, flags, neighbors, inv, form, tv
     d = d_in[s]
     a = acc[s]
     if (flags[s] & _PARAM) == 0:
-        d_out[s] = d
+        # the CPU step projects every slot in UDF mode, non-parameters included (they are read by the queries'
+        # corners, the signing and the mesh)
+        d_out[s] = max(d, np.float32(0.0)) if clamp_nonneg else d
         if a != 0:
             acc[s] = 0
         return
