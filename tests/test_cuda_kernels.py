@@ -245,3 +245,42 @@ def test_the_udf_clamp_projects_every_slot_as_on_the_cpu(setup):
     assert d_cpu.min() >= 0.0
     np.testing.assert_array_equal(got[~par], d_cpu[~par])
     np.testing.assert_allclose(got, d_cpu, rtol=0, atol=1e-5)
+
+
+def test_the_fixed_point_sums_cannot_wrap(setup):
+    """Each slot's int64 accumulator holds the sum of its clipped fixed-point contributions, however many and however
+    large: a launch of nq queries clips each to 9e18 / (2 nq + 1) units, so no sum passes the int64 range. With only
+    the 1e9 clip, 137 queries of 1e9 at one slot wrapped the sum round to the other sign. (The field is absurd, flat
+    at 1e5 cells, so |grad f| = 1e-6 in the pull's 1/|grad f|: degenerate gradients are all that reach the clip.)"""
+    _, band, _, _ = setup
+    # every query around point A, all pulled towards point B three cells away: 400 same-signed gradients at the
+    # corners of one cell
+    a = np.array([11.5, 11.5, 4.6], np.float32)
+    P = np.vstack([np.repeat(a[None], 50, axis=0), a + np.float32([3.0, 0.0, 0.0])]).astype(np.float32)
+    flat = np.full(band.n_slots, 1e5, np.float32)
+    nq, sigma = 400, np.float32(0.05)
+    centres = np.empty(nq, np.int64)
+    q = np.empty((nq, 3), np.float32)
+    ksamp.draw_queries(P, 2, 0, sigma, centres, q)
+    nearest = np.full(nq, 50, np.int32)
+    slots = np.empty((nq, 16), np.int64)
+    grads = np.empty((nq, 16), np.float32)
+    losses = np.empty((nq, 4), np.float32)
+    n_valid = kl.query_losses(flat, band.flags.reshape(-1), band.brick_table, np.asarray(band.lattice.shape, np.int64),
+                              q, P, nearest, np.zeros((0, 3), np.float32), CELL_PULL, 1.0, 0.005, 0.0, slots, grads,
+                              losses)
+    assert n_valid == nq
+    old = np.clip(grads.astype(np.float64) * K.FIXED_SCALE, -K._FIXED_CLIP * K.FIXED_SCALE,
+                  K._FIXED_CLIP * K.FIXED_SCALE)
+    sums = np.zeros(band.n_slots)
+    np.add.at(sums, slots.reshape(-1), old.reshape(-1))
+    assert np.abs(sums).max() > 2.0 ** 63  # what the 1e9 clip alone let through
+    clip = min(K._FIXED_CLIP * K.FIXED_SCALE, getattr(K, "_FIXED_ROOM", np.inf) / (2.0 * nq + 1.0))
+    want = np.zeros(band.n_slots)
+    np.add.at(want, slots.reshape(-1), np.clip(grads.astype(np.float64) * K.FIXED_SCALE, -clip, clip).reshape(-1))
+    acc, count, _ = _gpu_queries(P, band, flat, np.zeros((51, 3), np.float32), nearest, 2, 0, sigma, 0.0,
+                                 launch(nq))
+    assert count == nq
+    touched = want != 0
+    np.testing.assert_array_equal(np.sign(acc[touched]), np.sign(want[touched]))
+    np.testing.assert_allclose(acc.astype(np.float64), want, rtol=1e-4)

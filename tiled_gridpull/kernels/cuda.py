@@ -41,6 +41,10 @@ FIXED_SCALE = float(1 << 26)
 _INV_FIXED = 1.0 / FIXED_SCALE
 #: Largest single contribution converted (|g| beyond it is clipped: it could only come from a degenerate gradient)
 _FIXED_CLIP = 1e9
+#: Below 2^63 - 1 with room for rounding: a launch of ``nq`` queries clips each contribution to
+#: ``_FIXED_ROOM / (2 nq + 1)`` fixed units (a query adds to a slot at most twice, once as a corner of q and once
+#: of its point), so no slot's sum can wrap round to the other sign (:func:`_clip_for`)
+_FIXED_ROOM = 9.0e18
 _TV_EPS = 1e-8
 _PARAM = np.uint8(1)
 
@@ -72,12 +76,20 @@ _query_one = _ENV["query_one"]
 
 
 @cuda.jit(device=True, inline=True)
-def _to_fixed(g):
+def _clip_for(nq):
+    """Largest contribution (fixed units) a launch of ``nq`` queries converts: ``_FIXED_CLIP``, or less where
+    ``2 nq`` contributions of it could pass the int64 range (from 2.2M queries a launch; the gradients it clips are
+    beyond 1e5 per query there, degenerate ones)."""
+    return min(_FIXED_CLIP * FIXED_SCALE, _FIXED_ROOM / (2.0 * nq + 1.0))
+
+
+@cuda.jit(device=True, inline=True)
+def _to_fixed(g, clip):
     x = g * FIXED_SCALE
-    if not (x > -_FIXED_CLIP * FIXED_SCALE):  # NaN lands here too
-        x = -_FIXED_CLIP * FIXED_SCALE if x == x else 0.0
-    elif x > _FIXED_CLIP * FIXED_SCALE:
-        x = _FIXED_CLIP * FIXED_SCALE
+    if not (x > -clip):  # NaN lands here too
+        x = -clip if x == x else 0.0
+    elif x > clip:
+        x = clip
     return np.int64(math.floor(x + 0.5))
 
 
@@ -123,22 +135,24 @@ def query_scatter(values, flags, table, nx, ny, nz, points, normals, use_normals
     slots = cuda.local.array(16, np.int64)
     grads = cuda.local.array(16, np.float32)
     losses = cuda.local.array(4, np.float32)
+    clip = _clip_for(nearest.shape[0])
     for n in range(start, nearest.shape[0], stride):
         _query_item(n, values, flags, table, nx, ny, nz, points, normals, use_normals, nearest[n], key, step, sigma,
                     normal_table, pull_bit, beta, gamma, lam, acc, counts, t, loss_sums, want_losses, slots, grads,
-                    losses)
+                    losses, clip)
 
 
 @cuda.jit(device=True, inline=True)
 def _query_item(n, values, flags, table, nx, ny, nz, points, normals, use_normals, p, key, step, sigma, normal_table,
-                pull_bit, beta, gamma, lam, acc, counts, t, loss_sums, want_losses, slots, grads, losses):
-    """Query ``n`` of iteration ``t`` (nearest point ``p``): draw, evaluate, scatter (see :func:`query_scatter`)."""
+                pull_bit, beta, gamma, lam, acc, counts, t, loss_sums, want_losses, slots, grads, losses, clip):
+    """Query ``n`` of iteration ``t`` (nearest point ``p``): draw, evaluate, scatter (see :func:`query_scatter`);
+    ``clip`` from :func:`_clip_for`."""
     _, qx, qy, qz = _draw_one(points, key, n, step, sigma, normal_table)
     if _query_one(values, flags, table, nx, ny, nz, qx, qy, qz, points, p, normals, use_normals, pull_bit, beta,
                   gamma, lam, slots, grads, losses):
         cuda.atomic.add(counts, t, 1)
         for c in range(16):
-            cuda.atomic.add(acc, slots[c], _to_fixed(grads[c]))
+            cuda.atomic.add(acc, slots[c], _to_fixed(grads[c], clip))
         if want_losses:
             for c in range(4):
                 cuda.atomic.add(loss_sums, (t, c), np.float64(losses[c]))
@@ -272,6 +286,7 @@ def solve_level(d_a, d_b, m, v, acc, inv, flags, table, neighbors, nx, ny, nz, p
     n_batches = pool.shape[0]
     nq = pool.shape[1]
     n = d_a.shape[0]
+    clip = _clip_for(nq)
     for t in range(iters):
         src = d_a if t % 2 == 0 else d_b
         dst = d_b if t % 2 == 0 else d_a
@@ -281,7 +296,7 @@ def solve_level(d_a, d_b, m, v, acc, inv, flags, table, neighbors, nx, ny, nz, p
         for q in range(start, nq, stride):
             _query_item(q, src, flags, table, nx, ny, nz, points, normals, use_normals, pool[batch, q], key, step,
                         sigma, normal_table, pull_bit, beta, gamma, lam, acc, counts, t, loss_sums, want, slots,
-                        grads, losses)
+                        grads, losses, clip)
         grid.sync()
         if form == 1:
             for s in range(start, n, stride):
