@@ -12,6 +12,7 @@ CPU's within float32 rounding per step (tests/test_cuda_kernels.py, tests/test_d
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import time
@@ -101,9 +102,14 @@ class CudaBackend:
 
     def upsample(self, coarse: Field, band: Band) -> np.ndarray:
         """The finer band's initial values (:func:`tiled_gridpull.solver.upsample`), from the coarse field on the card
-        when it is the last one this backend produced."""
+        when it is the last one this backend produced; a driver failure is one line (see :meth:`iterate`)."""
         if self._last is None or self._last[0] is not coarse:
             return upsample(coarse, band)
+        with _card_errors(f"upsampling to {band.n_slots:,} slots"):
+            return self._upsample(band)
+
+    def _upsample(self, band: Band) -> np.ndarray:
+        coarse = self._last[0]
         cb = coarse.band
         to = self.cuda.to_device
         out = self.cuda.device_array(band.n_slots, np.float32)
@@ -117,19 +123,10 @@ class CudaBackend:
     def iterate(self, run: LevelRun) -> tuple[np.ndarray, dict]:
         """Run the level's iterations on the card; the optimized ``(n_slots,)`` field (on the host) and timings.
 
-        A failure of the card's driver (out of memory, a lost device) is a one-line
+        A failure of the card's driver (out of memory, a lost device, a context made before a fork) is a one-line
         :class:`~tiled_gridpull.errors.MemoryBudgetError` or :class:`~tiled_gridpull.errors.GridPullError`."""
-        from numba.cuda.cudadrv.driver import CudaAPIError
-
-        try:
+        with _card_errors(f"a band of {run.band.n_slots:,} slots, {run.st.queries:,} queries"):
             return self._iterate(run)
-        except CudaAPIError as exc:
-            text = " ".join(str(exc).split())
-            band = f"{run.band.n_slots:,} slots, {run.st.queries:,} queries"
-            if "OUT_OF_MEMORY" in text.upper():
-                raise MemoryBudgetError(f"the CUDA card ({cuda_card()}) ran out of memory for a band of {band}: "
-                                        f"use smaller tiles or --device cpu") from None
-            raise GridPullError(f"CUDA error on {cuda_card()} ({band}): {text[:300]}") from None
 
     def _iterate(self, run: LevelRun) -> tuple[np.ndarray, dict]:
         cuda, k = self.cuda, self.k
@@ -215,3 +212,26 @@ class CudaBackend:
     def adopt(self, field: Field) -> None:
         """Mark ``field`` (built from the last :meth:`iterate`) as the one whose values are still on the card."""
         self._last = (field, self._keep)
+
+
+#: what numba-cuda's driver raises (``CudaAPIError`` is a ``CudaDriverError``; the simulator has its own classes of
+#: some of these names and not of others, hence the names)
+_DRIVER_ERRORS = ("CudaAPIError", "CudaDriverError", "CudaSupportError")
+
+
+@contextlib.contextmanager
+def _card_errors(what: str):
+    """Turn a failure of the card's driver while doing ``what`` into one line: out of memory is a
+    :class:`~tiled_gridpull.errors.MemoryBudgetError` (exit 5), anything else the driver raises (``CudaAPIError``,
+    ``CudaDriverError`` such as "CUDA initialized before forking", ``CudaSupportError``) a
+    :class:`~tiled_gridpull.errors.GridPullError`."""
+    try:
+        yield
+    except Exception as exc:
+        if not any(c.__name__ in _DRIVER_ERRORS for c in type(exc).__mro__):
+            raise
+        text = " ".join(str(exc).split())
+        if "OUT_OF_MEMORY" in text.upper():
+            raise MemoryBudgetError(f"the CUDA card ({cuda_card()}) ran out of memory for {what}: use smaller tiles "
+                                    f"or --device cpu") from None
+        raise GridPullError(f"CUDA error on {cuda_card()} ({what}): {text[:300]}") from None
