@@ -225,3 +225,18 @@ def test_a_card_failure_between_levels_or_after_a_fork_is_one_line(monkeypatch, 
             solve(unit_sphere_points(300), Lattice.fit(unit_sphere_points(300), 20, 3), SolverConfig(**TINY),
                   device="cuda")
         assert "\n" not in str(e.value) and "forking" in str(e.value)
+
+
+def test_a_numba_cuda_that_fails_to_import_is_no_card(monkeypatch):
+    """``auto`` is the default: a numba-cuda that is installed but breaks on import (a numba or NumPy it does not fit
+    raises AttributeError, RuntimeError, ...) must leave every solve on the CPU, and ``cuda`` refuse in one line."""
+    def broken():
+        raise AttributeError("module 'numpy' has no attribute 'row_stack'")
+
+    monkeypatch.setattr(device, "_import_numba_cuda", broken)
+    monkeypatch.setattr(device, "cuda_card", device.cuda_card.__wrapped__)  # uncached, this test's import
+    assert device.cuda_card() is None
+    assert device.resolve("auto") == "cpu"
+    with pytest.raises(ConfigError) as e:
+        device.resolve("cuda")
+    assert "\n" not in str(e.value) and "numba-cuda" in str(e.value) and "row_stack" in str(e.value)
