@@ -163,9 +163,7 @@ def test_one_launch_per_level_equals_one_launch_per_step(monkeypatch, caplog):
     assert np.array_equal(one.values, per_step.values)
     h1, h2 = one.info["history"], per_step.info["history"]
     assert [h["iteration"] for h in h1] == [h["iteration"] for h in h2] == [0, 2, 4]
-    for a, b in zip(h1, h2):
-        assert a["valid_queries"] == b["valid_queries"]
-        assert a["pull"] == pytest.approx(b["pull"], rel=1e-9) and a["tv"] == pytest.approx(b["tv"], rel=1e-9)
+    assert h1 == h2  # the history too: its sums are fixed point
 
 
 @needs_cuda

@@ -95,6 +95,7 @@ class CudaBackend:
             spec[max(1, min(need, resident)), threads](*args)
         if run.history_every:
             c, ls, tv = counts.copy_to_host(), loss_sums.copy_to_host(), tv_sums.copy_to_host()
+            ls, tv = ls / self.k.SUMS_SCALE, tv / self.k.SUMS_SCALE
             for it in range(iters):
                 if run.records(it):
                     run.record(it, ls[it], int(c[it]), float(tv[it]))
@@ -151,8 +152,8 @@ class CudaBackend:
         use_normals = bool(cfg.losses.normal_weight > 0.0 and run.normals.shape[0] == run.P.shape[0])
         iters = st.iterations
         counts = to(np.zeros(iters, np.int32))
-        loss_sums = to(np.zeros((iters, 4), np.float64))
-        tv_sums = to(np.zeros(iters, np.float64))
+        loss_sums = to(np.zeros((iters, 4), k.SUMS_DTYPE))  # fixed point (k.SUMS_SCALE): repeats bit for bit
+        tv_sums = to(np.zeros(iters, k.SUMS_DTYPE))
         nq = st.queries
         pool = to(run.pool_nn) if run.pool_nn is not None else None
         fresh = cuda.device_array(nq, np.int32) if pool is None else None
@@ -201,7 +202,8 @@ class CudaBackend:
             d_a, d_b = d_b, d_a
             if want:
                 n_valid = int(counts[it:it + 1].copy_to_host()[0])
-                run.record(it, loss_sums[it].copy_to_host(), n_valid, float(tv_sums[it:it + 1].copy_to_host()[0]))
+                run.record(it, loss_sums[it].copy_to_host() / k.SUMS_SCALE, n_valid,
+                           float(tv_sums[it:it + 1].copy_to_host()[0]) / k.SUMS_SCALE)
         values = d_a.copy_to_host()  # synchronizes: the loop's time below is the card's
         t_loop = time.perf_counter() - t0 - t_setup
         self._last = None

@@ -45,6 +45,13 @@ _FIXED_CLIP = 1e9
 #: ``_FIXED_ROOM / (2 nq + 1)`` fixed units (a query adds to a slot at most twice, once as a corner of q and once
 #: of its point), so no slot's sum can wrap round to the other sign (:func:`_clip_for`)
 _FIXED_ROOM = 9.0e18
+#: The history's loss and TV sums (:func:`query_scatter`, :func:`tv_norms`, :func:`tv_adam`, :func:`solve_level`)
+#: are int64 in units of 2^-20 too, so they repeat bit for bit like the field (float64 atomics land in any order):
+#: 1e-6 per term, each clipped at 1e6 (9e6 such terms before the sum wraps; a term that is NaN counts as the clip,
+#: so the history shows it). The host divides by ``SUMS_SCALE``.
+SUMS_DTYPE = np.int64
+SUMS_SCALE = float(1 << 20)
+_SUMS_CLIP = 1e6 * SUMS_SCALE
 _TV_EPS = 1e-8
 _PARAM = np.uint8(1)
 
@@ -73,6 +80,17 @@ _eval_corners = _ENV["eval_corners"]
 _draw_one = _ENV["draw_one"]
 _iteration_key = _ENV["iteration_key"]
 _query_one = _ENV["query_one"]
+
+
+@cuda.jit(device=True, inline=True)
+def _sum_fixed(x):
+    """A history term in ``SUMS_SCALE`` units."""
+    y = np.float64(x) * SUMS_SCALE
+    if not (y < _SUMS_CLIP):  # NaN lands here too
+        y = _SUMS_CLIP
+    elif y < -_SUMS_CLIP:
+        y = -_SUMS_CLIP
+    return np.int64(math.floor(y + 0.5))
 
 
 @cuda.jit(device=True, inline=True)
@@ -128,8 +146,8 @@ def query_scatter(values, flags, table, nx, ny, nz, points, normals, use_normals
         ``counts[t]`` += queries that count.
     t : int
         This iteration's row of ``counts`` and ``loss_sums``.
-    loss_sums : (iterations, 4) float64, in/out
-        Summed losses (monitoring), written when ``want_losses``.
+    loss_sums : (iterations, 4) int64, in/out
+        Summed losses (monitoring) in ``SUMS_SCALE`` units, written when ``want_losses``.
     """
     start, stride = cuda.grid(1), cuda.gridsize(1)
     slots = cuda.local.array(16, np.int64)
@@ -155,7 +173,7 @@ def _query_item(n, values, flags, table, nx, ny, nz, points, normals, use_normal
             cuda.atomic.add(acc, slots[c], _to_fixed(grads[c], clip))
         if want_losses:
             for c in range(4):
-                cuda.atomic.add(loss_sums, (t, c), np.float64(losses[c]))
+                cuda.atomic.add(loss_sums, (t, c), _sum_fixed(losses[c]))
 
 
 @cuda.jit(device=True, inline=True)
@@ -199,7 +217,8 @@ def _edge_sum(s, d, flags, neighbors, w, mode):
 @cuda.jit(cache=True)
 def tv_norms(d, flags, neighbors, inv, sums, t, want_sum):
     """Sqrt form: ``inv[s] = 1 / sqrt(eps + sum_u (d_u - d_s)^2)`` at every parameter, 0 elsewhere
-    (:func:`.step.tv_inverse_norms`); ``sums[t]`` += the TV loss sum when ``want_sum``."""
+    (:func:`.step.tv_inverse_norms`); ``sums[t]`` (int64) += the TV loss sum in ``SUMS_SCALE`` units when
+    ``want_sum``."""
     start, stride = cuda.grid(1), cuda.gridsize(1)
     for s in range(start, d.shape[0], stride):
         _norm_item(s, d, flags, neighbors, inv, sums, t, want_sum)
@@ -213,7 +232,7 @@ def _norm_item(s, d, flags, neighbors, inv, sums, t, want_sum):
     r = math.sqrt(_edge_sum(s, d, flags, neighbors, inv, 2) + _TV_EPS)
     inv[s] = 1.0 / r
     if want_sum:
-        cuda.atomic.add(sums, t, np.float64(r))
+        cuda.atomic.add(sums, t, _sum_fixed(r))
 
 
 @cuda.jit(cache=True)
@@ -251,7 +270,7 @@ def _adam_item(s, d_in, d_out, m, v, acc, scale, flags, neighbors, inv, form, tv
         acc[s] = 0
     lap = _edge_sum(s, d_in, flags, neighbors, inv, 1 if form == 1 else 0)
     if want_sum and form == 0:
-        cuda.atomic.add(sums, t, np.float64(lap * d))
+        cuda.atomic.add(sums, t, _sum_fixed(lap * d))
     g = qg + tv_scale * lap
     mm = beta1 * m[s] + (1.0 - beta1) * g
     vv = beta2 * v[s] + (1.0 - beta2) * g * g
