@@ -299,9 +299,10 @@ def test_the_history_sums_do_not_depend_on_the_launch(setup):
     for grid in ((1, 1), launch(300), (1, 7)):
         nx, ny, nz = band.lattice.shape
         sums = cuda.to_device(np.zeros((1, 4), dtype))
+        key = np.uint64(ksamp.iteration_key(1, 0))
         K.query_scatter[grid](d, flags, cuda.to_device(band.brick_table), nx, ny, nz, cuda.to_device(P),
-                              cuda.to_device(normals), True, cuda.to_device(nearest), np.uint64(ksamp.iteration_key(1, 0)),
-                              len(P) / 300, np.float32(0.8), cuda.to_device(ksamp.NORMALS), CELL_PULL, 1.0, 0.005, 0.5,
+                              cuda.to_device(normals), True, cuda.to_device(nearest), key, len(P) / 300,
+                              np.float32(0.8), cuda.to_device(ksamp.NORMALS), CELL_PULL, 1.0, 0.005, 0.5,
                               cuda.to_device(np.zeros(n, np.int64)), cuda.to_device(np.zeros(1, np.int32)), 0, sums,
                               True)
         tv = cuda.to_device(np.zeros(1, dtype))
