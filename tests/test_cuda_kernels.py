@@ -75,14 +75,14 @@ def _gpu_queries(P, band, values, normals, nearest, seed, it, sigma, lam, grid):
     nq = len(nearest)
     acc = cuda.to_device(np.zeros(band.n_slots, np.int64))
     counts = cuda.to_device(np.zeros(1, np.int32))
-    sums = cuda.to_device(np.zeros((1, 4), np.float64))
+    sums = cuda.to_device(np.zeros((1, 4), K.SUMS_DTYPE))
     nx, ny, nz = band.lattice.shape
     K.query_scatter[grid](cuda.to_device(values), cuda.to_device(band.flags.reshape(-1)),
                           cuda.to_device(band.brick_table), nx, ny, nz, cuda.to_device(P),
                           cuda.to_device(normals), lam > 0, cuda.to_device(nearest), ksamp.iteration_key(seed, it),
                           len(P) / nq, np.float32(sigma), cuda.to_device(ksamp.NORMALS), CELL_PULL, 1.0, 0.005, lam,
                           acc, counts, 0, sums, True)
-    return acc.copy_to_host(), int(counts.copy_to_host()[0]), sums.copy_to_host()[0]
+    return acc.copy_to_host(), int(counts.copy_to_host()[0]), sums.copy_to_host()[0] / K.SUMS_SCALE
 
 
 @pytest.mark.parametrize("lam", [0.0, 0.5])
@@ -142,14 +142,14 @@ def test_tv_adam_matches_the_cpu_step(setup, form, clamp):
     dev = {name: cuda.to_device(a) for name, a in
            (("d", d0), ("m", m), ("v", v), ("acc", acc), ("flags", flags), ("nb", band.neighbors))}
     inv_g = cuda.to_device(np.zeros(n, np.float32))
-    sums = cuda.to_device(np.zeros(1, np.float64))
+    sums = cuda.to_device(np.zeros(1, K.SUMS_DTYPE))
     out = cuda.device_array(n, np.float32)
     grid = launch(n)
     if form == ks.TV_SQRT:
         K.tv_norms[grid](dev["d"], dev["flags"], dev["nb"], inv_g, sums, 0, True)
         np.testing.assert_allclose(inv_g.copy_to_host(), inv, rtol=1e-5, atol=1e-6)
-        assert sums.copy_to_host()[0] == pytest.approx(tv_cpu, rel=1e-5)
-        sums = cuda.to_device(np.zeros(1, np.float64))
+        assert sums.copy_to_host()[0] / K.SUMS_SCALE == pytest.approx(tv_cpu, rel=1e-5)
+        sums = cuda.to_device(np.zeros(1, K.SUMS_DTYPE))
     K.tv_adam[grid](dev["d"], out, dev["m"], dev["v"], dev["acc"], cuda.to_device(np.array([37], np.int32)), 0,
                     dev["flags"], dev["nb"], inv_g, 1 if form == ks.TV_SQRT else 0, np.float32(0.01),
                     np.float32(0.05), np.float32(0.9), np.float32(0.999), np.float32(1e-8), clamp, sums, True)
@@ -159,7 +159,7 @@ def test_tv_adam_matches_the_cpu_step(setup, form, clamp):
     np.testing.assert_allclose(dev["v"].copy_to_host()[par], cv[par], rtol=1e-4, atol=1e-10)
     assert not np.any(dev["acc"].copy_to_host())  # the accumulator is reset for the next iteration
     if form == ks.TV_SQUARED:
-        assert sums.copy_to_host()[0] == pytest.approx(sq_cpu, rel=1e-4)
+        assert sums.copy_to_host()[0] / K.SUMS_SCALE == pytest.approx(sq_cpu, rel=1e-4)
     if clamp:
         assert out.copy_to_host().min() >= 0.0
     # non-parameters keep their values
@@ -194,3 +194,124 @@ def test_device_functions_are_the_cpu_helpers_recompiled():
     assert K._ENV["query_one"].py_func.__code__ is kl.query_one.py_func.__code__
     assert K._ENV["locate"].py_func.__code__ is ki.locate.py_func.__code__
     assert K._ENV["draw_one"].py_func.__code__ is ksamp.draw_one.py_func.__code__
+
+
+def test_the_draw_hashes_the_key_as_uint64_whatever_type_it_arrives_in(setup):
+    """A kernel's Python-int argument is typed int64 on a card when it is below 2^63 (uint64 above): the device
+    draw must still hash it as a uint64, or the card draws other queries than the ones the host found the nearest
+    points of. numba's typing (the same for both targets; the simulator runs NumPy's instead) checked with njit."""
+    from numba import njit
+
+    P = setup[0]
+    draw = njit(ksamp.draw_one.py_func)
+    nq, sigma = 40, np.float32(0.8)
+    seen = set()
+    for it in range(8):
+        key = ksamp.iteration_key(3, it)
+        centres = np.empty(nq, np.int64)
+        q = np.empty((nq, 3), np.float32)
+        ksamp.draw_queries(P, 3, it, sigma, centres, q)
+        typed = np.int64(key) if key < 2 ** 63 else np.uint64(key)
+        seen.add(type(typed))
+        for i in range(nq):
+            c, x, y, z = draw(P, typed, i, len(P) / nq, sigma, ksamp.NORMALS)
+            assert c == centres[i] and (x, y, z) == tuple(q[i])
+    assert seen == {np.int64, np.uint64}
+
+
+def test_the_udf_clamp_projects_every_slot_as_on_the_cpu(setup):
+    """UDF mode projects the whole field onto d >= 0 (:func:`.step.tv_adam_step`), non-parameters included: a start
+    that is negative outside the parameters (``solve(init=...)`` in udf mode) is clamped alike on both devices."""
+    P, band, values, _ = setup
+    n = band.n_slots
+    flags = band.flags.reshape(-1)
+    par = (flags & 1) != 0
+    d0 = -values  # negative beyond the band's outer side
+    assert np.any(d0[~par] < 0)
+    m, v, qgrad = _step_inputs(band, d0)
+    acc = np.floor(qgrad.astype(np.float64) * 37 * K.FIXED_SCALE + 0.5).astype(np.int64)
+    qgrad_fixed = (acc.astype(np.float32) * np.float32(1.0 / K.FIXED_SCALE / 37)).astype(np.float32)
+    d_cpu = np.empty_like(d0)
+    ks.tv_adam_step(d0, d_cpu, m.copy(), v.copy(), qgrad_fixed, flags, band.neighbors, np.zeros(1, np.float32),
+                    ks.TV_SQUARED, np.float32(0.01), np.float32(0.05), np.float32(0.9), np.float32(0.999),
+                    np.float32(1e-8), True)
+    out = cuda.device_array(n, np.float32)
+    K.tv_adam[launch(n)](cuda.to_device(d0), out, cuda.to_device(m), cuda.to_device(v), cuda.to_device(acc),
+                         cuda.to_device(np.array([37], np.int32)), 0, cuda.to_device(flags),
+                         cuda.to_device(band.neighbors), cuda.to_device(np.zeros(1, np.float32)), 0,
+                         np.float32(0.01), np.float32(0.05), np.float32(0.9), np.float32(0.999), np.float32(1e-8),
+                         True, cuda.to_device(np.zeros(1, K.SUMS_DTYPE)), False)
+    got = out.copy_to_host()
+    assert d_cpu.min() >= 0.0
+    np.testing.assert_array_equal(got[~par], d_cpu[~par])
+    np.testing.assert_allclose(got, d_cpu, rtol=0, atol=1e-5)
+
+
+def test_the_fixed_point_sums_cannot_wrap(setup):
+    """Each slot's int64 accumulator holds the sum of its clipped fixed-point contributions, however many and however
+    large: a launch of nq queries clips each to 9e18 / (2 nq + 1) units, so no sum passes the int64 range. With only
+    the 1e9 clip, 137 queries of 1e9 at one slot wrapped the sum round to the other sign. (The field is absurd, flat
+    at 1e5 cells, so |grad f| = 1e-6 in the pull's 1/|grad f|: degenerate gradients are all that reach the clip.)"""
+    _, band, _, _ = setup
+    # every query around point A, all pulled towards point B three cells away: 400 same-signed gradients at the
+    # corners of one cell
+    a = np.array([11.5, 11.5, 4.6], np.float32)
+    P = np.vstack([np.repeat(a[None], 50, axis=0), a + np.float32([3.0, 0.0, 0.0])]).astype(np.float32)
+    flat = np.full(band.n_slots, 1e5, np.float32)
+    nq, sigma = 400, np.float32(0.05)
+    centres = np.empty(nq, np.int64)
+    q = np.empty((nq, 3), np.float32)
+    ksamp.draw_queries(P, 2, 0, sigma, centres, q)
+    nearest = np.full(nq, 50, np.int32)
+    slots = np.empty((nq, 16), np.int64)
+    grads = np.empty((nq, 16), np.float32)
+    losses = np.empty((nq, 4), np.float32)
+    n_valid = kl.query_losses(flat, band.flags.reshape(-1), band.brick_table, np.asarray(band.lattice.shape, np.int64),
+                              q, P, nearest, np.zeros((0, 3), np.float32), CELL_PULL, 1.0, 0.005, 0.0, slots, grads,
+                              losses)
+    assert n_valid == nq
+    old = np.clip(grads.astype(np.float64) * K.FIXED_SCALE, -K._FIXED_CLIP * K.FIXED_SCALE,
+                  K._FIXED_CLIP * K.FIXED_SCALE)
+    sums = np.zeros(band.n_slots)
+    np.add.at(sums, slots.reshape(-1), old.reshape(-1))
+    assert np.abs(sums).max() > 2.0 ** 63  # what the 1e9 clip alone let through
+    clip = min(K._FIXED_CLIP * K.FIXED_SCALE, getattr(K, "_FIXED_ROOM", np.inf) / (2.0 * nq + 1.0))
+    want = np.zeros(band.n_slots)
+    np.add.at(want, slots.reshape(-1), np.clip(grads.astype(np.float64) * K.FIXED_SCALE, -clip, clip).reshape(-1))
+    acc, count, _ = _gpu_queries(P, band, flat, np.zeros((51, 3), np.float32), nearest, 2, 0, sigma, 0.0,
+                                 launch(nq))
+    assert count == nq
+    touched = want != 0
+    np.testing.assert_array_equal(np.sign(acc[touched]), np.sign(want[touched]))
+    np.testing.assert_allclose(acc.astype(np.float64), want, rtol=1e-4)
+
+
+def test_the_history_sums_do_not_depend_on_the_launch(setup):
+    """The loss and TV sums of the history iterations repeat bit for bit whatever order the atomics land in, as the
+    field does (float64 atomics did not: a run's history, in its sidecar, changed in the last bits from one run or
+    launch shape to the next)."""
+    P, band, values, normals = setup
+    dtype = getattr(K, "SUMS_DTYPE", np.float64)
+    nearest = (np.arange(300) * 13 % len(P)).astype(np.int32)
+    n = band.n_slots
+    d, flags, nb = cuda.to_device(values), cuda.to_device(band.flags.reshape(-1)), cuda.to_device(band.neighbors)
+    got = []
+    for grid in ((1, 1), launch(300), (1, 7)):
+        nx, ny, nz = band.lattice.shape
+        sums = cuda.to_device(np.zeros((1, 4), dtype))
+        key = np.uint64(ksamp.iteration_key(1, 0))
+        K.query_scatter[grid](d, flags, cuda.to_device(band.brick_table), nx, ny, nz, cuda.to_device(P),
+                              cuda.to_device(normals), True, cuda.to_device(nearest), key, len(P) / 300,
+                              np.float32(0.8), cuda.to_device(ksamp.NORMALS), CELL_PULL, 1.0, 0.005, 0.5,
+                              cuda.to_device(np.zeros(n, np.int64)), cuda.to_device(np.zeros(1, np.int32)), 0, sums,
+                              True)
+        tv = cuda.to_device(np.zeros(1, dtype))
+        K.tv_norms[grid](d, flags, nb, cuda.to_device(np.zeros(n, np.float32)), tv, 0, True)
+        sq = cuda.to_device(np.zeros(1, dtype))
+        K.tv_adam[grid](d, cuda.device_array(n, np.float32), cuda.to_device(np.zeros(n, np.float32)),
+                        cuda.to_device(np.zeros(n, np.float32)), cuda.to_device(np.zeros(n, np.int64)),
+                        cuda.to_device(np.array([1], np.int32)), 0, flags, nb, cuda.to_device(np.zeros(1, np.float32)),
+                        0, np.float32(0.01), np.float32(0.05), np.float32(0.9), np.float32(0.999), np.float32(1e-8),
+                        False, sq, True)
+        got.append((sums.copy_to_host().tobytes(), tv.copy_to_host().tobytes(), sq.copy_to_host().tobytes()))
+    assert got[0] == got[1] == got[2]

@@ -43,7 +43,7 @@ def cuda_card() -> str | None:
     Cached for the process: probing the driver costs about a second."""
     try:
         cuda = _import_numba_cuda()
-    except ImportError:
+    except Exception:  # noqa: BLE001 - not installed, or installed and broken (a numba it does not fit): no card
         return None
     if os.environ.get("NUMBA_ENABLE_CUDASIM") == "1":
         return SIMULATOR
@@ -82,6 +82,10 @@ def resolve(setting: str) -> str:
             except ImportError:
                 raise ConfigError("device cuda: numba-cuda is not installed (pip install "
                                   "'tiled-gridpull[cuda]'), use --device cpu or auto") from None
+            except Exception as exc:  # noqa: BLE001 - installed but fails to import
+                text = " ".join(f"{type(exc).__name__}: {exc}".split())[:200]
+                raise ConfigError(f"device cuda: numba-cuda fails to import ({text}); use --device cpu or "
+                                  f"auto") from None
             raise ConfigError("device cuda: numba-cuda sees no CUDA GPU on this machine (no card or no driver); "
                               "use --device cpu or auto")
         return "cpu"

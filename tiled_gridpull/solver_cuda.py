@@ -12,6 +12,7 @@ CPU's within float32 rounding per step (tests/test_cuda_kernels.py, tests/test_d
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import time
@@ -94,6 +95,7 @@ class CudaBackend:
             spec[max(1, min(need, resident)), threads](*args)
         if run.history_every:
             c, ls, tv = counts.copy_to_host(), loss_sums.copy_to_host(), tv_sums.copy_to_host()
+            ls, tv = ls / self.k.SUMS_SCALE, tv / self.k.SUMS_SCALE
             for it in range(iters):
                 if run.records(it):
                     run.record(it, ls[it], int(c[it]), float(tv[it]))
@@ -101,9 +103,14 @@ class CudaBackend:
 
     def upsample(self, coarse: Field, band: Band) -> np.ndarray:
         """The finer band's initial values (:func:`tiled_gridpull.solver.upsample`), from the coarse field on the card
-        when it is the last one this backend produced."""
+        when it is the last one this backend produced; a driver failure is one line (see :meth:`iterate`)."""
         if self._last is None or self._last[0] is not coarse:
             return upsample(coarse, band)
+        with _card_errors(f"upsampling to {band.n_slots:,} slots"):
+            return self._upsample(band)
+
+    def _upsample(self, band: Band) -> np.ndarray:
+        coarse = self._last[0]
         cb = coarse.band
         to = self.cuda.to_device
         out = self.cuda.device_array(band.n_slots, np.float32)
@@ -117,19 +124,10 @@ class CudaBackend:
     def iterate(self, run: LevelRun) -> tuple[np.ndarray, dict]:
         """Run the level's iterations on the card; the optimized ``(n_slots,)`` field (on the host) and timings.
 
-        A failure of the card's driver (out of memory, a lost device) is a one-line
+        A failure of the card's driver (out of memory, a lost device, a context made before a fork) is a one-line
         :class:`~tiled_gridpull.errors.MemoryBudgetError` or :class:`~tiled_gridpull.errors.GridPullError`."""
-        from numba.cuda.cudadrv.driver import CudaAPIError
-
-        try:
+        with _card_errors(f"a band of {run.band.n_slots:,} slots, {run.st.queries:,} queries"):
             return self._iterate(run)
-        except CudaAPIError as exc:
-            text = " ".join(str(exc).split())
-            band = f"{run.band.n_slots:,} slots, {run.st.queries:,} queries"
-            if "OUT_OF_MEMORY" in text.upper():
-                raise MemoryBudgetError(f"the CUDA card ({cuda_card()}) ran out of memory for a band of {band}: "
-                                        f"use smaller tiles or --device cpu") from None
-            raise GridPullError(f"CUDA error on {cuda_card()} ({band}): {text[:300]}") from None
 
     def _iterate(self, run: LevelRun) -> tuple[np.ndarray, dict]:
         cuda, k = self.cuda, self.k
@@ -154,8 +152,8 @@ class CudaBackend:
         use_normals = bool(cfg.losses.normal_weight > 0.0 and run.normals.shape[0] == run.P.shape[0])
         iters = st.iterations
         counts = to(np.zeros(iters, np.int32))
-        loss_sums = to(np.zeros((iters, 4), np.float64))
-        tv_sums = to(np.zeros(iters, np.float64))
+        loss_sums = to(np.zeros((iters, 4), k.SUMS_DTYPE))  # fixed point (k.SUMS_SCALE): repeats bit for bit
+        tv_sums = to(np.zeros(iters, k.SUMS_DTYPE))
         nq = st.queries
         pool = to(run.pool_nn) if run.pool_nn is not None else None
         fresh = cuda.device_array(nq, np.int32) if pool is None else None
@@ -191,7 +189,7 @@ class CudaBackend:
                 fresh.copy_to_device(run.nn.query(q, centres)[0].astype(np.int32))
                 nearest = fresh
             want = run.records(it)
-            key = ksamp.iteration_key(seed, run.it0 + batch)
+            key = np.uint64(ksamp.iteration_key(seed, run.it0 + batch))  # one kernel type for every key
             k.query_scatter[qb, qt](d_a, flags, table, nx, ny, nz, points, normals, use_normals, nearest, key, step,
                                     sigma, self._normals, CELL_PULL, float(run.beta), float(run.gamma),
                                     float(cfg.losses.normal_weight), acc, counts, it, loss_sums, want)
@@ -204,7 +202,8 @@ class CudaBackend:
             d_a, d_b = d_b, d_a
             if want:
                 n_valid = int(counts[it:it + 1].copy_to_host()[0])
-                run.record(it, loss_sums[it].copy_to_host(), n_valid, float(tv_sums[it:it + 1].copy_to_host()[0]))
+                run.record(it, loss_sums[it].copy_to_host() / k.SUMS_SCALE, n_valid,
+                           float(tv_sums[it:it + 1].copy_to_host()[0]) / k.SUMS_SCALE)
         values = d_a.copy_to_host()  # synchronizes: the loop's time below is the card's
         t_loop = time.perf_counter() - t0 - t_setup
         self._last = None
@@ -215,3 +214,26 @@ class CudaBackend:
     def adopt(self, field: Field) -> None:
         """Mark ``field`` (built from the last :meth:`iterate`) as the one whose values are still on the card."""
         self._last = (field, self._keep)
+
+
+#: what numba-cuda's driver raises (``CudaAPIError`` is a ``CudaDriverError``; the simulator has its own classes of
+#: some of these names and not of others, hence the names)
+_DRIVER_ERRORS = ("CudaAPIError", "CudaDriverError", "CudaSupportError")
+
+
+@contextlib.contextmanager
+def _card_errors(what: str):
+    """Turn a failure of the card's driver while doing ``what`` into one line: out of memory is a
+    :class:`~tiled_gridpull.errors.MemoryBudgetError` (exit 5), anything else the driver raises (``CudaAPIError``,
+    ``CudaDriverError`` such as "CUDA initialized before forking", ``CudaSupportError``) a
+    :class:`~tiled_gridpull.errors.GridPullError`."""
+    try:
+        yield
+    except Exception as exc:
+        if not any(c.__name__ in _DRIVER_ERRORS for c in type(exc).__mro__):
+            raise
+        text = " ".join(str(exc).split())
+        if "OUT_OF_MEMORY" in text.upper():
+            raise MemoryBudgetError(f"the CUDA card ({cuda_card()}) ran out of memory for {what}: use smaller tiles "
+                                    f"or --device cpu") from None
+        raise GridPullError(f"CUDA error on {cuda_card()} ({what}): {text[:300]}") from None

@@ -41,6 +41,17 @@ FIXED_SCALE = float(1 << 26)
 _INV_FIXED = 1.0 / FIXED_SCALE
 #: Largest single contribution converted (|g| beyond it is clipped: it could only come from a degenerate gradient)
 _FIXED_CLIP = 1e9
+#: Below 2^63 - 1 with room for rounding: a launch of ``nq`` queries clips each contribution to
+#: ``_FIXED_ROOM / (2 nq + 1)`` fixed units (a query adds to a slot at most twice, once as a corner of q and once
+#: of its point), so no slot's sum can wrap round to the other sign (:func:`_clip_for`)
+_FIXED_ROOM = 9.0e18
+#: The history's loss and TV sums (:func:`query_scatter`, :func:`tv_norms`, :func:`tv_adam`, :func:`solve_level`)
+#: are int64 in units of 2^-20 too, so they repeat bit for bit like the field (float64 atomics land in any order):
+#: 1e-6 per term, each clipped at 1e6 (9e6 such terms before the sum wraps; a term that is NaN counts as the clip,
+#: so the history shows it). The host divides by ``SUMS_SCALE``.
+SUMS_DTYPE = np.int64
+SUMS_SCALE = float(1 << 20)
+_SUMS_CLIP = 1e6 * SUMS_SCALE
 _TV_EPS = 1e-8
 _PARAM = np.uint8(1)
 
@@ -72,12 +83,32 @@ _query_one = _ENV["query_one"]
 
 
 @cuda.jit(device=True, inline=True)
-def _to_fixed(g):
+def _sum_fixed(x):
+    """A history term in ``SUMS_SCALE`` units."""
+    y = np.float64(x) * SUMS_SCALE
+    if not (y < _SUMS_CLIP):  # NaN lands here too
+        y = _SUMS_CLIP
+    elif y < -_SUMS_CLIP:
+        y = -_SUMS_CLIP
+    return np.int64(math.floor(y + 0.5))
+
+
+@cuda.jit(device=True, inline=True)
+def _clip_for(nq):
+    """Largest contribution (fixed units) a launch of ``nq`` queries converts: ``_FIXED_CLIP``, or less where
+    ``2 nq`` contributions of it could pass the int64 range: from 68 queries a launch on, ``1.3e11 / (2 nq + 1)`` in
+    gradient units (1.3e6 at 50k queries, 6.7e4 at 1M). A corner gradient is O(1) where ``|grad f|`` is about 1;
+    only a nearly flat field (the pull's ``f / |grad f|``, ``|grad f|`` below 1e-4) reaches these."""
+    return min(_FIXED_CLIP * FIXED_SCALE, _FIXED_ROOM / (2.0 * nq + 1.0))
+
+
+@cuda.jit(device=True, inline=True)
+def _to_fixed(g, clip):
     x = g * FIXED_SCALE
-    if not (x > -_FIXED_CLIP * FIXED_SCALE):  # NaN lands here too
-        x = -_FIXED_CLIP * FIXED_SCALE if x == x else 0.0
-    elif x > _FIXED_CLIP * FIXED_SCALE:
-        x = _FIXED_CLIP * FIXED_SCALE
+    if not (x > -clip):  # NaN lands here too
+        x = -clip if x == x else 0.0
+    elif x > clip:
+        x = clip
     return np.int64(math.floor(x + 0.5))
 
 
@@ -102,7 +133,8 @@ def query_scatter(values, flags, table, nx, ny, nz, points, normals, use_normals
     nearest : (Nq,) int32
         Nearest point of each query (this iteration's pool batch).
     key : uint64
-        :func:`.sampling.iteration_key` of the batch.
+        :func:`.sampling.iteration_key` of the batch (pass ``np.uint64``: a Python int below 2^63 is typed int64, a
+        second compilation; :func:`.sampling.draw_one` hashes it as a uint64 either way).
     step, sigma : float
         ``N / Nq`` and the query spread (cells).
     normal_table : (65536,) float32
@@ -115,32 +147,34 @@ def query_scatter(values, flags, table, nx, ny, nz, points, normals, use_normals
         ``counts[t]`` += queries that count.
     t : int
         This iteration's row of ``counts`` and ``loss_sums``.
-    loss_sums : (iterations, 4) float64, in/out
-        Summed losses (monitoring), written when ``want_losses``.
+    loss_sums : (iterations, 4) int64, in/out
+        Summed losses (monitoring) in ``SUMS_SCALE`` units, written when ``want_losses``.
     """
     start, stride = cuda.grid(1), cuda.gridsize(1)
     slots = cuda.local.array(16, np.int64)
     grads = cuda.local.array(16, np.float32)
     losses = cuda.local.array(4, np.float32)
+    clip = _clip_for(nearest.shape[0])
     for n in range(start, nearest.shape[0], stride):
         _query_item(n, values, flags, table, nx, ny, nz, points, normals, use_normals, nearest[n], key, step, sigma,
                     normal_table, pull_bit, beta, gamma, lam, acc, counts, t, loss_sums, want_losses, slots, grads,
-                    losses)
+                    losses, clip)
 
 
 @cuda.jit(device=True, inline=True)
 def _query_item(n, values, flags, table, nx, ny, nz, points, normals, use_normals, p, key, step, sigma, normal_table,
-                pull_bit, beta, gamma, lam, acc, counts, t, loss_sums, want_losses, slots, grads, losses):
-    """Query ``n`` of iteration ``t`` (nearest point ``p``): draw, evaluate, scatter (see :func:`query_scatter`)."""
+                pull_bit, beta, gamma, lam, acc, counts, t, loss_sums, want_losses, slots, grads, losses, clip):
+    """Query ``n`` of iteration ``t`` (nearest point ``p``): draw, evaluate, scatter (see :func:`query_scatter`);
+    ``clip`` from :func:`_clip_for`."""
     _, qx, qy, qz = _draw_one(points, key, n, step, sigma, normal_table)
     if _query_one(values, flags, table, nx, ny, nz, qx, qy, qz, points, p, normals, use_normals, pull_bit, beta,
                   gamma, lam, slots, grads, losses):
         cuda.atomic.add(counts, t, 1)
         for c in range(16):
-            cuda.atomic.add(acc, slots[c], _to_fixed(grads[c]))
+            cuda.atomic.add(acc, slots[c], _to_fixed(grads[c], clip))
         if want_losses:
             for c in range(4):
-                cuda.atomic.add(loss_sums, (t, c), np.float64(losses[c]))
+                cuda.atomic.add(loss_sums, (t, c), _sum_fixed(losses[c]))
 
 
 @cuda.jit(device=True, inline=True)
@@ -184,7 +218,8 @@ def _edge_sum(s, d, flags, neighbors, w, mode):
 @cuda.jit(cache=True)
 def tv_norms(d, flags, neighbors, inv, sums, t, want_sum):
     """Sqrt form: ``inv[s] = 1 / sqrt(eps + sum_u (d_u - d_s)^2)`` at every parameter, 0 elsewhere
-    (:func:`.step.tv_inverse_norms`); ``sums[t]`` += the TV loss sum when ``want_sum``."""
+    (:func:`.step.tv_inverse_norms`); ``sums[t]`` (int64) += the TV loss sum in ``SUMS_SCALE`` units when
+    ``want_sum``."""
     start, stride = cuda.grid(1), cuda.gridsize(1)
     for s in range(start, d.shape[0], stride):
         _norm_item(s, d, flags, neighbors, inv, sums, t, want_sum)
@@ -198,7 +233,7 @@ def _norm_item(s, d, flags, neighbors, inv, sums, t, want_sum):
     r = math.sqrt(_edge_sum(s, d, flags, neighbors, inv, 2) + _TV_EPS)
     inv[s] = 1.0 / r
     if want_sum:
-        cuda.atomic.add(sums, t, np.float64(r))
+        cuda.atomic.add(sums, t, _sum_fixed(r))
 
 
 @cuda.jit(cache=True)
@@ -224,7 +259,9 @@ def _adam_item(s, d_in, d_out, m, v, acc, scale, flags, neighbors, inv, form, tv
     d = d_in[s]
     a = acc[s]
     if (flags[s] & _PARAM) == 0:
-        d_out[s] = d
+        # the CPU step projects every slot in UDF mode, non-parameters included (they are read by the queries'
+        # corners, the signing and the mesh)
+        d_out[s] = max(d, np.float32(0.0)) if clamp_nonneg else d
         if a != 0:
             acc[s] = 0
         return
@@ -234,7 +271,7 @@ def _adam_item(s, d_in, d_out, m, v, acc, scale, flags, neighbors, inv, form, tv
         acc[s] = 0
     lap = _edge_sum(s, d_in, flags, neighbors, inv, 1 if form == 1 else 0)
     if want_sum and form == 0:
-        cuda.atomic.add(sums, t, np.float64(lap * d))
+        cuda.atomic.add(sums, t, _sum_fixed(lap * d))
     g = qg + tv_scale * lap
     mm = beta1 * m[s] + (1.0 - beta1) * g
     vv = beta2 * v[s] + (1.0 - beta2) * g * g
@@ -269,6 +306,7 @@ def solve_level(d_a, d_b, m, v, acc, inv, flags, table, neighbors, nx, ny, nz, p
     n_batches = pool.shape[0]
     nq = pool.shape[1]
     n = d_a.shape[0]
+    clip = _clip_for(nq)
     for t in range(iters):
         src = d_a if t % 2 == 0 else d_b
         dst = d_b if t % 2 == 0 else d_a
@@ -278,7 +316,7 @@ def solve_level(d_a, d_b, m, v, acc, inv, flags, table, neighbors, nx, ny, nz, p
         for q in range(start, nq, stride):
             _query_item(q, src, flags, table, nx, ny, nz, points, normals, use_normals, pool[batch, q], key, step,
                         sigma, normal_table, pull_bit, beta, gamma, lam, acc, counts, t, loss_sums, want, slots,
-                        grads, losses)
+                        grads, losses, clip)
         grid.sync()
         if form == 1:
             for s in range(start, n, stride):

@@ -89,7 +89,10 @@ def draw_one(points, key, i, step, sigma, table):
     CUDA kernel can read them from device memory.
     """
     n = points.shape[0]
-    h = mix64(key ^ (np.uint64(i) * _GOLDEN))
+    # np.uint64(key): a CUDA kernel's Python-int argument is typed int64 below 2^63 (uint64 above), and numba hashes
+    # an int64 key differently (signed shifts): the card would draw other queries than the host found nearest
+    # points for. A no-op on the CPU, whose key comes from iteration_key as a uint64.
+    h = mix64(np.uint64(key) ^ (np.uint64(i) * _GOLDEN))
     u0, _ = uniforms(h)
     c = int((i + u0) * step)
     if c >= n:
