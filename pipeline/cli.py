@@ -346,6 +346,11 @@ def cmd_reconstruct(args) -> int:
     # cleaned by reconstruct, whose mode decides whether a flat patch is data (udf) or degenerate (sdf)
     cloud = read_points(args.inputs[0], clean=False)
     log.info("read %s: %d points", args.inputs[0], len(cloud))
+    from tiled_gridpull.kernels.warmup import KERNELS, TILED_ONLY, compile_kernels
+    from tiled_gridpull.tiled_job import compile_ahead
+
+    # said before the progress bar, which would otherwise sit at 0 while numba compiles
+    compile_ahead(compile_kernels, 1, names=[n for n in KERNELS if n not in TILED_ONLY])
     bar = _progress_bar(cfg.total_iterations(cfg.resolution), args)
     try:
         mesh = reconstruct(cloud, config=cfg, progress=bar.update if bar else None,

@@ -315,6 +315,34 @@ def test_evaluate_table_leads_with_the_exact_figures(tmp_path, capsys):
     assert code == 0 and text.splitlines()[0] == "samples and mesh" and "_exact" not in text
 
 
+def test_one_shape_mode_says_it_compiles_the_kernels_its_cache_lacks(sphere_xyz, tmp_path, capsys, monkeypatch,
+                                                                    caplog):
+    """Before the progress bar (which sat at 0 while numba compiled): the kernels one-shape mode calls, not those
+    of tiled jobs only."""
+    from tiled_gridpull.kernels import warmup
+
+    asked, compiled = [], []
+
+    def cold(names=None):
+        asked.append(list(names))
+        return ["losses.query_losses", "step.tv_adam_step"]
+
+    monkeypatch.setattr(warmup, "cold_kernels", cold)
+    monkeypatch.setattr("tiled_gridpull.tiled_job.cold_kernels", cold)
+    monkeypatch.setattr(warmup, "compile_kernels", compiled.append)
+    import logging
+
+    with caplog.at_level(logging.INFO, logger="tiled_gridpull"):
+        code, _, err = run(["reconstruct", str(sphere_xyz), "-o", str(tmp_path / "m.ply"), "--resolution", "32",
+                            "--iterations", "30", "--set", "coarse_iterations=30"], capsys)
+    assert code == 0, err
+    said = [r.getMessage() for r in caplog.records]
+    assert any(m.startswith("compiling 2 numba kernels, once per installation") for m in said), said
+    assert any(m.startswith("compiled the kernels in") for m in said)
+    assert compiled == [["losses.query_losses", "step.tv_adam_step"]]
+    assert asked and not set(asked[0]) & set(warmup.TILED_ONLY) and "losses.query_losses" in asked[0]
+
+
 @pytest.mark.parametrize("tiled", [False, True])
 def test_absurd_ply_offset_is_exit_3_one_line_in_both_modes(tmp_path, capsys, sphere_xyz, tiled):
     """Our own PLY's ``comment offset 1e308 0 0``: one-shape mode failed with "internal error: LinAlgError"

@@ -179,7 +179,7 @@ class SerialExecutor:
 
 
 def compile_ahead(compile_shares: Callable[[list[str]], object], parts: int,
-                  cold: list[str] | None = None) -> list[str]:
+                  cold: list[str] | None = None, names: list[str] | None = None) -> list[str]:
     """Say on screen that the kernels numba's cache lacks are being compiled, and how long that takes, around
     ``compile_shares(cold)``, which compiles them (``parts`` at a time: the estimate divides the work).
 
@@ -195,6 +195,8 @@ def compile_ahead(compile_shares: Callable[[list[str]], object], parts: int,
     cold : list of str, optional
         The cold kernels, when the caller knows them (another machine's cache); default: this process's
         (:func:`tiled_gridpull.kernels.warmup.cold_kernels`).
+    names : list of str, optional
+        The kernels to consider when ``cold`` is not given (default all; one-shape mode needs fewer).
 
     Returns
     -------
@@ -203,7 +205,7 @@ def compile_ahead(compile_shares: Callable[[list[str]], object], parts: int,
         is compiled at its first call, as before).
     """
     if cold is None:
-        cold = cold_kernels()
+        cold = cold_kernels(names)
     if not cold:
         return []
     log.info("compiling %d numba kernels, once per installation (numba caches them): about %.0f s",

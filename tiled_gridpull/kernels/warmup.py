@@ -19,7 +19,7 @@ import time
 
 from numba import types
 
-__all__ = ["KERNELS", "kernel", "cold_kernels", "compile_kernels", "split", "estimate_seconds"]
+__all__ = ["KERNELS", "TILED_ONLY", "kernel", "cold_kernels", "compile_kernels", "split", "estimate_seconds"]
 
 
 def _c(dtype, ndim: int) -> types.Array:
@@ -60,6 +60,10 @@ KERNELS: dict[str, tuple[tuple, float]] = {
     "step.tv_adam_step": ((_F, _F, _F, _F, _F, _c(_U8, 1), _c(_I32, 2), _F, _I64, _F32, _F32, _F32, _F32, _F32,
                            types.boolean), 7.0),
 }
+
+
+#: the kernels only a tiled job calls (blending tiles, bridging scan-line gaps); one-shape mode calls the others
+TILED_ONLY = ("blend.blend_bricks", "bridge.bin_ground", "bridge.fit_columns")
 
 
 def kernel(name: str):
