@@ -161,7 +161,10 @@ def build_parser() -> argparse.ArgumentParser:
     e = sub.add_parser("evaluate", formatter_class=_Formatter,
                        help="accuracy of a mesh against a ground-truth mesh",
                        description="Chamfer-L1/L2, normal consistency, F-score and Hausdorff (ONet/SAP/NeuralPull "
-                                   "conventions), sample-based and exact, plus mesh facts.")
+                                   "conventions): the exact figures (samples to the other mesh's surface) "
+                                   "first, then mesh facts, then the sample-to-sample figures, whose floor "
+                                   "(chamfer_l1_floor) grows with the meshes' area: read the exact ones for "
+                                   "scenes.")
     e.add_argument("mesh")
     e.add_argument("gt")
     e.add_argument("--samples", type=int, default=100_000, help="area-uniform samples per mesh")
@@ -343,6 +346,11 @@ def cmd_reconstruct(args) -> int:
     # cleaned by reconstruct, whose mode decides whether a flat patch is data (udf) or degenerate (sdf)
     cloud = read_points(args.inputs[0], clean=False)
     log.info("read %s: %d points", args.inputs[0], len(cloud))
+    from tiled_gridpull.kernels.warmup import KERNELS, TILED_ONLY, compile_kernels
+    from tiled_gridpull.tiled_job import compile_ahead
+
+    # said before the progress bar, which would otherwise sit at 0 while numba compiles
+    compile_ahead(compile_kernels, 1, names=[n for n in KERNELS if n not in TILED_ONLY])
     bar = _progress_bar(cfg.total_iterations(cfg.resolution), args)
     try:
         mesh = reconstruct(cloud, config=cfg, progress=bar.update if bar else None,
@@ -583,10 +591,43 @@ def cmd_evaluate(args) -> int:
         print(json.dumps(res, indent=2, sort_keys=True,
                          default=lambda o: o.item() if isinstance(o, np.generic) else str(o)))
     else:
-        width = max(len(k) for k in res)
-        for k, v in res.items():
-            print(f"{k:<{width}}  {v:.6g}" if isinstance(v, float) else f"{k:<{width}}  {v}")
+        print("\n".join(_evaluate_table(res)))
     return 0
+
+
+#: the sample counts and mesh facts of ``evaluate``'s result, printed in a section of their own
+_MESH_FACTS = ("n_samples", "gt_samples_used", "watertight", "components", "boundary_edges", "boundary_loops",
+               "nonmanifold_edges", "vertices", "faces")
+
+
+def _evaluate_table(res: dict) -> list[str]:
+    """``evaluate``'s table: the exact figures first, then the footprint and the mesh facts, and last the
+    sample-to-sample figures, labelled with their floor (on the demo street the floor is 0.12 m, and its sampled
+    Chamfer-L1, 14 times the exact one, had led the table and read as the mesh's error). The ``--json`` keys
+    are unchanged (``chamfer_l1_floor`` is new)."""
+    exact = [k for k in res if "_exact" in k]
+    footprint = [k for k in res if k.startswith("footprint_")]
+    facts = [k for k in _MESH_FACTS if k in res]
+    sampled = [k for k in res if k not in {*exact, *footprint, *facts}]
+    width = max(len(k) for k in res)
+
+    def rows(keys):
+        return [f"  {k:<{width}}  {res[k]:.6g}" if isinstance(res[k], float) else f"  {k:<{width}}  {res[k]}"
+                for k in keys]
+
+    lines = []
+    if exact:
+        lines += ["exact: each mesh's samples to the other mesh's surface (no floor; the figures to read)",
+                  *rows(exact)]
+    if footprint:
+        lines += ["footprint: ground truth within R of the input points, within tau of the mesh (exact)",
+                  *rows(footprint)]
+    lines += ["samples and mesh", *rows(facts)]
+    floor = res.get("chamfer_l1_floor")
+    lines.append("sampled: each mesh's samples to the other's nearest sample (the papers' convention, for unit "
+                 "shapes)" + (f"; the samples alone give a perfect mesh chamfer_l1 {floor:.3g}" if floor else ""))
+    lines += rows(sampled)
+    return lines
 
 
 def cmd_render(args) -> int:

@@ -38,7 +38,7 @@ from tiled_gridpull.tiling import TilingConfig
 
 log = logging.getLogger("tiled_gridpull")
 
-__all__ = ["JobOptions", "DaskExecutor", "run_job", "run_tiles", "make_client"]
+__all__ = ["JobOptions", "DaskExecutor", "run_job", "run_tiles", "make_client", "compile_on_workers"]
 
 #: Tasks in flight at once: enough to keep any cluster busy (a task is a whole tile, seconds to minutes of work)
 #: and to cover a slab of tiles, so mesh tasks follow their solves closely.
@@ -259,6 +259,65 @@ def _configure_worker_threads() -> None:
         numba.set_num_threads(min(want, numba.config.NUMBA_NUM_THREADS))
 
 
+def compile_task(names: list[str]) -> dict[str, float]:
+    """Dask task: compile a share of the kernels (or load them from numba's cache); seconds each took."""
+    from tiled_gridpull.kernels.warmup import compile_kernels
+
+    _configure_worker_threads()  # as a tile would, before its first compilation
+    return compile_kernels(names)
+
+
+def compile_on_workers(client, stop: threading.Event | None = None,
+                       no_worker_timeout: float = NO_WORKER_TIMEOUT_S, kernels: list[str] | None = None) -> list[str]:
+    """Compile the kernels that numba's cache lacks, before any tile, each on one worker: shares of about equal
+    compile time (:func:`tiled_gridpull.kernels.warmup.split`), one per worker, said on screen
+    (:func:`tiled_gridpull.tiled_job.compile_ahead`). Returns the kernels compiled.
+
+    On a cold cache every worker compiled every kernel at its first tile, all at once, each compiling alone the
+    kernels the others were compiling too; a worker now loads from the cache what another compiled. What the
+    workers' caches lack is asked of the workers themselves (an external cluster's may not be this machine's).
+    A warm-up that fails is only logged: each tile then compiles what it needs at its first call, as before.
+    ``kernels``: the names of :data:`~tiled_gridpull.kernels.warmup.KERNELS` to consider (default all).
+    """
+    from distributed import wait
+
+    from tiled_gridpull.kernels.warmup import cold_kernels, split
+    from tiled_gridpull.tiled_job import compile_ahead
+
+    try:
+        client.wait_for_workers(1, timeout=no_worker_timeout or None)
+        seen = client.run(cold_kernels, kernels)
+    except Exception as exc:  # noqa: BLE001 - the tiles compile at first use instead
+        log.debug("kernel warm-up skipped: %s", exc)
+        return []
+    if not seen or any(v is None for v in seen.values()):
+        return []
+    workers = sorted(seen)
+    cold = sorted({name for names in seen.values() for name in names})
+
+    def compile_shares(names: list[str]) -> None:
+        # a share goes elsewhere if its worker dies; a cluster left without workers stops the job as it would
+        futures = [client.submit(compile_task, share, key=f"compile-kernels-{i}", workers=[w],
+                                 allow_other_workers=True, pure=False)
+                   for i, (w, share) in enumerate(zip(workers, split(names, len(workers))))]
+        watch = _WorkerWatch(client, no_worker_timeout)
+        while True:
+            if stop is not None and stop.is_set():
+                raise KeyboardInterrupt
+            watch.check()
+            try:
+                wait(futures, timeout=0.2)
+                break
+            except TimeoutError:
+                continue
+        for fut in futures:
+            if fut.status == "error":
+                log.debug("kernel warm-up on a worker failed: %s", fut.exception())
+            fut.release()
+
+    return compile_ahead(compile_shares, len(workers), cold)
+
+
 def solve_task(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig, field_path: str, centre,
                summary_path: str | None = None) -> dict:
     """Dask task: solve one tile, or reuse its recorded result (:func:`tiled_gridpull.tiled_job.solve_step`)."""
@@ -347,6 +406,12 @@ class DaskExecutor:
             if self.options.scheduler:
                 check_workers_see(self._client, root, self.options.no_worker_timeout)
         return self._client
+
+    def warm_up(self, n_tasks: int, root) -> None:
+        """Start the cluster (unless :meth:`map` did) and compile the kernels numba's cache lacks before the
+        tiles, a share per worker (:func:`compile_on_workers`)."""
+        with _deferred_interrupt() as interrupted:
+            compile_on_workers(self._connect(n_tasks, root), interrupted, self.options.no_worker_timeout)
 
     def map(self, fn: Callable, args: list[tuple], root) -> list:
         """``fn(*a)`` for every ``a`` in ``args`` as tasks on the cluster (the partition's tasks: segments of

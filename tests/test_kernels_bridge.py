@@ -69,3 +69,34 @@ def test_densely_sampled_columns_are_left_to_the_solved_field():
     dense = [(y, flat) for y in np.arange(2.0, 60.0, 2.0)]
     assert np.isnan(_fit(_reps(dense), [(40.0, 21.0)], skip=4.0)).all()
     assert np.isfinite(_fit(_reps(dense), [(40.0, 21.0)], skip=1.0)).all()
+
+
+def _weighted_plane(rep, cx, cy, radius):
+    """The kernel's plane at column (cx, cy) by numpy's least squares: the representatives within ``radius``,
+    Gaussian weights as wide as the kernel makes them (from the nearest one and the farthest sector's nearest)."""
+    r = rep.reshape(-1, 3)
+    r = r[np.isfinite(r[:, 2])]
+    dx, dy, z = r[:, 0] - cx, r[:, 1] - cy, r[:, 2]
+    d2 = dx * dx + dy * dy
+    keep = d2 <= radius * radius
+    dx, dy, z, d2 = dx[keep], dy[keep], z[keep], d2[keep]
+    sector = ((np.arctan2(dy, dx) + np.pi) / (2 * np.pi) * 12).astype(int) % 12
+    farthest = max(d2[sector == s].min() for s in np.unique(sector))
+    sigma = max(1.5 * np.sqrt(d2.min()), 0.7 * np.sqrt(farthest), PIXEL)
+    sw = np.sqrt(np.exp(-d2 / sigma ** 2))
+    sol, *_ = np.linalg.lstsq(np.stack([sw, sw * dx, sw * dy], axis=1), sw * z, rcond=None)
+    return sol
+
+
+def test_the_plane_of_noisy_ground_is_the_weighted_least_squares_plane():
+    """The 3 x 3 normal equations solved by cofactors (not np.linalg, whose bindings took most of the kernel's
+    compile time) give numpy's weighted least-squares plane on bumpy, noisy scan lines."""
+    rng = np.random.default_rng(3)
+    bumpy = lambda x, y: 5.0 + 0.05 * x + 0.02 * y + 0.08 * np.sin(x / 3.0) + rng.normal(0, 0.03, x.shape)  # noqa: E731
+    rep = _reps([(y, bumpy) for y in (6.0, 14.0, 26.0, 34.0, 50.0)])
+    cols = np.column_stack([rng.uniform(20, 60, 40), rng.uniform(16, 24, 40)])
+    out = _fit(rep, cols)
+    done = np.isfinite(out[:, 0])
+    assert done.sum() >= 30
+    want = np.array([_weighted_plane(rep, cx, cy, ARGS["radius"]) for cx, cy in cols[done]])
+    np.testing.assert_allclose(out[done], want, rtol=0, atol=1e-9)

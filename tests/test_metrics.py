@@ -81,6 +81,17 @@ def test_identical_meshes_have_zero_exact_error_and_a_sampling_floor():
     assert 0 < res["chamfer_l1"] < 0.01  # independent samples of one surface are not at zero distance
 
 
+@pytest.mark.parametrize("side", [1.0, 40.0])
+def test_chamfer_l1_floor_predicts_the_sampled_score_of_a_perfect_mesh(side):
+    """The floor is what the samples alone score (within 10%), and it grows with the side: a 40 m square with
+    20,000 samples scores ~7 cm with nothing wrong (the exact figure stays 0)."""
+    m = Mesh(square(0.0).vertices * side, square(0.0).faces)
+    res = evaluate(m, m, n_samples=20000)
+    assert res["chamfer_l1_floor"] == pytest.approx(0.5 * side / np.sqrt(20000))
+    assert res["chamfer_l1"] == pytest.approx(res["chamfer_l1_floor"], rel=0.1)
+    assert res["chamfer_l1_exact"] < 1e-9 * side
+
+
 def test_sample_surface_is_area_uniform():
     # two triangles of areas 1 and 3 in the plane z = 0
     v = np.array([[0, 0, 0], [1, 0, 0], [0, 2, 0], [10, 0, 0], [13, 0, 0], [10, 2, 0]], float)

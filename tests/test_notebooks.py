@@ -101,3 +101,80 @@ def test_saved_notebook_has_its_outputs(path):
     assert not [o for c in code for o in c.outputs if o.get("output_type") == "error"]
     assert _images(nb) >= 3
     assert os.path.getsize(path) < 1_500_000  # pictures at screen resolution, not posters
+
+
+def _notebook_imports(path: Path) -> set[str]:
+    """Modules a notebook's code cells import (``tiled_gridpull.x`` as such, others by their top-level name)."""
+    import ast
+    import json
+
+    names: set[str] = set()
+    for cell in json.loads(path.read_text())["cells"]:
+        if cell["cell_type"] != "code":
+            continue
+        src = "".join(cell["source"])
+        # IPython magics and shell lines are not Python
+        src = "\n".join(ln for ln in src.splitlines() if not ln.lstrip().startswith(("%", "!")))
+        for node in ast.walk(ast.parse(src)):
+            if isinstance(node, ast.Import):
+                names.update(a.name for a in node.names)
+            elif isinstance(node, ast.ImportFrom) and node.module and not node.level:
+                names.add(node.module)
+    return {n if n.startswith("tiled_gridpull.") else n.split(".")[0] for n in names}
+
+
+def _extra_closure(extra: str) -> set[str]:
+    """Distributions (normalised names) that ``pip install tiled-gridpull[extra]`` installs, read from this
+    checkout's pyproject.toml (its own extras expanded) and, past it, from the installed packages' metadata."""
+    import importlib.metadata as md
+    import tomllib
+
+    from packaging.requirements import Requirement
+    from packaging.utils import canonicalize_name
+
+    project = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]
+    todo = [Requirement(r) for r in [*project["dependencies"], *project["optional-dependencies"][extra]]]
+    seen: set[str] = set()
+    while todo:
+        req = todo.pop()
+        name = canonicalize_name(req.name)
+        if name == canonicalize_name(project["name"]):
+            todo += [Requirement(r) for e in req.extras for r in project["optional-dependencies"][e]]
+            continue
+        if name in seen:
+            continue
+        seen.add(name)
+        try:
+            requires = md.requires(req.name) or []
+        except md.PackageNotFoundError:
+            continue
+        for r in map(Requirement, requires):
+            if r.marker is None or any(r.marker.evaluate({"extra": e}) for e in (req.extras or {""})):
+                todo.append(r)
+    return seen
+
+
+@pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.stem for p in NOTEBOOKS])
+def test_notebooks_extra_installs_what_the_notebook_imports(path):
+    """``pip install -e ".[notebooks]"`` (the README's advice) installs every package the notebook imports, and
+    every optional package that a tiled_gridpull module it imports asks for (``_optional.require``): the
+    render cells need pyvista through tiled_gridpull.render, which the extra had left out."""
+    import importlib.metadata as md
+    import importlib.util
+    import re
+    import sys
+
+    from packaging.utils import canonicalize_name
+
+    needed: set[str] = set()
+    for name in _notebook_imports(path):
+        if name.startswith("tiled_gridpull."):
+            source = Path(importlib.util.find_spec(name).origin).read_text()
+            needed.update(m.split(".")[0] for m in re.findall(r"""require\(\s*["']([\w.]+)["']""", source))
+        elif name != "tiled_gridpull" and name not in sys.stdlib_module_names:
+            needed.add(name)
+    assert "pyvista" in needed or path.stem != "quickstart"  # the scan above sees through the package
+    providers = md.packages_distributions()
+    installed = _extra_closure("notebooks")
+    missing = {m for m in needed if not {canonicalize_name(d) for d in providers.get(m, [m])} & installed}
+    assert not missing, f"{path.name} imports {sorted(missing)}, which the notebooks extra does not install"

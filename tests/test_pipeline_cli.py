@@ -283,6 +283,66 @@ def test_evaluate_footprint(tmp_path, capsys):
     assert code == 2 and "positive" in err
 
 
+def test_evaluate_table_leads_with_the_exact_figures(tmp_path, capsys):
+    """The table opens on the exact figures; the sample-to-sample ones come last under a header that gives their
+    floor (on the demo street they had led, 12x the exact Chamfer-L1). ``--json`` keeps every key."""
+    from tiled_gridpull.io import write_mesh
+    from tiled_gridpull.mesh import Mesh
+
+    v = np.array([[0, 0, 0], [40, 0, 0], [40, 40, 0], [0, 40, 0]], dtype=np.float64)
+    write_mesh(Mesh(v, np.array([[0, 1, 2], [0, 2, 3]])), tmp_path / "gt.ply")
+    write_mesh(Mesh(v + [0, 0, 0.01], np.array([[0, 1, 2], [0, 2, 3]])), tmp_path / "mesh.ply")
+    args = ["evaluate", str(tmp_path / "mesh.ply"), str(tmp_path / "gt.ply"), "--samples", "20000",
+            "--thresholds", "0.05"]
+    code, text, _ = run(args, capsys)
+    assert code == 0
+    lines = text.splitlines()
+    assert lines[0].startswith("exact:")
+    assert lines[1].split()[0].endswith("_exact") or "_exact@" in lines[1].split()[0]
+    values = {ln.split()[0]: ln.split()[1] for ln in lines if ln.startswith("  ")}
+    assert float(values["chamfer_l1_exact"]) == pytest.approx(0.01, rel=1e-3)
+    sampled = next(i for i, ln in enumerate(lines) if ln.startswith("sampled:"))
+    order = [ln.split()[0] for ln in lines if ln.startswith("  ")]
+    assert lines.index(next(ln for ln in lines if ln.split()[0] == "chamfer_l1")) > sampled
+    assert order.index("chamfer_l1_exact") < order.index("watertight") < order.index("chamfer_l1")
+    floor = float(values["chamfer_l1_floor"])
+    assert f"chamfer_l1 {floor:.3g}" in lines[sampled] and floor == pytest.approx(0.5 * 40 / np.sqrt(20000), rel=1e-5)
+    assert float(values["chamfer_l1"]) > 5 * float(values["chamfer_l1_exact"])  # why they must not lead
+    code, text, _ = run([*args, "--json"], capsys)
+    assert code == 0
+    assert set(json.loads(text)) == set(values)
+    code, text, _ = run([*args, "--no-exact"], capsys)
+    assert code == 0 and text.splitlines()[0] == "samples and mesh" and "_exact" not in text
+
+
+def test_one_shape_mode_says_it_compiles_the_kernels_its_cache_lacks(sphere_xyz, tmp_path, capsys, monkeypatch,
+                                                                    caplog):
+    """Before the progress bar (which sat at 0 while numba compiled): the kernels one-shape mode calls, not those
+    of tiled jobs only."""
+    from tiled_gridpull.kernels import warmup
+
+    asked, compiled = [], []
+
+    def cold(names=None):
+        asked.append(list(names))
+        return ["losses.query_losses", "step.tv_adam_step"]
+
+    monkeypatch.setattr(warmup, "cold_kernels", cold)
+    monkeypatch.setattr("tiled_gridpull.tiled_job.cold_kernels", cold)
+    monkeypatch.setattr(warmup, "compile_kernels", compiled.append)
+    import logging
+
+    with caplog.at_level(logging.INFO, logger="tiled_gridpull"):
+        code, _, err = run(["reconstruct", str(sphere_xyz), "-o", str(tmp_path / "m.ply"), "--resolution", "32",
+                            "--iterations", "30", "--set", "coarse_iterations=30"], capsys)
+    assert code == 0, err
+    said = [r.getMessage() for r in caplog.records]
+    assert any(m.startswith("compiling 2 numba kernels, once per installation") for m in said), said
+    assert any(m.startswith("compiled the kernels in") for m in said)
+    assert compiled == [["losses.query_losses", "step.tv_adam_step"]]
+    assert asked and not set(asked[0]) & set(warmup.TILED_ONLY) and "losses.query_losses" in asked[0]
+
+
 @pytest.mark.parametrize("tiled", [False, True])
 def test_absurd_ply_offset_is_exit_3_one_line_in_both_modes(tmp_path, capsys, sphere_xyz, tiled):
     """Our own PLY's ``comment offset 1e308 0 0``: one-shape mode failed with "internal error: LinAlgError"

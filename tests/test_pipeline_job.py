@@ -257,6 +257,46 @@ def test_workers_compile_fresh_kernels_when_numba_was_imported_first(tmp_path):
     assert f"[(45.0, {expected_threads}), (55.0, {expected_threads})]" in run.stdout
 
 
+WARM_UP_SCRIPT = '''
+import json, logging, sys
+
+from tiled_gridpull.kernels.warmup import cold_kernels
+from tiled_gridpull.pipeline.job import JobOptions, compile_on_workers, make_client
+
+logging.basicConfig(level=logging.INFO, format="%(message)s")
+NAMES = ["losses.scatter_add", "band.scatter_cells", "band.brick_neighbors"]
+
+if __name__ == "__main__":
+    client, cluster = make_client(JobOptions(workers=2, progress=False), n_tiles=2)
+    try:
+        first = compile_on_workers(client, kernels=NAMES)
+        tasks = client.run_on_scheduler(lambda dask_scheduler: sorted(
+            str(e[0]) for e in dask_scheduler.transition_log if str(e[0]).startswith("compile-kernels")))
+        again = compile_on_workers(client, kernels=NAMES)
+        print(json.dumps({"first": first, "again": again, "driver": cold_kernels(NAMES), "tasks": sorted(set(tasks))}))
+    finally:
+        client.close()
+        cluster.close()
+'''
+
+
+@pytest.mark.slow
+def test_workers_compile_the_cold_kernels_ahead_in_shares_and_say_so(tmp_path):
+    """On an empty numba cache the kernels are compiled before any tile, a share on each of the two workers, with
+    a line on screen; the cache then holds them for every process, and a second warm-up does nothing, silently."""
+    script = tmp_path / "warm_up.py"
+    script.write_text(WARM_UP_SCRIPT)
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]), NUMBA_CACHE_DIR=str(tmp_path / "nc"))
+    run = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, env=env, timeout=300)
+    assert run.returncode == 0, run.stderr[-2000:]
+    out = json.loads(run.stdout.strip().splitlines()[-1])
+    assert sorted(out["first"]) == sorted(["losses.scatter_add", "band.scatter_cells", "band.brick_neighbors"])
+    assert out["again"] == [] and out["driver"] == []  # cached for this process too
+    assert out["tasks"] == ["compile-kernels-0", "compile-kernels-1"]  # one share per worker
+    assert run.stderr.count("compiling 3 numba kernels, once per installation") == 1
+    assert "compiled the kernels in" in run.stderr
+
+
 _STARTED: list = []
 
 

@@ -204,3 +204,26 @@ def test_noise_auto_denoises_a_noisy_scan_and_leaves_a_clean_one(tmp_path, seria
     assert "a halo of 6 cells read for denoising" in shown
     shown = format_plan(plan_job([str(tmp_path / "g.npy")], tiling, params.replace(denoise=1), tmp_path / "dry"))
     assert "noise:    given: denoise 1\n" in shown and "a halo of 2 cells read for denoising" in shown
+
+
+def test_compile_ahead_says_what_it_compiles_and_nothing_on_a_warm_cache(caplog):
+    """A cold cache is said on screen, with the estimate for the processes compiling at once, before the
+    kernels are compiled; a warm one (or one numba's internals keep us from reading: None) says nothing."""
+    import logging
+
+    from tiled_gridpull.kernels.warmup import estimate_seconds
+    from tiled_gridpull.tiled_job import compile_ahead
+
+    cold = ["losses.query_losses", "step.tv_adam_step", "mc.count_triangles"]
+    calls = []
+    with caplog.at_level(logging.INFO, logger="tiled_gridpull"):
+        assert compile_ahead(calls.append, 2, cold=cold) == cold
+    assert calls == [cold]
+    said = [r.getMessage() for r in caplog.records]
+    assert said[0] == ("compiling 3 numba kernels, once per installation (numba caches them): about "
+                       f"{estimate_seconds(cold, 2):.0f} s") and said[1].startswith("compiled the kernels in ")
+    assert estimate_seconds(cold, 2) < estimate_seconds(cold, 1)
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="tiled_gridpull"):
+        assert compile_ahead(calls.append, 2, cold=[]) == []
+    assert calls == [cold] and not caplog.records

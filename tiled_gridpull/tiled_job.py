@@ -30,6 +30,7 @@ from .config import SolverConfig
 from .errors import InputError, TileFailedError
 from .io import write_mesh, write_mesh_and_sidecar
 from .jobdir import JobPaths, check_job_dir, job_lock, neighbors_of
+from .kernels.warmup import cold_kernels, compile_kernels, estimate_seconds
 from .memory import check_memory, peak_rss_mb
 from .mesh import Mesh
 from .prepare import check_registered, check_remote, prepare_job, resolve_units, scan_noise_treatment
@@ -44,7 +45,7 @@ log = logging.getLogger("tiled_gridpull")
 
 __all__ = ["run_tiled_job", "reconstruct_scene", "TileExecutor", "SerialExecutor", "solve_step", "mesh_step",
            "task_arguments", "collect_summaries", "finish_job", "job_metadata", "plan_centre", "key_reference",
-           "check_some_tile_solvable", "check_some_tile_solved"]
+           "check_some_tile_solvable", "check_some_tile_solved", "compile_ahead"]
 
 #: One finished tile step from an executor: ``(kind, tile index, summary)``, ``kind`` "solve" or "mesh".
 TileEvent = tuple[str, tuple[int, int, int], dict]
@@ -70,6 +71,9 @@ class TileExecutor(Protocol):
 
     def close(self) -> None:
         """Release what the executor holds (a cluster); called when the job ends, however it ends."""
+
+    # optional (the driver calls it when present): warm_up(n_tasks, root) compiles, before the tiles, the numba
+    # kernels that numba's cache lacks, saying so on screen (:func:`compile_ahead`)
 
     def run(self, specs: list[TileSpec], tiling: TilingConfig, solver: SolverConfig, paths: JobPaths,
             centre: tuple[float, float, float], key_ref: np.ndarray) -> Iterator[TileEvent]:
@@ -143,6 +147,10 @@ class SerialExecutor:
     def check(self) -> None:
         return None
 
+    def warm_up(self, n_tasks: int, root: Path) -> None:
+        """Compile the kernels numba's cache lacks here, before the first tile, saying so."""
+        compile_ahead(lambda cold: compile_kernels(cold), 1)
+
     def map(self, fn: Callable, args: list[tuple], root: Path) -> list:
         return [fn(*a) for a in args]
 
@@ -168,6 +176,44 @@ class SerialExecutor:
             nbs = neighbors_of(s, by_index)
             yield "mesh", s.index, mesh_step(s, summaries[s.index], nbs, [summaries[n.index] for n in nbs],
                                              *mesh_args(s))
+
+
+def compile_ahead(compile_shares: Callable[[list[str]], object], parts: int,
+                  cold: list[str] | None = None, names: list[str] | None = None) -> list[str]:
+    """Say on screen that the kernels numba's cache lacks are being compiled, and how long that takes, around
+    ``compile_shares(cold)``, which compiles them (``parts`` at a time: the estimate divides the work).
+
+    A first job on a machine compiles about 20 kernels (45 s of one core, measured on the 2-core development
+    machine): its first tile looked stalled, with nothing on screen. With a warm cache this says nothing.
+
+    Parameters
+    ----------
+    compile_shares : callable
+        Compiles the kernels named in its list (in this process, or a share on each worker).
+    parts : int
+        How many processes compile at once.
+    cold : list of str, optional
+        The cold kernels, when the caller knows them (another machine's cache); default: this process's
+        (:func:`tiled_gridpull.kernels.warmup.cold_kernels`).
+    names : list of str, optional
+        The kernels to consider when ``cold`` is not given (default all; one-shape mode needs fewer).
+
+    Returns
+    -------
+    list of str
+        The kernels compiled (empty with a warm cache, or where numba's cache cannot be read: then each kernel
+        is compiled at its first call, as before).
+    """
+    if cold is None:
+        cold = cold_kernels(names)
+    if not cold:
+        return []
+    log.info("compiling %d numba kernels, once per installation (numba caches them): about %.0f s",
+             len(cold), max(1.0, estimate_seconds(cold, parts)))
+    t0 = time.perf_counter()
+    compile_shares(cold)
+    log.info("compiled the kernels in %.1f s", time.perf_counter() - t0)
+    return cold
 
 
 def reconstruct_scene(inputs: list[str], output: str | Path | None, tiling: TilingConfig, solver: SolverConfig,
@@ -309,6 +355,9 @@ def _run(inputs, output, tiling: TilingConfig, solver: SolverConfig, paths: JobP
     check_some_tile_solvable(specs, tiling)
     if max_memory is not None and scan.get("partition_reused"):
         check_memory(specs, tiling, solver, max_memory)
+    warm_up = getattr(executor, "warm_up", None)  # executors written before warm_up() existed have none
+    if warm_up is not None:
+        warm_up(len(specs), paths.root)
     events = executor.run(specs, tiling, solver, paths, plan_centre(plan), key_reference(plan))
     with contextlib.closing(events):
         solve_summaries, mesh_summaries = collect_summaries(events, len(specs), fail_fast=fail_fast,

@@ -173,14 +173,20 @@ def fit_columns(rep, pixel, cols, radius, skip, max_gap, rms_tol, step_tol, max_
             b[0] += w * zz
             b[1] += w * dx * zz
             b[2] += w * dy * zz
-        A[1, 0] = A[0, 1]
-        A[2, 0] = A[0, 2]
-        A[2, 1] = A[1, 2]
-        det = np.linalg.det(A)
+        # the symmetric 3 x 3 system by its cofactors: np.linalg.det and solve cost this kernel 10 s of numba
+        # compilation (LAPACK bindings), most of it
+        c00 = A[1, 1] * A[2, 2] - A[1, 2] * A[1, 2]
+        c01 = A[0, 2] * A[1, 2] - A[0, 1] * A[2, 2]
+        c02 = A[0, 1] * A[1, 2] - A[0, 2] * A[1, 1]
+        det = A[0, 0] * c00 + A[0, 1] * c01 + A[0, 2] * c02
         if not abs(det) > 1e-12 * (A[0, 0] * A[1, 1] * A[2, 2] + 1e-300):
             continue
-        sol = np.linalg.solve(A, b)
-        h, gx, gy = sol[0], sol[1], sol[2]
+        c11 = A[0, 0] * A[2, 2] - A[0, 2] * A[0, 2]
+        c12 = A[0, 1] * A[0, 2] - A[0, 0] * A[1, 2]
+        c22 = A[0, 0] * A[1, 1] - A[0, 1] * A[0, 1]
+        h = (c00 * b[0] + c01 * b[1] + c02 * b[2]) / det
+        gx = (c01 * b[0] + c11 * b[1] + c12 * b[2]) / det
+        gy = (c02 * b[0] + c12 * b[1] + c22 * b[2]) / det
         if gx * gx + gy * gy > max_slope * max_slope:
             continue
         ss = 0.0
