@@ -18,6 +18,7 @@ Usage::
 
     python -m benchmarks.frontier wide --runs draft@0.3 draft@0.5 standard@0.3 [--depths 9 10 11]
     python -m benchmarks.frontier airborne --runs draft standard [--depths 9 10 11]   # the files' own cells
+    python -m benchmarks.frontier tile        # a 1,000-point tile, each preset, in this process (no Dask)
     python -m benchmarks.frontier report
 """
 
@@ -44,12 +45,20 @@ def record(row: dict) -> None:
     print(shown, flush=True)
 
 
-def parse_run(text: str) -> tuple[str, float | None]:
-    """``draft@0.3`` -> ("draft", 0.3); ``draft`` -> ("draft", None): the scene's own cell."""
+def parse_run(text: str) -> tuple[str, float | str | None]:
+    """``draft@0.3`` -> ("draft", 0.3); ``draft@x2`` -> ("draft", "x2"): twice the scene's own cell; ``draft``
+    -> ("draft", None): the scene's own cell."""
     quality, _, cell = text.partition("@")
     if quality not in ("draft", "standard", "fine"):
         raise SystemExit(f"--runs: quality must be draft, standard or fine, got {quality!r}")
-    return quality, float(cell) if cell else None
+    return quality, (cell if cell.startswith("x") else float(cell)) if cell else None
+
+
+def cell_of(cell: float | str | None, own: float) -> float:
+    """A run's cell: its own number, a multiple of the scene's cell (``x2``), or the scene's cell."""
+    if cell is None:
+        return own
+    return own * float(cell[1:]) if isinstance(cell, str) else cell
 
 
 def gridpull(src: Path, out: Path, quality: str, cell: float, extra: list[str] | None = None) -> dict:
@@ -69,21 +78,29 @@ def poisson(src: Path, out: Path, depth: int) -> dict:
             "peak_rss_mb": res["peak_rss_mb"], "method": "poisson", "setting": f"depth {depth}", "depth": depth}
 
 
-def wide(work: Path, runs: list[tuple[str, float | None]], depths: list[int], run_id: str) -> None:
+def wide(work: Path, runs: list[tuple[str, float | None]], depths: list[int], run_id: str,
+         sample_dir: Path | None = None) -> None:
+    """``sample_dir``: a grid written earlier by ``tiled-gridpull sample street --points 1000000 --layout grid
+    --origin 500000 4000000 100`` (the same seeded scene; street.laz and street_gt.ply are read)."""
     from benchmarks.scenes import evaluate
+    from tiled_gridpull.io import read_points
     from tiled_gridpull.synthetic.street_sample import make_street_sample
 
-    sample = make_street_sample(work / "grid", n_points=1_000_000, origin=(500000.0, 4000000.0, 100.0),
-                                layout="grid")
-    src, gt = sample["laz"], sample["gt_mesh"]
-    base = {"run": run_id, "scene": WIDE, "points": sample["n_points"]}
+    if sample_dir is not None:
+        src, gt = Path(sample_dir) / "street.laz", Path(sample_dir) / "street_gt.ply"
+        n_points = len(read_points(src).xyz)
+    else:
+        sample = make_street_sample(work / "grid", n_points=1_000_000, origin=(500000.0, 4000000.0, 100.0),
+                                    layout="grid")
+        src, gt, n_points = sample["laz"], sample["gt_mesh"], sample["n_points"]
+    base = {"run": run_id, "scene": WIDE, "points": n_points}
     for depth in depths:
         out = work / f"poisson_{depth}.ply"
         row = poisson(src, out, depth)
         row.update(evaluate(out, gt, src))
         record({**base, "date": time.strftime("%Y-%m-%d %H:%M"), **row})
     for quality, cell in runs:
-        cell = cell or 0.1
+        cell = cell_of(cell, 0.1)
         out = work / f"{quality}_{cell:g}.ply"
         row = gridpull(src, out, quality, cell)
         row.update(evaluate(out, gt, src))
@@ -111,12 +128,48 @@ def airborne(work: Path, runs: list[tuple[str, float | None]], depths: list[int]
             row.update(holdout_scores(out, test, kept, own_cell))
             record({**base, "date": time.strftime("%Y-%m-%d %H:%M"), **row})
         for quality, cell in runs:
-            cell = cell or own_cell
+            cell = cell_of(cell, own_cell)
             out = work / f"{src.stem}_{quality}_{cell:g}.ply"
             # tiles of the benchmarks' usual size in the file's units (scenes.py holdout)
             row = gridpull(train, out, quality, cell, ["--tile-size", str(256 * cell), "--overlap", str(32 * cell)])
             row.update(holdout_scores(out, test, kept, own_cell))
             record({**base, "date": time.strftime("%Y-%m-%d %H:%M"), **row})
+
+
+def small_tile(work: Path, run_id: str, n_points: int = 1000, repeats: int = 3) -> None:
+    """A ``n_points``-point ground patch (one tile) with ``--voxel-size auto``, each preset in this process (no
+    Dask: the tile's own cost, :func:`tiled_gridpull.tiled_job.reconstruct_scene`), the fastest of ``repeats``
+    runs after a warm-up (numba's kernels loaded)."""
+    import numpy as np
+
+    from tiled_gridpull.config import QUALITIES, QUALITY_CELL_SCALE
+    from tiled_gridpull.pipeline.cli import build_parser, resolve_settings
+    from tiled_gridpull.prepare import resolve_units
+    from tiled_gridpull.tiled_job import reconstruct_scene
+
+    rng = np.random.default_rng(7)
+    side = 10.0
+    xy = rng.uniform(0, side, size=(n_points, 2))
+    z = 0.4 * np.sin(xy[:, 0] / 2.0) * np.cos(xy[:, 1] / 3.0)
+    src = work / "patch.npy"
+    np.save(src, np.column_stack([xy, z]) + np.array([500000.0, 4000000.0, 50.0]))
+    for quality in QUALITIES:
+        args = build_parser().parse_args(["reconstruct", str(src), "-o", str(work / "p.ply"), "--config",
+                                          str(REPO / "configs" / "scene.yaml"), "--voxel-size", "auto",
+                                          "--quality", quality])
+        solver, tiling = resolve_settings(args)
+        tiling = resolve_units([str(src)], tiling, cell_scale=QUALITY_CELL_SCALE[quality])
+        walls, solves = [], []
+        for i in range(repeats + 1):
+            t0 = time.perf_counter()
+            mesh = reconstruct_scene([str(src)], None, tiling, solver, work / f"{quality}_{i}.job")
+            if i:  # the first loads the kernels
+                walls.append(time.perf_counter() - t0)
+                solves.append(sum(t["time_s"] for t in mesh.metadata["tile_summaries"]))
+        record({"run": run_id, "date": time.strftime("%Y-%m-%d %H:%M"), "scene": f"{n_points}-point tile",
+                "method": "gridpull", "setting": quality, "cell": tiling.voxel_size, "points": n_points,
+                "tiles": len(mesh.metadata["tile_summaries"]), "wall_s": min(walls), "solve_s": min(solves),
+                "faces": int(mesh.n_faces)})
 
 
 def load(path: Path = RESULTS) -> list[dict]:
@@ -155,7 +208,7 @@ def render(rows: list[dict]) -> str:
                                             ("x_poisson_11", "x Poisson 11 time", ".2f"),
                                             ("chamfer_l1_m", "CD-L1 m", ".4f"), ("fscore_0.1m", "F@0.1", ".3f"),
                                             ("normal_consistency", "NC", ".3f"), ("peak_rss_mb", "peak MB", ".0f")]))
-    real = [r for r in rows if r["scene"] != WIDE]
+    real = [r for r in rows if r["scene"] != WIDE and "holdout_mean" in r]
     if real:
         parts.append(markdown_table(real, [("date", "date", ""), ("scene", "file", ""),
                                            ("what", "method @ cell", ""), ("tiles", "tiles", ""),
@@ -163,6 +216,11 @@ def render(rows: list[dict]) -> str:
                                            ("holdout_mean", "held-out mean", ".4f"),
                                            ("holdout_median", "median", ".4f"),
                                            ("holdout_within_cell", "within 1 cell", ".3f")]))
+    tile = [r for r in rows if r["scene"].endswith("-point tile")]
+    if tile:
+        parts.append(markdown_table(tile, [("date", "date", ""), ("scene", "cloud", ""), ("what", "preset @ cell", ""),
+                                           ("wall_s", "job s (in process)", ".2f"), ("solve_s", "tile solve s", ".2f"),
+                                           ("faces", "faces", "")]))
     return "\n\n".join(parts)
 
 
@@ -182,7 +240,7 @@ def plot(rows: list[dict], path: Path = PLOT) -> Path | None:
     rows = [r for r in rows if r["run"] == latest[r["scene"]]]
     panels = [(WIDE, "chamfer_l1_m", "CD-L1 m (lower is better)"), (WIDE, "fscore_0.1m", "F@0.1 m (higher is better)")]
     panels += [(s, "holdout_mean", "held-out mean distance (file units)") for s in sorted(
-        {r["scene"] for r in rows if r["scene"] != WIDE})]
+        {r["scene"] for r in rows if r["scene"] != WIDE and "holdout_mean" in r})]
     panels = [p for p in panels if any(r["scene"] == p[0] and r.get(p[1]) is not None for r in rows)]
     if not panels:
         return None
@@ -221,12 +279,13 @@ def plot(rows: list[dict], path: Path = PLOT) -> Path | None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("suite", choices=("wide", "airborne", "report"))
+    ap.add_argument("suite", choices=("wide", "airborne", "tile", "report"))
     ap.add_argument("--runs", nargs="+", default=["draft", "standard"],
                     help="QUALITY[@CELL]: each a GridPull run (CELL in the data's units; default the scene's own: "
                          "0.1 m for the grid, 0.5 m AHN3, 2 ft Autzen)")
     ap.add_argument("--depths", type=int, nargs="+", default=[9, 10, 11], help="Poisson octree depths")
     ap.add_argument("--keep", action="store_true", help="keep the work directory (printed)")
+    ap.add_argument("--sample", type=Path, help="wide: a grid of streets written before (see wide())")
     a = ap.parse_args()
     if a.suite == "report":
         print(render(load()))
@@ -237,7 +296,13 @@ def main() -> None:
     append_jsonl(RESULTS, {"scene": "machine", "run": run_id, **machine(), "load": os.getloadavg()[0]})
     work = Path(tempfile.mkdtemp(prefix="tg-frontier-"))
     try:
-        (wide if a.suite == "wide" else airborne)(work, runs, a.depths, run_id)
+        if a.suite == "tile":
+            small_tile(work, run_id)
+        else:
+            if a.suite == "wide":
+                wide(work, runs, a.depths, run_id, a.sample)
+            else:
+                airborne(work, runs, a.depths, run_id)
     finally:
         if a.keep:
             print(f"work directory: {work}")

@@ -222,6 +222,24 @@ def dask_section(rows: list[dict]) -> str:
                       "(`tiled_gridpull.tiled_job.task_arguments`).", "", table, ""])
 
 
+#: What the frontier section measures (benchmarks/frontier.py).
+FRONTIER_NOTE = (
+    "`--quality draft | standard | fine` (docs/solver.md, \"Quality presets\") at a few cell sizes, beside "
+    "Open3D screened Poisson at depths 9, 10 and 11 (read, normals, Poisson, 5 % density trim, write: "
+    "`benchmarks/poisson_scene.py`, normals included in its time), every row of a scene from one run "
+    "(`python -m benchmarks.frontier wide | airborne | tile`). GridPull rows are `tiled-gridpull reconstruct "
+    "--config configs/scene.yaml --quality Q --voxel-size CELL` end to end on the default local Dask cluster "
+    "(2 workers, its start included). The grid of streets (1M points, 200 m x 200 m) is scored against its "
+    "ground truth over the observed region (exact CD-L1 and F@0.1 m); the airborne files by the mean distance "
+    "of 10 % of their points, held out, to the mesh made from the rest (file units: metres for AHN3, US feet "
+    "for Autzen). `x Poisson` is the wall time over the same run's Poisson at that depth. The 1,000-point "
+    "tile is a ground patch with `--voxel-size auto`, solved and meshed in this process (no Dask; "
+    "`reconstruct_scene`), the fastest of 3 runs."
+)
+#: What the frontier's rows say (written from the rows of benchmarks/results/frontier.jsonl).
+FRONTIER_READING = ""
+
+
 def main() -> None:
     shapes = load("shapes")
     scenes_md = RESULTS / "scenes.md"
@@ -325,6 +343,16 @@ def main() -> None:
                   "The denoise rows (`--set denoise=2`) show why denoising stays off for scans: the airborne "
                   "files got 25 % (AHN3) and 4 % (Autzen) farther from their held-out points (docs/solver.md, "
                   "\"Denoising tiles\").", ""]
+    from benchmarks import frontier
+
+    frontier_table = frontier.render(load("frontier"))
+    if frontier_table:
+        frontier_plot = frontier.plot(load("frontier"))
+        parts += ["## Quality presets: time against accuracy beside Poisson (`benchmarks/frontier.py`)", "",
+                  FRONTIER_NOTE, ""]
+        if frontier_plot is not None:
+            parts += [f"![time against accuracy]({frontier_plot.relative_to(REPO)})", ""]
+        parts += [frontier_table, "", FRONTIER_READING, ""]
     footprint_table = scenes.render_footprint(load("scenes"))
     if footprint_table:
         parts += ["## Gaps between scan lines: the footprint (`benchmarks/scenes.py footprint`)", "",

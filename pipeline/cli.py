@@ -96,7 +96,7 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--quality", choices=("draft", "standard", "fine"),
                    help="schedule preset: draft (minutes where standard takes tens of them, a few times less "
                         "accurate; BENCHMARKS.md, 'Quality presets'), standard (the config as given) or fine; with "
-                        "--voxel-size auto it also scales the cell (draft x2, fine x0.5); --set wins over it "
+                        "--voxel-size auto it also scales the cell (draft x1.5, fine x0.5); --set wins over it "
                         "(default: the config's quality key, else standard)")
     t.add_argument("--tile-size", type=float,
                    help="tile core size in the data's units (default: 256 cells, following --voxel-size)")

@@ -79,7 +79,7 @@ def test_an_auto_cell_scales_with_the_preset_and_a_given_cell_is_kept():
 
     sp = Spacing(median=0.124, area_median=0.365, points=1000, measured=1000)  # a quarter of the grid of streets
     assert auto_cell_size(sp) == 0.2
-    assert auto_cell_size(sp, QUALITY_CELL_SCALE["draft"]) == 0.5
+    assert auto_cell_size(sp, QUALITY_CELL_SCALE["draft"]) == 0.25
     assert auto_cell_size(sp, QUALITY_CELL_SCALE["fine"]) == 0.1
     # an explicit cell is not touched by the preset
     assert _resolve("--voxel-size", "0.3", "--quality", "draft")[1].voxel_size == 0.3

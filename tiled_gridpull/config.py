@@ -313,14 +313,14 @@ QUALITIES = ("draft", "standard", "fine")
 #: BENCHMARKS.md ("Quality presets") and docs/solver.md ("Quality presets: time against accuracy").
 QUALITY_PRESETS: dict[str, dict[str, Any]] = {
     "draft": {"coarse_iterations": 400, "lr_step": 200, "middle_iterations": 100, "iterations": 100,
-              "refine_lr_step": 25, "refine_m2": 5, "query_pool": 50, "refine_queries_per_point": 8,
+              "refine_lr_step": 25, "refine_m2": 5, "refine_queries_per_point": 4, "query_pool": 25,
               "points_per_cell": 8},
     "standard": {},
     "fine": {"queries_per_point": 0, "refine_queries_per_point": 0},
 }
 #: With ``voxel_size: auto``, the cell each preset takes: the measured cell (:func:`tiled_gridpull.tiling.
 #: auto_cell_size`) times this, rounded to 1, 2, 2.5 or 5 x 10^k. A cell given as a number is kept.
-QUALITY_CELL_SCALE: dict[str, float] = {"draft": 2.0, "standard": 1.0, "fine": 0.5}
+QUALITY_CELL_SCALE: dict[str, float] = {"draft": 1.5, "standard": 1.0, "fine": 0.5}
 
 
 def quality_settings(quality: str | None) -> dict[str, Any]:
