@@ -153,3 +153,26 @@ def test_dry_run_preset_times_follow_the_schedule(tmp_path):
     assert t["standard"] == pytest.approx(info["time"]["wall_seconds"])
     assert t["draft"] < t["standard"] <= t["fine"]
     assert isinstance(tiling, TilingConfig) and all(p["cell_size"] == 0.2 for p in info["presets"].values())
+
+
+def test_resume_keys_of_jobs_that_keep_every_point_are_unchanged():
+    # points_per_cell joins a tile's resume key only when set: jobs of earlier versions' settings keep theirs
+    plain = SolverConfig().solve_settings(sphere_init=False)
+    assert "points_per_cell" not in plain
+    assert SolverConfig(points_per_cell=8).solve_settings(sphere_init=False)["points_per_cell"] == 8
+    with pytest.raises(ConfigError, match="points_per_cell must be >= 0"):
+        SolverConfig(points_per_cell=-1)
+
+
+def test_time_estimate_follows_the_thinned_points():
+    from types import SimpleNamespace
+
+    from tiled_gridpull.memory import level_points, tile_time
+
+    dense = SimpleNamespace(n_points=250_000, occupied_bricks=100)
+    assert level_points(dense, 2, 3) == 250_000
+    assert level_points(dense, 2, 3, cap=8) == 8 * 100 * 96  # 1.5 x 8^2 finest cells per brick
+    assert level_points(dense, 2, 3, cap=10_000) == 250_000  # fewer points than the cap
+    bricks = [100, 400, 1600]
+    thinned = SolverConfig(queries_per_point=4, points_per_cell=8)
+    assert tile_time(dense, bricks, thinned) < tile_time(dense, bricks, SolverConfig(queries_per_point=4))

@@ -480,8 +480,11 @@ class SolverConfig:
 
         ``sphere_init``: the solve starts from the sphere, so its radius counts too.
         """
-        return {name: self.get(name) for name, path in SETTINGS.items()
-                if _META[path]["solve"] and (sphere_init or not _META[path]["sphere_only"])}
+        out = {name: self.get(name) for name, path in SETTINGS.items()
+               if _META[path]["solve"] and (sphere_init or not _META[path]["sphere_only"])}
+        if not out.get("points_per_cell"):  # only when set: keys of jobs that keep every point stay as they were
+            out.pop("points_per_cell", None)
+        return out
 
     def levels_for(self, cells: int) -> int:
         """Levels used on a lattice ``cells`` across: at most ``schedule.levels``, fewer when the coarsest would
