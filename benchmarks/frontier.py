@@ -262,9 +262,14 @@ def plot(rows: list[dict], path: Path = PLOT) -> Path | None:
             for r in pts:
                 tag = f"d{r['depth']}" if what == "poisson" else f"{r['cell']:g}"
                 ax.annotate(tag, (r["wall_s"], r[key]), textcoords="offset points", xytext=(4, 4), fontsize=7)
+        from matplotlib.ticker import FormatStrFormatter
+
         ax.set_xscale("log")
         if key != "fscore_0.1m":
             ax.set_yscale("log")
+        for axis in (ax.xaxis, ax.yaxis):  # plain numbers, not powers of ten
+            axis.set_major_formatter(FormatStrFormatter("%g"))
+            axis.set_minor_formatter(FormatStrFormatter("%g"))
         ax.set_xlabel("wall s, 2 cores (log)")
         ax.set_ylabel(label)
         ax.set_title(scene.replace(" (synthetic)", ""), fontsize=9)
