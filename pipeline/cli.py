@@ -100,6 +100,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="cell size in the data's units (0.1), or with a unit (0.1m, 0.33ft; m, cm, mm, ft, us-ft) "
                         "converted to the unit of the input's CRS (metres when it declares none), or auto "
                         "(from the points' spacing)")
+    t.add_argument("--quality", choices=("draft", "standard", "fine"),
+                   help="schedule preset: draft (minutes where standard takes tens of them, a few times less "
+                        "accurate; BENCHMARKS.md, 'Quality presets'), standard (the config as given) or fine; with "
+                        "--voxel-size auto it also scales the cell (draft x1.5, fine x0.5); --set wins over it "
+                        "(default: the config's quality key, else standard)")
     t.add_argument("--tile-size", type=float,
                    help="tile core size in the data's units (default: 256 cells, following --voxel-size)")
     t.add_argument("--overlap", type=float,
@@ -236,7 +241,7 @@ def _setup_logging(args) -> None:
 
 _CLI_KEYS = {"resolution": "resolution", "iterations": "iterations", "seed": "seed", "mode": "mode", "device": "device",
              "voxel_size": "voxel_size", "tile_size": "tile_size", "overlap": "overlap",
-             "drop_outliers": "drop_outliers"}
+             "drop_outliers": "drop_outliers", "quality": "quality"}
 
 
 def _shown_key(key) -> str:
@@ -244,13 +249,17 @@ def _shown_key(key) -> str:
     return key if isinstance(key, str) and key.isidentifier() else repr(key)
 
 
-def resolve_settings(args) -> tuple:
-    """Config file, then ``--set``, then explicit options -> validated (SolverConfig, TilingConfig or None).
+def resolve_settings(args, quality: str | None = None) -> tuple:
+    """Config file, then the quality preset, then ``--set``, then explicit options -> validated (SolverConfig,
+    TilingConfig or None).
 
-    Every key is checked before any data is read: unknown keys and bad values are refused with one line.
+    Every key is checked before any data is read: unknown keys and bad values are refused with one line. The
+    preset is the last ``quality`` named (config file, ``--set quality=``, ``--quality``), or ``quality`` when
+    given (the dry run's estimate of each preset); the one chosen is left in ``args.quality_chosen``.
     """
     from tiled_gridpull.config import (NOISE_SETTINGS, NORMALS_WEIGHT, SCAN_NOISE_SETTINGS, SolverConfig,
-                                       drop_removed_settings, load_config_file, parse_overrides, split_settings)
+                                       drop_removed_settings, load_config_file, parse_overrides, quality_settings,
+                                       split_settings)
     from tiled_gridpull.errors import ConfigError
     from tiled_gridpull.tiling import TilingConfig
 
@@ -258,6 +267,15 @@ def resolve_settings(args) -> tuple:
     sources.append(parse_overrides(args.overrides))
     sources.append({key: getattr(args, attr) for attr, key in _CLI_KEYS.items()
                     if getattr(args, attr, None) is not None})
+    named_quality = None
+    for source in sources:
+        if "quality" in source:
+            named_quality = source.pop("quality")
+    chosen = named_quality if quality is None else quality
+    # the preset replaces what the config file says, and --set and the options win over it
+    sources.insert(1 if args.config else 0, quality_settings(chosen))
+    if quality is None:
+        args.quality_chosen = chosen
     # each source by flat names first: a file's nested `refine: {lr: ..}` and `--set refine_lr=..` are one setting
     solver_settings: dict = {}
     settings: dict = {}
@@ -292,6 +310,8 @@ def resolve_settings(args) -> tuple:
     solver = SolverConfig(**solver_settings)
     tiling_settings = {k: v for k, v in settings.items() if k in tiling_keys}
     tiling = None
+    if chosen not in (None, "standard") and "voxel_size" not in tiling_settings:
+        raise ConfigError(f"quality {chosen} applies to tiled mode: give --voxel-size too")
     if "voxel_size" in tiling_settings:
         from tiled_gridpull.tiling import check_compatible
 
@@ -439,7 +459,11 @@ def _reconstruct_tiled(args, out: Path, solver, tiling) -> int:
         if not_las:
             raise InputError(f"--trajectory applies to LAS/LAZ points with GPS time; {not_las[0]} is not one")
         read_trajectory(args.trajectory)  # a bad file is refused before the job directory is made
-    tiling = resolve_units(args.inputs, tiling, frames)  # voxel_size auto, or with a unit
+    from tiled_gridpull.config import QUALITY_CELL_SCALE
+
+    quality = getattr(args, "quality_chosen", None) or "standard"
+    # voxel_size auto, or with a unit; a preset scales an auto cell
+    tiling = resolve_units(args.inputs, tiling, frames, cell_scale=QUALITY_CELL_SCALE[quality])
     check_compatible(tiling, solver)
     if "voxel_size" in tiling.derived and not args.dry_run:  # the dry run prints it on its lattice line
         log.info("voxel_size %g (%s)", tiling.voxel_size, tiling.units)
@@ -453,7 +477,8 @@ def _reconstruct_tiled(args, out: Path, solver, tiling) -> int:
         from tiled_gridpull.pipeline.dryrun import format_plan, plan_job
 
         info = plan_job(args.inputs, tiling, solver, work, frames=frames, trajectory=args.trajectory,
-                        workers=args.workers)
+                        workers=args.workers, presets=_preset_plans(args, frames, tiling))
+        info["quality"] = quality
         print(format_plan(info, max_memory))
         if max_memory is not None:
             from tiled_gridpull.memory import check_memory
@@ -475,6 +500,25 @@ def _reconstruct_tiled(args, out: Path, solver, tiling) -> int:
     if failed:
         return 6
     return 0
+
+
+def _preset_plans(args, frames, tiling) -> dict:
+    """The dry run's quality presets: ``{quality: (SolverConfig, TilingConfig)}``, each with the settings ``args``
+    give under that preset and its cell (an auto cell scales with the preset; ``tiling``: this run's, resolved)."""
+    from tiled_gridpull.config import QUALITIES, QUALITY_CELL_SCALE
+    from tiled_gridpull.prepare import resolve_units
+
+    out = {}
+    chosen_scale = QUALITY_CELL_SCALE[getattr(args, "quality_chosen", None) or "standard"]
+    for q in QUALITIES:
+        solver_q, tiling_q = resolve_settings(args, quality=q)
+        scale = QUALITY_CELL_SCALE[q]
+        if tiling_q.voxel_unit == "auto" and scale == chosen_scale:
+            tiling_q = tiling  # the same measurement: not read again
+        else:
+            tiling_q = resolve_units(args.inputs, tiling_q, frames, cell_scale=scale)
+        out[q] = (solver_q, tiling_q)
+    return out
 
 
 def cmd_sample(args) -> int:

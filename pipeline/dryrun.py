@@ -19,8 +19,13 @@ __all__ = ["plan_job", "format_plan"]
 
 def plan_job(inputs: list[str], tiling: TilingConfig, solver: SolverConfig, work_dir: str | Path, *, frames=None,
              trajectory: str | Path | None = None, workers: int | None = None,
-             chunk_size: int = 2_000_000) -> dict:
-    """Everything the dry run reports (see :func:`format_plan`)."""
+             chunk_size: int = 2_000_000, presets: dict | None = None) -> dict:
+    """Everything the dry run reports (see :func:`format_plan`).
+
+    ``presets``: ``{quality: (SolverConfig, TilingConfig)}`` (resolved tilings) whose time is estimated too, from
+    this partition where the tile grid is the same and from a partition of their own (in memory) where not;
+    ``info["presets"]`` then maps each to its ``wall_seconds``, ``cpu_seconds`` and ``cell_size``.
+    """
     from tiled_gridpull.indexed_inputs import all_indexed, estimate_specs, plan_indexed
     from tiled_gridpull.io.remote import recorded
     from tiled_gridpull.jobdir import JobPaths, check_job_dir
@@ -61,6 +66,20 @@ def plan_job(inputs: list[str], tiling: TilingConfig, solver: SolverConfig, work
     cpu_s = float(sum(e["time_s"] for e in est))
     wall_s = job_wall_time(est, int(scan["points"]), n_workers)
     peak = max(est, key=lambda e: e["peak"]) if est else None
+    preset_times = {}
+    for q, (solver_q, tiling_q) in (presets or {}).items():
+        if noise is not None and noise.get("chosen"):  # the scan's treatment, whatever the preset
+            solver_q = solver_q.replace(noise=solver.noise)
+        if tiling_q == tiling or with_halo(tiling_q, solver_q) == tiling:
+            est_q = estimate_tiles(specs, solver_q, tiling, occupancy)
+            preset_times[q] = {"wall_seconds": job_wall_time(est_q, int(scan["points"]), n_workers),
+                               "cpu_seconds": float(sum(e["time_s"] for e in est_q)),
+                               "cell_size": tiling.voxel_size}
+        else:
+            other = plan_job(inputs, tiling_q, solver_q, work_dir, frames=frames, trajectory=trajectory,
+                             workers=workers, chunk_size=chunk_size)
+            preset_times[q] = {**{k: other["time"][k] for k in ("wall_seconds", "cpu_seconds")},
+                               "cell_size": other["lattice"]["cell_size"]}
     return {
         "inputs": [recorded(p) for p in inputs], "points": int(scan["points"]), "has_sensor": bool(scan["has_sensor"]),
         # what the tiles will carry onto the vertices (--attributes of what the inputs have)
@@ -81,7 +100,7 @@ def plan_job(inputs: list[str], tiling: TilingConfig, solver: SolverConfig, work
         "memory": {"peak_bytes": peak["peak"] if peak else 0.0, "peak_tile": peak["tile"] if peak else None,
                    "median_bytes": float(np.median([e["peak"] for e in est])) if est else 0.0},
         "time": {"cpu_seconds": cpu_s, "workers": n_workers, "cores": cores, "wall_seconds": wall_s},
-        "estimates": est, "noise_treatment": noise,
+        "estimates": est, "noise_treatment": noise, "presets": preset_times,
     }
 
 
@@ -141,6 +160,13 @@ def format_plan(info: dict, max_memory: int | None = None) -> str:
         given = bool(noise.get("given"))  # the user's own noise settings: nothing was measured or chosen
         what = "" if given else "denoising, " if noise["chosen"] else "no treatment, "
         lines.insert(-3, f"noise:    {what}{noise['reason']}{'' if given else ' (noise_auto)'}")
+    presets = info.get("presets") or {}
+    if presets:
+        chosen = info.get("quality") or "standard"
+        parts = [f"{q}{' (this run)' if q == chosen else ''} {_duration(p['wall_seconds'])}"
+                 + (f" at cell {p['cell_size']:g}" if p["cell_size"] != cell else "") for q, p in presets.items()]
+        lines.append(f"quality:  roughly {', '.join(parts)} (--quality; BENCHMARKS.md, 'Quality presets', has what "
+                     f"each costs in accuracy)")
     if max_memory is not None:
         over = [e for e in info["estimates"] if e["peak"] > max_memory]
         lines.append(f"--max-memory {format_size(max_memory)}: "

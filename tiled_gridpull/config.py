@@ -35,7 +35,8 @@ from .errors import ConfigError
 __all__ = ["SolverConfig", "Schedule", "LevelConfig", "LossWeights", "Sampling", "NoiseHandling", "LevelSchedule",
            "SECTIONS", "SETTINGS", "REFINE_DEFAULTS", "split_settings", "recorded_settings", "NORMALS_WEIGHT",
            "REMOVED_SETTINGS", "drop_removed_settings", "load_config_file", "parse_overrides", "NOISE_PRESETS",
-           "NOISE_SETTINGS", "SCAN_NOISE_SETTINGS"]
+           "NOISE_SETTINGS", "SCAN_NOISE_SETTINGS", "QUALITIES", "QUALITY_PRESETS", "QUALITY_CELL_SCALE",
+           "quality_settings"]
 
 MIN_COARSE_CELLS = 32
 #: ``normal_weight`` that given normals switch on when no weight is set (``reconstruct(normals=...)``,
@@ -177,6 +178,11 @@ class Sampling:
         queries once, finds their nearest points in one go, and cycles through them (NeuralPull's precomputed
         queries), so nearest-neighbour search costs ``B`` batches instead of one per iteration. Pays where that
         search dominates: dense LiDAR tiles (see docs/solver.md).
+    points_per_cell : int
+        Tiled mode: 0 (default) solves every point of a tile; ``k > 0`` keeps at most ``k`` points in each finest
+        cell (chosen at random, seeded) before the tile's normals and solve, so a tile's set-up, nearest-point
+        lists and queries follow the cells its surface crosses rather than the scanner's density (the ``draft``
+        preset; the mesh is still trimmed against every point).
     knn : int
         Candidate list size of the nearest-neighbour cache.
     seed : int
@@ -189,6 +195,7 @@ class Sampling:
     refine_queries_per_point: float = setting(0.0)
     min_queries: int = setting(2048)
     query_pool: int = setting(200)
+    points_per_cell: int = setting(0)
     knn: int = setting(16)
     seed: int = setting(0)
 
@@ -281,6 +288,7 @@ SETTINGS: dict[str, tuple[str | None, str]] = {
     "refine_queries_per_point": ("sampling", "refine_queries_per_point"),
     "min_queries": ("sampling", "min_queries"),
     "query_pool": ("sampling", "query_pool"),
+    "points_per_cell": ("sampling", "points_per_cell"),
     "knn": ("sampling", "knn"),
     "seed": ("sampling", "seed"),
     "noise_cells": ("noise", "cell_sigmas"),
@@ -300,6 +308,33 @@ NOISE_PRESETS: dict[str, dict[str, Any]] = {
     "noisy": {"beta": 0.0, "noise_cells": 0.8, "denoise": 2, "denoise_neighbors": 32, "denoise_bandwidth": 1.0},
     "very_noisy": {"beta": 0.0, "noise_cells": 1.2, "denoise": 2, "denoise_neighbors": 64, "denoise_bandwidth": 0.0},
 }
+#: The quality presets (``--quality``, config key ``quality``), cheapest first; ``standard`` is the config as given.
+QUALITIES = ("draft", "standard", "fine")
+#: What each preset sets (flat names). A preset replaces what the config file says for the settings it names (so
+#: ``--config configs/scene.yaml --quality draft`` works); ``--set`` and the options win over it. Measured in
+#: BENCHMARKS.md ("Quality presets") and docs/solver.md ("Quality presets: time against accuracy").
+QUALITY_PRESETS: dict[str, dict[str, Any]] = {
+    "draft": {"coarse_iterations": 400, "lr_step": 200, "middle_iterations": 100, "iterations": 100,
+              "refine_lr_step": 25, "refine_m2": 5, "refine_queries_per_point": 4, "query_pool": 25,
+              "points_per_cell": 8},
+    "standard": {},
+    "fine": {"queries_per_point": 0, "refine_queries_per_point": 0},
+}
+#: With ``voxel_size: auto``, the cell each preset takes: the measured cell (:func:`tiled_gridpull.tiling.
+#: auto_cell_size`) times this, rounded to 1, 2, 2.5 or 5 x 10^k. A cell given as a number is kept.
+QUALITY_CELL_SCALE: dict[str, float] = {"draft": 1.5, "standard": 1.0, "fine": 0.5}
+
+
+def quality_settings(quality: str | None) -> dict[str, Any]:
+    """The settings (flat names) of quality preset ``quality`` (None: ``standard``, nothing); a name not in
+    :data:`QUALITIES` is a one-line :class:`ConfigError`."""
+    if quality is None:
+        return {}
+    if not isinstance(quality, str) or quality not in QUALITY_PRESETS:
+        raise ConfigError(f"quality must be one of {', '.join(QUALITIES)}; got {quality!r}")
+    return dict(QUALITY_PRESETS[quality])
+
+
 #: The settings a noise treatment changes: ``noise_auto`` stays away when the user changed any of them.
 NOISE_SETTINGS = ("beta", "noise_cells", "denoise", "denoise_neighbors", "denoise_bandwidth")
 #: The same in tiled mode, where the only treatment is the denoising passes (their neighbours and radius are
@@ -314,7 +349,7 @@ _POSITIVE = ("resolution", "iterations", "queries", "min_queries", "lr", "lr_ste
              "coarse_iterations", "refine_lr", "refine_lr_step", "refine_sigma", "denoise_radius")
 _NONNEGATIVE = ("margin", "m1", "m2", "alpha", "beta", "gamma", "query_sigma", "init_radius", "normal_weight",
                 "seed", "refine_m2", "refine_gamma", "noise_cells", "udf_beta", "udf_polish", "query_pool",
-                "denoise", "denoise_bandwidth", "queries_per_point", "refine_queries_per_point",
+                "denoise", "denoise_bandwidth", "queries_per_point", "refine_queries_per_point", "points_per_cell",
                 "middle_iterations", "relax")
 
 
@@ -453,8 +488,11 @@ class SolverConfig:
 
         ``sphere_init``: the solve starts from the sphere, so its radius counts too.
         """
-        return {name: self.get(name) for name, path in SETTINGS.items()
-                if _META[path]["solve"] and (sphere_init or not _META[path]["sphere_only"])}
+        out = {name: self.get(name) for name, path in SETTINGS.items()
+               if _META[path]["solve"] and (sphere_init or not _META[path]["sphere_only"])}
+        if not out.get("points_per_cell"):  # only when set: keys of jobs that keep every point stay as they were
+            out.pop("points_per_cell", None)
+        return out
 
     def levels_for(self, cells: int) -> int:
         """Levels used on a lattice ``cells`` across: at most ``schedule.levels``, fewer when the coarsest would

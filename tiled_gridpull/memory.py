@@ -206,11 +206,12 @@ def tile_memory(spec: TileSpec, occupancy: np.ndarray, solver: SolverConfig, til
             "points": n}
 
 
-def level_points(spec: TileSpec, level: int, levels: int) -> int:
+def level_points(spec: TileSpec, level: int, levels: int, cap: int = 0) -> int:
     """Points a level of the tile's solve holds, estimated from the partition alone.
 
-    The finest level holds them all; a coarser level keeps at most ``COARSE_POINTS_PER_CELL`` per cell
-    (:func:`tiled_gridpull.solver._thin`), and a surface crosses about ``1.5 (8 / f)^2`` of the ``(8 / f)^3``
+    The finest level holds them all (at most ``cap`` per cell when ``cap > 0``: ``sampling.points_per_cell``);
+    a coarser level keeps at most ``COARSE_POINTS_PER_CELL`` per cell
+    (:func:`tiled_gridpull.solver.thin_per_cell`), and a surface crosses about ``1.5 (8 / f)^2`` of the ``(8 / f)^3``
     cells of factor ``f`` in each occupied brick of 8^3 fine cells.
     """
     from .solver import COARSE_POINTS_PER_CELL
@@ -218,10 +219,10 @@ def level_points(spec: TileSpec, level: int, levels: int) -> int:
     # a denoising job's tile solves its block's points, not the halo's it read
     n = int(spec.n_points) - int(getattr(spec, "halo_points", 0) or 0)
     f = 2 ** (levels - 1 - level)
-    if f == 1:
-        return n
     per_brick = min(1.5 * (BRICK / f) ** 2, (BRICK / f) ** 3)
     cells = max(int(getattr(spec, "occupied_bricks", 0) or 0), 1) * per_brick
+    if f == 1:
+        return n if cap <= 0 else int(min(n, cap * cells))
     return int(min(n, COARSE_POINTS_PER_CELL * cells))
 
 
@@ -232,12 +233,13 @@ def tile_time(spec: TileSpec, bricks: list[int], solver: SolverConfig) -> float:
     from .normals import TIE_EXTRA
 
     levels = len(bricks)
-    t = TILE_SETUP_S + spec.n_points * RATE_POINT_S
+    cap = solver.sampling.points_per_cell
+    t = TILE_SETUP_S + (level_points(spec, levels - 1, levels, cap) if cap > 0 else spec.n_points) * RATE_POINT_S
     noise = solver.noise
     if noise.denoise_passes > 0:
         t += noise.denoise_passes * spec.n_points * (noise.denoise_neighbors + TIE_EXTRA) * RATE_DENOISE_NEIGHBOUR_S
     for level, b in enumerate(bricks):
-        st = solver.level_settings(level, levels, level_points(spec, level, levels))
+        st = solver.level_settings(level, levels, level_points(spec, level, levels, cap))
         it, nq = st.iterations, st.queries
         searched = (st.query_pool or it) * nq
         t += it * (nq * RATE_QUERY_S + b * SLOT * RATE_SLOT_S) + searched * RATE_NN_S

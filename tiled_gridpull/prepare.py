@@ -92,7 +92,7 @@ AUTO_MIN_PER_INPUT = 100_000
 
 
 def resolve_units(inputs: list[str], tiling: TilingConfig, frames=None,
-                  chunk_size: int = 2_000_000) -> TilingConfig:
+                  chunk_size: int = 2_000_000, cell_scale: float = 1.0) -> TilingConfig:
     """``tiling`` with its cell size in the inputs' units: ``auto`` measured from the points, a length with a
     unit (``voxel_size: 0.1 m``) converted; an already resolved config is returned as it is.
 
@@ -101,7 +101,8 @@ def resolve_units(inputs: list[str], tiling: TilingConfig, frames=None,
     * ``auto`` measures the sample spacing (:mod:`tiled_gridpull.spacing`) on about ``chunk_size`` points: the
       first ones of each input in turn (at least ``AUTO_MIN_PER_INPUT`` of each), one region of each scan (a
       scan's density pattern repeats along it), and picks
-      :func:`tiled_gridpull.tiling.auto_cell_size`.
+      :func:`tiled_gridpull.tiling.auto_cell_size`, times ``cell_scale`` (a quality preset's,
+      :data:`tiled_gridpull.config.QUALITY_CELL_SCALE`) before its rounding.
     """
     if tiling.resolved:
         return tiling
@@ -124,10 +125,11 @@ def resolve_units(inputs: list[str], tiling: TilingConfig, frames=None,
         raise InputError(f"voxel_size auto: too few points in {', '.join(map(shown, inputs))} to measure their "
                          "spacing; give voxel_size")
     sp = point_spacing(head)
-    cell = auto_cell_size(sp)
+    cell = auto_cell_size(sp, cell_scale)
     where = f"of {parts} inputs" if parts > 1 else "points"
+    scaled = f", x {cell_scale:g} for the quality preset" if cell_scale != 1.0 else ""
     note = (f"auto: sample spacing {sp.median:.3g} by point, {sp.area_median:.3g} by area, over "
-            f"{sp.measured:,} of the first {sp.points:,} {where}")
+            f"{sp.measured:,} of the first {sp.points:,} {where}{scaled}")
     return tiling.with_cell_size(cell, note)
 
 

@@ -72,8 +72,9 @@ def nearest_point_init(band: Band, points: np.ndarray) -> np.ndarray:
 COARSE_POINTS_PER_CELL = 4
 
 
-def _thin(P: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """At most ``COARSE_POINTS_PER_CELL`` points in every occupied cell, chosen at random (coarse levels).
+def thin_per_cell(P: np.ndarray, seed: int, cap: int = COARSE_POINTS_PER_CELL) -> tuple[np.ndarray, np.ndarray]:
+    """At most ``cap`` (default ``COARSE_POINTS_PER_CELL``) points in every occupied cell, chosen at random
+    (coarse levels; a tile's finest cells with ``sampling.points_per_cell``).
 
     A coarse cell holds many points; its field needs a few. Capping each cell (rather than thinning the whole
     cloud at one rate) evens out LiDAR's density, tens of times higher near the scanner than far from it:
@@ -84,9 +85,11 @@ def _thin(P: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
 
     Parameters
     ----------
-    P : (N, 3) float32
+    P : (N, 3) float
         Points in index units of the level's lattice (cell ``(i, j, k)`` spans ``[i, i + 1)`` etc.).
     seed : int
+    cap : int
+        Points kept per cell.
 
     Returns
     -------
@@ -101,10 +104,14 @@ def _thin(P: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
     sorted_key = key[order]
     first = np.r_[0, np.flatnonzero(np.diff(sorted_key)) + 1]
     rank = np.arange(len(P)) - np.repeat(first, np.diff(np.r_[first, len(P)]))
-    keep = np.sort(order[rank < COARSE_POINTS_PER_CELL])
+    keep = np.sort(order[rank < cap])
     if len(keep) == len(P):
         return P, np.arange(len(P))
     return np.ascontiguousarray(P[keep]), keep
+
+
+#: the name the solver and its tests have used
+_thin = thin_per_cell
 
 
 def _threads() -> int:

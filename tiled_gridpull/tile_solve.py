@@ -18,7 +18,7 @@ from .noise import denoise_block
 from .normals import estimate_normals, orient_normals, orientation_score
 from .initial_field import plane_distance_init
 from .partition import read_tile_points
-from .solver import solve
+from .solver import solve, thin_per_cell
 from .tile_field import save_tile_field
 from .tile_plan import TileSpec
 from .tiling import TilingConfig
@@ -73,6 +73,13 @@ def solve_tile(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig, field
             summary["time_s"] = time.perf_counter() - t0
             summary["peak_rss_mb"] = peak_rss_mb()
             return summary
+        if solver.sampling.points_per_cell > 0:
+            # at most k points per finest cell: the set-up and the solve follow the surface, not the density
+            _, keep = thin_per_cell(xyz / spec.block.cell_size, solver.sampling.seed, solver.sampling.points_per_cell)
+            if len(keep) < len(xyz):
+                summary["points_thinned"] = int(len(xyz) - len(keep))
+                xyz = xyz[keep]
+                sensor32 = sensor32[keep] if sensor32 is not None else None
         local = Lattice((0.0, 0.0, 0.0), spec.block.cell_size, spec.block.shape)
         rule = orientation_rule(tiling, sensor32 is not None)
         init = None

@@ -347,8 +347,9 @@ def with_halo(tiling: TilingConfig, solver: SolverConfig) -> TilingConfig:
 _NICE = (1.0, 2.0, 2.5, 5.0, 10.0)
 
 
-def auto_cell_size(spacing: Spacing) -> float:
-    """The cell size ``voxel_size: auto`` gives a cloud of this sample spacing (data units).
+def auto_cell_size(spacing: Spacing, scale: float = 1.0) -> float:
+    """The cell size ``voxel_size: auto`` gives a cloud of this sample spacing (data units); ``scale`` multiplies
+    it before the rounding (a quality preset's :data:`tiled_gridpull.config.QUALITY_CELL_SCALE`).
 
     The geometric mean of the spacing by point and by area (:mod:`tiled_gridpull.spacing`), rounded to the
     nearest of 1, 2, 2.5, 5 x 10^k in ratio. A cell as fine as the densest patches' spacing would cost the
@@ -358,7 +359,7 @@ def auto_cell_size(spacing: Spacing) -> float:
     a quarter of the grid of streets 0.124 / 0.365 / 0.2 m; AHN3 0.386 / 0.460 / 0.5 m (the benchmarks' cell);
     Autzen 2.16 / 2.80 / 2.5 ft (the benchmarks used 2).
     """
-    raw = math.sqrt(spacing.median * spacing.area_median)
+    raw = math.sqrt(spacing.median * spacing.area_median) * scale
     if not raw > 0 or not math.isfinite(raw):
         raise ConfigError(f"voxel_size auto: the points have no measurable spacing (median {spacing.median:g}, "
                           f"by area {spacing.area_median:g}: all duplicates?); give voxel_size")
