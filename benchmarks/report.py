@@ -473,7 +473,12 @@ def main() -> None:
                   "on the card against 166 s on the 16 cores (623 s on our 2-core machine): a tile task still "
                   "spends about 8 s on the CPU (normals, orientation, bridging, the nearest-point pools), and 16 "
                   "worker processes share the card, each with its own context, so their launches interleave. The "
-                  "14M-point street was not run (the session's device time ran out).", ""]
+                  "14M-point street was not run (the session's device time ran out). Both runs predate a fix "
+                  "found in review (commit 2ab1e21): the iteration's hash key reached the query kernel as a signed "
+                  "integer, so on the card about half the iterations drew other queries than those whose nearest "
+                  "points the host had found (each still paired with a point of its own slice of the Morton-sorted "
+                  "cloud, so a near one). The timings are of the same work; the accuracy rows, though equal to the "
+                  "CPU's, were measured with that mismatch and must be re-run on a card.", ""]
     estimates_table = estimate.render(load("estimates"))
     if estimates_table:
         parts += ["## The dry run's time estimate against finished jobs (`benchmarks/estimate.py`)", "",
