@@ -7,6 +7,7 @@ are a few bricks.
 
 from __future__ import annotations
 
+import dataclasses
 import numpy as np
 import pytest
 
@@ -171,18 +172,21 @@ def test_upsample_matches_the_cpu():
     from tiled_gridpull.solver import upsample
 
     rng = np.random.default_rng(1)
-    p = rng.normal(size=(300, 3))
-    P = (p / np.linalg.norm(p, axis=1, keepdims=True) * 3.0 + 6.0).astype(np.float32)
-    band = build_band(P, Lattice((0.0, 0.0, 0.0), 1.0, (40, 40, 40)), 2, 3)
+    p = rng.normal(size=(200, 3))
+    P = (p / np.linalg.norm(p, axis=1, keepdims=True) * 2.0 + 4.0).astype(np.float32)
+    band = build_band(P, Lattice((0.0, 0.0, 0.0), 1.0, (24, 24, 24)), 1, 2)
     pos = band.slot_positions().astype(np.float64)
-    values = (np.linalg.norm(pos - 6.0, axis=1) - 3.0).astype(np.float32)
-    coarse = Field(band, values.reshape(band.n_bricks, 512), signed=True)
-    # the finer band reaches past the coarse one's bricks: those slots get the fill
-    fine = build_band(P * 2, Lattice((0.0, 0.0, 0.0), 0.5, (79, 79, 79)), 2, 20)
+    values = (np.linalg.norm(pos - 4.0, axis=1) - 2.0).astype(np.float32)
+    # a coarse brick the finer band reaches is taken out of the table: its fine slots must get the fill
+    table = band.brick_table.copy()
+    table[1, 0, 0] = -1  # the fine slots at x >= 14 (coarse x >= 7) have a corner in it
+    holed = dataclasses.replace(band, brick_table=table)
+    coarse = Field(holed, values.reshape(band.n_bricks, 512), signed=True)
+    fine = build_band(P * 2, Lattice((0.0, 0.0, 0.0), 0.5, (47, 47, 47)), 1, 2)
     cpu = upsample(coarse, fine)
     out = cuda.device_array(fine.n_slots, np.float32)
     nx, ny, nz = band.lattice.shape
-    K.upsample[launch(fine.n_slots)](cuda.to_device(values), cuda.to_device(band.brick_table), nx, ny, nz,
+    K.upsample[launch(fine.n_slots)](cuda.to_device(values), cuda.to_device(table), nx, ny, nz,
                                      cuda.to_device(fine.brick_coords.astype(np.int32)), 2, 1e3, out)
     got = out.copy_to_host().reshape(fine.n_bricks, 512)
     assert np.any(cpu == np.float32(1e3)) and np.any(cpu != np.float32(1e3))
