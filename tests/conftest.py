@@ -8,6 +8,13 @@ from pathlib import Path
 # The CUDA kernels run in numba's simulator: CI has no card (numba reads this when it is first imported, so it is
 # set before anything imports numba). On a machine with one, NUMBA_ENABLE_CUDASIM=0 runs the CUDA tests on it.
 os.environ.setdefault("NUMBA_ENABLE_CUDASIM", "1")
+if os.environ["NUMBA_ENABLE_CUDASIM"] == "1":
+    import sys
+
+    # The simulator runs each CUDA thread as a Python thread while the launching thread polls them in a busy loop
+    # that keeps the GIL for a whole switch interval (5 ms by default): a 6-iteration solve took 273 s. At 0.1 ms
+    # the same solve takes 28 s; threaded tests elsewhere (Dask) only switch more often.
+    sys.setswitchinterval(1e-4)
 
 import numpy as np
 import pytest

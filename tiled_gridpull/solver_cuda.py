@@ -39,7 +39,7 @@ log = logging.getLogger(__name__)
 #: threads per block: one brick's 512 slots (the TV gather then reads its neighbours from the same brick)
 BLOCK = 512
 #: under the simulator every thread is a Python thread: a few of them loop over the items instead
-SIM_THREADS = 32
+SIM_THREADS = 8
 
 
 class CudaBackend:
