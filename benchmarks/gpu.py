@@ -96,6 +96,7 @@ def stage_agree(out: Path, small: bool = False) -> None:
         f = solve(P, lat, cfg, device=dev)
         rows.setdefault(dev, []).append((f, time.perf_counter() - t))
     a, b, c = rows["cpu"][0][0], rows["cuda"][0][0], rows["cuda"][1][0]
+    one = _one_launch(P, lat, cfg, b)
     par = (a.band.flags.reshape(-1) & 1) != 0
     d = np.abs(a.values.reshape(-1) - b.values.reshape(-1))[par]
     # near the zero level (where the mesh is cut); farther out Adam's sign steps on rounding-noise gradients differ
@@ -115,7 +116,38 @@ def stage_agree(out: Path, small: bool = False) -> None:
                    "mesh_chamfer_cells": ev["chamfer_l1"] / cell,
                    "solve_s_cpu": rows["cpu"][0][1], "solve_s_cuda_first": rows["cuda"][0][1],
                    "solve_s_cuda_second": rows["cuda"][1][1],
-                   "sha_cuda": hashlib.sha1(b.values.tobytes()).hexdigest()[:12]})
+                   "sha_cuda": hashlib.sha1(b.values.tobytes()).hexdigest()[:12], **one})
+
+
+def _one_launch(P, lat, cfg, per_step) -> dict:
+    """Time the opt-in one-launch-per-level kernel on the same solve, and check it repeats the per-step field."""
+    import logging
+
+    from tiled_gridpull.solver import solve
+    from tiled_gridpull.solver_cuda import ONE_LAUNCH_ENV
+
+    fell_back = []
+
+    class Catch(logging.Handler):
+        def emit(self, record):
+            if "one launch per level" in record.getMessage():
+                fell_back.append(record.getMessage()[:300])
+
+    h = Catch()
+    logging.getLogger("tiled_gridpull").addHandler(h)
+    os.environ[ONE_LAUNCH_ENV] = "1"
+    try:
+        times = []
+        for _ in range(2):  # the first includes compiling the kernel
+            t = time.perf_counter()
+            f = solve(P, lat, cfg, device="cuda")
+            times.append(time.perf_counter() - t)
+    finally:
+        del os.environ[ONE_LAUNCH_ENV]
+        logging.getLogger("tiled_gridpull").removeHandler(h)
+    return {"solve_s_cuda_one_launch_first": times[0], "solve_s_cuda_one_launch": times[1],
+            "one_launch_fell_back": fell_back[:1] or None,
+            "one_launch_bitwise_equal": bool(np.array_equal(f.values, per_step.values))}
 
 
 def dense_band(bricks_per_axis: tuple[int, int, int]):
@@ -339,10 +371,9 @@ if __name__ == "__main__":
 
 
 def table(rows: list[dict]) -> str:
-    """Markdown tables of ``results/gpu.jsonl`` (BENCHMARKS.md, "GPU"): the latest run's rows of each stage."""
+    """Markdown tables of ``results/gpu.jsonl`` (BENCHMARKS.md, "GPU"): every run's rows, the card of the latest."""
     runs = sorted({r.get("run", 0) for r in rows})
-    last = [r for r in rows if r.get("run", 0) == runs[-1]]
-    env = next((r for r in reversed(last) if r["stage"] == "env" and "card" in r), {})
+    env = next((r for r in reversed(rows) if r["stage"] == "env" and "card" in r), {})
     lines = [f"Card: {env.get('card')}, copy bandwidth {env.get('copy_gbps', 0):,.0f} GB/s (device to device, read + "
              f"write); {env.get('cpu_count')} CPU cores; numba {env.get('numba')}, numba-cuda {env.get('numba_cuda')}, "
              f"numpy {env.get('numpy')}.", ""]
@@ -377,13 +408,22 @@ def table(rows: list[dict]) -> str:
     agree = [r for r in rows if r["stage"] == "agree" and "error" not in r]
     if agree:
         lines += ["", "| agreement (20k-point sphere) | run | near-surface field mean / max diff (cells) | "
-                  "mesh CD (cells, sampled) | card repeats field / mesh bit for bit | solve s CPU / card |",
-                  "|---|---|---|---|---|---|"]
+                  "mesh CD (cells, sampled) | card repeats field / mesh bit for bit | solve s CPU / card | "
+                  "card, one launch per level: solve s / same field |",
+                  "|---|---|---|---|---|---|---|"]
         for r in agree:
             mean = r.get("near_surface_mean_abs_diff_cells", r["field_mean_abs_diff_cells"])
             top = r.get("near_surface_max_abs_diff_cells", r["field_max_abs_diff_cells"])
             where = "" if "near_surface_mean_abs_diff_cells" in r else " (every parameter)"
             lines.append(f"| R = {r['resolution']} | {r['run']} | {mean:.3f} / {top:.3f}{where} | "
                          f"{r['mesh_chamfer_cells']:.3f} | {r['field_bitwise_repeat']} / {r['mesh_bitwise_repeat']} | "
-                         f"{r['solve_s_cpu']:.1f} / {r['solve_s_cuda_second']:.2f} |")
+                         f"{r['solve_s_cpu']:.1f} / {r['solve_s_cuda_second']:.2f} | {_one_launch_cell(r)} |")
     return "\n".join(lines)
+
+
+def _one_launch_cell(r: dict) -> str:
+    if "solve_s_cuda_one_launch" not in r:
+        return "not timed"
+    if r.get("one_launch_fell_back"):
+        return "fell back to per-step launches"
+    return f"{r['solve_s_cuda_one_launch']:.2f} / {'bit for bit' if r['one_launch_bitwise_equal'] else 'differs'}"

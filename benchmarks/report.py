@@ -455,30 +455,34 @@ def main() -> None:
         from benchmarks import gpu as gpu_bench
 
         parts += ["## GPU (`benchmarks/gpu.py`)", "",
-                  "One NVIDIA H200 and its machine's 16 cores, 2026-11-26, two runs of `python -m benchmarks.gpu` "
-                  "(the device time of one session: each figure is one run, not a median). Run 1: one launch per "
-                  "iteration and kernel; run 2: the same after the fused step stopped rewriting the query "
-                  "accumulator of slots no query reached (3.4x on the step), with the opt-in one-launch-per-level "
-                  "kernel tried first on every level, where it found no cooperative grid for 512-thread blocks "
-                  "and fell back (its compile is the 5.8 s of the torus's first level; the wide grid's tiles paid "
-                  "it once per worker). The CPU rows ran in the same run on the same machine with 16 threads "
-                  "(one-shape) or 16 workers (tiled). Accuracy is the sampled metric (`exact=False`, 1M samples "
-                  "a side for the streets; pyvista is not on that machine): compare the two devices' rows, not "
-                  "with the exact figures elsewhere in this file. Step rows are the fused TV + Adam kernel "
-                  "alone on a band of dense bricks.", "",
+                  "One NVIDIA H200 and its machine's 16 cores, 2026-11-26, two sessions' device time: runs 1-2 in "
+                  "the first, 3-4 in the second (each figure is one run unless several runs are listed). Run 1: "
+                  "one launch per iteration and kernel; run 2: the fused step stopped rewriting the query "
+                  "accumulator of slots no query reached (3.4x on the step), the opt-in one-launch-per-level "
+                  "kernel tried first and falling back (no cooperative grid for 512-thread blocks; its compile is "
+                  "the 5.8 s of the torus's first level). Runs 1-2 predate a fix found in review (commit 2ab1e21): "
+                  "the iteration's hash key reached the query kernel as a signed integer, so about half the "
+                  "iterations drew other queries than those whose nearest points the host had found. Runs 3-4 are "
+                  "after it (commit 56b63f8): the agreement stage now also times the one-launch kernel (it picks "
+                  "the largest block that fits a cooperative grid), and the 14M-point street ran three times on "
+                  "the card. The CPU rows ran in the same run on the same machine with 16 threads (one-shape) or "
+                  "16 workers (tiled). Accuracy is the sampled metric (`exact=False`, 1M samples a side for the "
+                  "streets; pyvista is not on that machine): compare the two devices' rows, not with the exact "
+                  "figures elsewhere in this file. Step rows are the fused TV + Adam kernel alone on a band of "
+                  "dense bricks.", "",
                   gpu_bench.table(gpu_rows), "",
-                  "What it shows: the step runs at 0.024-0.026 ns per slot (38-40 % of the copy bandwidth; the "
-                  "target is 50 %); the card solves a street tile's three levels in about 3 s where one CPU core "
-                  "takes 28 s, and both devices' meshes score the same. End to end, the grid of streets took 72 s "
-                  "on the card against 166 s on the 16 cores (623 s on our 2-core machine): a tile task still "
-                  "spends about 8 s on the CPU (normals, orientation, bridging, the nearest-point pools), and 16 "
-                  "worker processes share the card, each with its own context, so their launches interleave. The "
-                  "14M-point street was not run (the session's device time ran out). Both runs predate a fix "
-                  "found in review (commit 2ab1e21): the iteration's hash key reached the query kernel as a signed "
-                  "integer, so on the card about half the iterations drew other queries than those whose nearest "
-                  "points the host had found (each still paired with a point of its own slice of the Morton-sorted "
-                  "cloud, so a near one). The timings are of the same work; the accuracy rows, though equal to the "
-                  "CPU's, were measured with that mismatch and must be re-run on a card.", ""]
+                  "What it shows (runs 3-4): the card's field now matches the CPU's to 0.001 cells on average near "
+                  "the surface (0.2 before the key fix), the card repeats its field and mesh bit for bit, and the "
+                  "grid of streets scores the same on both devices (sampled CD-L1 0.1545 against 0.1544 m, F@0.1 "
+                  "0.331 on both). The step runs at 0.025-0.028 ns per slot, 36-40 % of the copy bandwidth (target "
+                  "50 %). One launch per level solves the 20k sphere in 0.60 s against 0.89 s with three launches "
+                  "per iteration, the same field bit for bit. End to end: the 14M-point street in 63.5, 73.0 and "
+                  "64.8 s (median 64.8 s; target 60 s), of which 13-15 s is reading and partitioning the LAZ; the "
+                  "grid of streets 75.7 s on the card against 179.6 s on the 16 cores in the same run (623 s on "
+                  "our 2-core machine; target 20 s); the 100k torus at R = 256 in 6.2 s (target 2 s: the solve is "
+                  "2.7 s, marching cubes 1.1 s, the rest Python start-up and I/O). On the card a tile's time goes "
+                  "to the CPU: in the street's finest level the nearest-point pools take 75 of 83 task-seconds, "
+                  "the card's iterations 2.5; 16 worker processes share the card, each with its own context.", ""]
     estimates_table = estimate.render(load("estimates"))
     if estimates_table:
         parts += ["## The dry run's time estimate against finished jobs (`benchmarks/estimate.py`)", "",
