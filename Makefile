@@ -26,9 +26,11 @@ demo: $(STAMP)
 	$(VENV)/bin/tiled-gridpull evaluate $(DEMO)/street_mesh.ply $(DEMO)/street_gt.ply --observed $(DEMO)/street.laz --thresholds 0.05 0.1 0.2 \
 		--footprint 1.5 3
 
-# the full suite, slow end-to-end tests included (what CI runs)
+# the full suite, slow end-to-end tests included (what CI runs), in TEST_JOBS processes (a test file stays in one,
+# so its module fixtures are computed once)
+TEST_JOBS ?= 2
 test: $(STAMP)
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n $(TEST_JOBS) --dist loadfile
 
 # the fast tier: everything not marked slow
 check: $(STAMP)

@@ -39,7 +39,7 @@ def near_surface_diff(a, b):
     return np.abs(v - b.values.reshape(-1))[near]
 
 
-TINY = dict(resolution=20, levels=1, iterations=6, queries=300, margin=3)
+TINY = dict(resolution=16, levels=1, iterations=6, queries=300, margin=3)
 
 
 def test_config_takes_the_three_devices_and_refuses_others():

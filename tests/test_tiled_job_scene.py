@@ -29,10 +29,10 @@ def street(tmp_path_factory):
     return d, scene, gt, scan
 
 
-def _run(street, orientation, name, trim=0.0):
+def _run(street, orientation, name, trim=0.0, solver=SOLVER):
     d, *_ = street
     tiling = TilingConfig(voxel_size=VOXEL, tile_size=12.8, overlap=3.2, trim_distance=trim, orientation=orientation)
-    mesh = reconstruct_scene([str(d / "pts.npy")], d / f"{name}.ply", tiling, SOLVER, d / f"job_{name}")
+    mesh = reconstruct_scene([str(d / "pts.npy")], d / f"{name}.ply", tiling, solver, d / f"job_{name}")
     return mesh, tiling
 
 
@@ -209,9 +209,10 @@ def _boundary_edges_per_plane(mesh: Mesh, lattice: Lattice) -> list[dict]:
 
 
 @pytest.mark.slow
-def test_naive_sphere_per_tile_flips_where_sensor_rule_does_not(street, up_run):
+def test_naive_sphere_per_tile_flips_where_sensor_rule_does_not(street):
     d, scene, gt, scan = street
-    mesh, tiling = _run(street, "sphere", "sphere")
+    # a shorter schedule: which way each tile's ground faces is settled by its start, not by its last iterations
+    mesh, tiling = _run(street, "sphere", "sphere", solver=SOLVER.replace(coarse_iterations=100, iterations=100))
     lattice = Lattice.from_dict(json.loads((d / "sphere.json").read_text())["lattice"])
     naive = _ground_orientation_by_tile(mesh, gt, scan, tiling, lattice)
     # a sphere at each tile's centre orients the ground by where that centre happens to be: some tiles end

@@ -162,7 +162,7 @@ def test_sensor_origins_from_the_trajectory_orient_every_tile(street):
     from tiled_gridpull.metrics import evaluate
 
     d, scan, laz, csv, _ = street
-    solver = SolverConfig(m2=8, coarse_iterations=200, iterations=200)
+    solver = SolverConfig(m2=8, coarse_iterations=120, iterations=120)
     tiling = TilingConfig(voxel_size=0.2, tile_size=12.8, overlap=3.2, trim_distance=3.0)
     runs = {}
     for name, trajectory in (("sensor", csv), ("up", None)):
