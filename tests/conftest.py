@@ -53,3 +53,14 @@ def terrain(extent: float, density: float, seed: int = 0) -> np.ndarray:
 
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+
+# The files whose tests take longest (pytest's --durations), run first: `make test` spreads whole files over two
+# processes in collection order, so a long file collected last would leave one process idle at the end.
+_LONG_FILES = ("test_tiled_job_scene.py", "test_reconstruct.py", "test_trajectory.py", "test_noise.py",
+               "test_reconstruct_udf.py", "test_tiled_job.py", "test_attributes.py", "test_bridge.py")
+
+
+def pytest_collection_modifyitems(config, items):
+    rank = {name: i for i, name in enumerate(_LONG_FILES)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))
