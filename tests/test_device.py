@@ -123,6 +123,21 @@ def test_cuda_solve_matches_the_cpu_and_repeats_bit_for_bit():
 
 
 @needs_cuda
+def test_cuda_solve_two_levels_upsamples_on_the_card():
+    """The finer level starts from the coarse field upsampled on the card (the hand-over between levels)."""
+    P = unit_sphere_points(800, radius=0.25)
+    cfg = SolverConfig(resolution=64, levels=2, coarse_iterations=3, iterations=3, queries=200, refine_m2=3)
+    # a small sphere in a large lattice: a thin band, so the simulator's threads have little to do
+    lat = Lattice((-2.0, -2.0, -2.0), 4.0 / 64, (65, 65, 65))
+    assert cfg.levels_for(max(lat.n_cells)) == 2
+    cpu = solve(P, lat, cfg, device="cpu")
+    gpu = solve(P, lat, cfg, device="cuda")
+    assert len(gpu.info["levels"]) == 2
+    diff = near_surface_diff(cpu, gpu)
+    assert diff.mean() < 1e-3 and diff.max() < 0.05
+
+
+@needs_cuda
 @pytest.mark.slow
 def test_reconstruct_device_cuda_end_to_end_matches_the_cpu(tmp_path):
     """``reconstruct --device cuda`` (the simulator here) gives the CPU's mesh within a quarter cell."""
