@@ -310,13 +310,19 @@ def gridpull_row(row: dict, base: dict, poisson: dict, variant: str, **extra) ->
             "x_poisson_memory": (row["peak_rss_mb"] or 0.0) / poisson["peak_rss_mb"]}
 
 
-def footprint_scores_of(mesh: Path, gt: Path, laz: Path) -> dict:
+def footprint_scores_of(mesh: Path, gt: Path, laz: Path, trajectory: Path | None = None) -> dict:
     """The footprint yardstick (:func:`tiled_gridpull.metrics.footprint_scores`, R = 1.5 and 3 m, tau 0.1 m) and
-    the observed-region scores (:func:`evaluate`) of a scene mesh."""
+    the observed-region scores (:func:`evaluate`) of a scene mesh; with the scan's ``trajectory`` (CSV: time, x,
+    y, z) also the share of the footprint some sensor position sees and the recall there."""
+    import numpy as np
+
     from tiled_gridpull.io import read_mesh, read_points
     from tiled_gridpull.metrics import footprint_scores
 
-    fp = footprint_scores(read_mesh(mesh), read_mesh(gt), read_points(laz).xyz)
+    sensors = None
+    if trajectory is not None:
+        sensors = np.loadtxt(trajectory, delimiter=",", skiprows=1, ndmin=2)[:, 1:4]
+    fp = footprint_scores(read_mesh(mesh), read_mesh(gt), read_points(laz).xyz, sensors=sensors)
     return {**evaluate(mesh, gt, laz), **{k: v for k, v in fp.items() if k != "tau"}}
 
 
@@ -341,11 +347,13 @@ def footprint(workers: int, work: Path, grid: bool = False) -> None:
         base = {"scene": name, "suite": "footprint", "points": sample["n_points"], "workers": workers, "cell": 0.1}
         pout = d / "poisson.ply"
         poisson = poisson_scene(sample["laz"], pout, 11)
-        record(poisson_row(base, poisson, 11, **footprint_scores_of(pout, sample["gt_mesh"], sample["laz"])))
+        traj = sample.get("trajectory")
+        record(poisson_row(base, poisson, 11, **footprint_scores_of(pout, sample["gt_mesh"], sample["laz"], traj)))
         for v in ("default", "no bridge"):
             out = d / f"gridpull_{v.replace(' ', '_')}.ply"
             row = reconstruct(sample["laz"], out, workers, scene_args(VARIANTS[v]))
-            record(gridpull_row(row, base, poisson, v, **footprint_scores_of(out, sample["gt_mesh"], sample["laz"])))
+            record(gridpull_row(row, base, poisson, v,
+                                **footprint_scores_of(out, sample["gt_mesh"], sample["laz"], traj)))
     kitti = REPO.parent / "shared" / "data" / "kitti" / "000000.bin"
     if kitti.exists():
         scan = np.fromfile(kitti, np.float32).reshape(-1, 4)
@@ -599,7 +607,8 @@ def render_footprint(rows: list[dict]) -> str:
         out.append(markdown_table(synth, [
             ("date", "date", ""), ("scene", "scene", ""), ("points", "points", ""), ("what", "method", ""),
             ("wall_s", "wall s", ".1f"), ("footprint_recall@1.5", "footprint recall@0.1, R 1.5 m", ".3f"),
-            ("footprint_recall@3", "R 3 m", ".3f"), ("precision@0.1", "precision@0.1", ".3f"),
+            ("footprint_recall@3", "R 3 m", ".3f"), ("footprint_seen@1.5", "seen by a sensor, R 1.5 m", ".3f"),
+            ("footprint_seen_recall@1.5", "recall there", ".3f"), ("precision@0.1", "precision@0.1", ".3f"),
             ("boundary_edges", "boundary edges", ""), ("components", "pieces", ""),
             ("chamfer_l1_m", "observed CD-L1 m", ".4f"), ("normal_consistency", "NC", ".4f"),
             ("fscore_0.1m", "F@0.1", ".3f")]))
