@@ -294,11 +294,11 @@ def footprint_scores(pred: Mesh, gt: Mesh, points: np.ndarray, radii=FOOTPRINT_R
     Returns
     -------
     dict
-        With ``sensors``: ``footprint_seen@R`` (share of the footprint some sensor sees) and
-        ``footprint_seen_recall@R`` (the recall over that share). ``footprint_recall@R`` (share of the footprint's samples within ``tau`` of ``pred``'s surface, exact
+        ``footprint_recall@R`` (share of the footprint's samples within ``tau`` of ``pred``'s surface, exact
         point-to-triangle distances) and ``footprint_samples@R`` for each ``R``; ``precision@tau`` (share of
         ``pred``'s samples within ``tau`` of ``gt``'s surface); ``tau``; ``boundary_edges`` and ``components``
-        (pieces) of ``pred``.
+        (pieces) of ``pred``. With ``sensors`` also ``footprint_seen@R`` (share of the footprint some sensor
+        sees) and ``footprint_seen_recall@R`` (the recall over that share).
     """
     if pred.n_faces == 0:
         raise ValueError("the reconstructed mesh has no faces")
