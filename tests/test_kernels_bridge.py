@@ -158,3 +158,36 @@ def test_a_shadow_behind_a_box_stays_open_with_the_sensor_known():
     # without the box the same columns all close: the next ring lies beyond each
     rep, seen_from = _scan(lines, sensor)
     assert np.isfinite(_fit(rep, inside + beside, sensor=seen_from, far_cos=far)).all()
+
+
+def test_two_tiles_decide_the_columns_they_share_alike_with_the_sensor_known():
+    # rings 10 cells apart around a sensor below the tiles' edge, a box's shadow across them; two blocks 30 cells
+    # apart (an even shift: the 2-cell bins align) each see their own points only; the columns both see within
+    # the radius on every side are decided alike (the bridged height to rounding)
+    sensor = np.array([65.0, -60.0, 22.3])
+    pts = []
+    for r in np.arange(70.0, 200.0, 10.0):
+        a = np.arange(0.0, np.pi, 0.5 / r)
+        pts.append(np.stack([sensor[0] + r * np.cos(a), sensor[1] + r * np.sin(a), np.full_like(a, 5.0)], axis=1))
+    p = np.concatenate(pts)
+    ang = np.degrees(np.arctan2(p[:, 1] - sensor[1], p[:, 0] - sensor[0]))
+    dist = np.hypot(p[:, 0] - sensor[0], p[:, 1] - sensor[1])
+    p = p[~((np.abs(ang - 90.0) < 5.0) & (dist > 95.0))]  # the shadow of a box 95 cells out
+    decided = {}
+    for shift in (0, 30):
+        q = p[(p[:, 0] >= shift) & (p[:, 0] < shift + 100) & (p[:, 1] >= 0) & (p[:, 1] < 120)] - [shift, 0, 0]
+        s = np.broadcast_to(sensor - [shift, 0, 0], q.shape)
+        rep = bin_ground(q[:, 0].copy(), q[:, 1].copy(), q[:, 2].copy(), PIXEL, 50, 60, 1.0)
+        seen = bin_sensor(q[:, 0].copy(), q[:, 1].copy(), q[:, 2].copy(), s[:, 0].copy(), s[:, 1].copy(),
+                          s[:, 2].copy(), PIXEL, 50, 60, 1.0)
+        cx, cy = np.meshgrid(np.arange(56.0, 74.0), np.arange(26.0, 94.0), indexing="ij")
+        cols = np.stack([cx.ravel() - shift, cy.ravel()], axis=1)
+        decided[shift] = _fit(rep, cols, sensor=seen, far_cos=np.cos(np.radians(15)))
+    a, b = decided[0], decided[30]
+    assert np.array_equal(np.isfinite(a[:, 0]), np.isfinite(b[:, 0]))
+    ok = np.isfinite(a[:, 0])
+    # the gaps between rings are bridged, the shadow's middle not
+    x, y = np.meshgrid(np.arange(56.0, 74.0), np.arange(26.0, 94.0), indexing="ij")
+    in_shadow = (np.abs(x - 65.0) < 3.0).ravel() & (y.ravel() > 40.0)
+    assert ok.mean() > 0.25 and not ok[in_shadow].any() and ok[~in_shadow].mean() > 0.3
+    np.testing.assert_allclose(a[ok], b[ok], rtol=0, atol=1e-9)
