@@ -82,8 +82,32 @@ def test_bridged_cells_are_flagged_and_optimised():
     assert np.all(flags[(flags & CELL_OPT) != 0] & PARAM)
 
 
+def _sensor(pts: np.ndarray) -> np.ndarray:
+    """Sensor origins of ``pts`` seen as rings from afar: a scanner 1.73 m above the plane, 30 m before y = 0."""
+    return np.broadcast_to([3.0, -30.0, _height(3.0, -30.0) + 1.73], pts.shape)
+
+
+def test_with_the_sensor_known_scan_lines_are_bridged_onto_their_plane_alike():
+    pts = _scan_lines(1.5)
+    plain, _ = bridge_field(_exact_field(pts), pts, BridgeRule(radius=24))
+    seen, info = bridge_field(_exact_field(pts), pts, BridgeRule(radius=24), _sensor(pts))
+    assert info["bridged_columns"] > 0
+    b = _mesh(seen, pts, bridge=True)
+    assert b.topology.components == 1 and b.topology.euler == 1
+    n = np.linalg.norm([SLOPE[0], SLOPE[1], 1.0])
+    v = b.vertices
+    assert np.abs(v[:, 2] - _height(v[:, 0], v[:, 1])).max() / n < 0.02 * CELL
+    # every gap between the first and last line closes, as without the sensor (beyond the last line, where
+    # no ring lies beyond, the solved strip ends the surface)
+    for m in (_mesh(plain, pts, bridge=True), b):
+        inner = (m.vertices[:, 0] > 1.0) & (m.vertices[:, 0] < 5.5)
+        assert np.diff(np.sort(m.vertices[inner, 1])).max() < 2 * CELL
+
+
+@pytest.mark.parametrize("sensor", [False, True])
 @pytest.mark.parametrize("case", ["kerb", "one_side", "too_wide", "off"])
-def test_what_is_never_bridged(case):
+def test_what_is_never_bridged(case, sensor):
+    """Also with the sensor known, whose rule lets wider empty angles and rougher planes through."""
     rule = BridgeRule(radius=24)
     if case == "kerb":
         # lines 1.2 m apart, a 0.3 m (3-cell) step between two of them: the plane fit sees the step
@@ -100,7 +124,7 @@ def test_what_is_never_bridged(case):
         pts, step = _scan_lines(1.5), 0.0
         fld = _exact_field(pts)
         rule = BridgeRule(radius=0)
-    out, info = bridge_field(fld, pts, rule)
+    out, info = bridge_field(fld, pts, rule, _sensor(pts) if sensor else None)
     if case == "kerb":
         # gaps between flat lines away from the step are bridged (lines at y = 0.5 and 1.7 m), never the one
         # across the step (lines at y = 2.9 and 4.1 m)

@@ -74,6 +74,10 @@ class BridgeRule:
     beyond_deg : float
         With sensor origins: a column is bridged only where a ground sample within ``radius`` lies beyond it as
         the sensor of its nearest sample sees it, within this angle of the line of sight (0: no such test).
+    sensor_max_gap_deg, sensor_rms_tol : float
+        ``max_gap_deg`` and ``rms_tol`` where the ``beyond_deg`` test applies: it keeps shadows open, which the
+        surround test and a tight plane fit did only in part, so both may let more sampling gaps close (beside
+        a shadow's edge, on gently curved ground); the step test still keeps kerbs and walls' feet open.
     """
 
     radius: float = 24.0
@@ -89,6 +93,8 @@ class BridgeRule:
     half_height: int = 6
     open_width: int = 1
     beyond_deg: float = 15.0
+    sensor_max_gap_deg: float = 150.0
+    sensor_rms_tol: float = 0.5
 
 
 def _opened(mask: np.ndarray, width: int) -> np.ndarray:
@@ -149,8 +155,10 @@ def bridge_field(fld: Field, points: np.ndarray, rule: BridgeRule,
                         float(rule.layer))
     ii, jj = np.meshgrid(np.arange(X), np.arange(Y), indexing="ij")
     cols = np.stack([ii.ravel(), jj.ravel()], axis=1).astype(np.float64)
-    max_gap = int(math.floor(rule.max_gap_deg / (360.0 / kb.SECTORS)))
-    if sensor is not None and rule.beyond_deg > 0:
+    seen = sensor is not None and rule.beyond_deg > 0
+    max_gap = int(math.floor((rule.sensor_max_gap_deg if seen else rule.max_gap_deg) / (360.0 / kb.SECTORS)))
+    rms_tol = rule.sensor_rms_tol if seen else rule.rms_tol
+    if seen:
         sc = (np.asarray(sensor, np.float64) - np.asarray(lat.origin, np.float64)) / lat.cell_size
         seen_from = kb.bin_sensor(cells[:, 0].copy(), cells[:, 1].copy(), cells[:, 2].copy(), sc[:, 0].copy(),
                                   sc[:, 1].copy(), sc[:, 2].copy(), float(rule.pixel), nx, ny, float(rule.layer))
@@ -158,7 +166,7 @@ def bridge_field(fld: Field, points: np.ndarray, rule: BridgeRule,
     else:
         seen_from, far_cos = np.full((nx, ny, 2), np.nan), 2.0
     fit = kb.fit_columns(rep, float(rule.pixel), cols, float(rule.radius), float(rule.skip), max_gap,
-                         float(rule.rms_tol), float(rule.step_tol), float(rule.max_slope), seen_from, far_cos)
+                         float(rms_tol), float(rule.step_tol), float(rule.max_slope), seen_from, far_cos)
     mask = np.isfinite(fit[:, 0]).reshape(X, Y)
     if rule.open_width > 0:
         mask = _opened(mask, rule.open_width)

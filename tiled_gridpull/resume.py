@@ -214,7 +214,8 @@ def solve_key(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig, centre
                    # only when on: keys of jobs that do not bridge stay those they were
                    **({"bridge": tiling.bridge} if tiling.bridge else {}),
                    # bridges of tiles with sensor origins keep shadows open since 2026-11-26
-                   **({"bridge_beyond": BridgeRule().beyond_deg} if tiling.bridge and spec.has_sensor else {})})
+                   **({"bridge_seen": [BridgeRule().beyond_deg, BridgeRule().sensor_max_gap_deg,
+                                       BridgeRule().sensor_rms_tol]} if tiling.bridge and spec.has_sensor else {})})
 
 
 def mesh_key(spec: TileSpec, field_sha: str, neighbors: list[tuple[str, str]], tiling: TilingConfig,
