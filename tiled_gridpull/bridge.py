@@ -159,9 +159,10 @@ def bridge_field(fld: Field, points: np.ndarray, rule: BridgeRule,
     max_gap = int(math.floor((rule.sensor_max_gap_deg if seen else rule.max_gap_deg) / (360.0 / kb.SECTORS)))
     rms_tol = rule.sensor_rms_tol if seen else rule.rms_tol
     if seen:
-        sc = (np.asarray(sensor, np.float64) - np.asarray(lat.origin, np.float64)) / lat.cell_size
-        seen_from = kb.bin_sensor(cells[:, 0].copy(), cells[:, 1].copy(), cells[:, 2].copy(), sc[:, 0].copy(),
-                                  sc[:, 1].copy(), sc[:, 2].copy(), float(rule.pixel), nx, ny, float(rule.layer))
+        # one float64 column at a time: a tile's sensor origins come as float32 (N, 3)
+        sc = [(np.asarray(sensor[:, a], np.float64) - float(lat.origin[a])) / lat.cell_size for a in range(3)]
+        seen_from = kb.bin_sensor(cells[:, 0].copy(), cells[:, 1].copy(), cells[:, 2].copy(), sc[0], sc[1], sc[2],
+                                  float(rule.pixel), nx, ny, float(rule.layer))
         far_cos = math.cos(math.radians(rule.beyond_deg))
     else:
         seen_from, far_cos = np.full((nx, ny, 2), np.nan), 2.0
