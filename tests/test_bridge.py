@@ -136,10 +136,12 @@ def test_what_is_never_bridged(case, sensor):
 
 
 @pytest.mark.slow
-def test_a_tiled_job_bridges_alike_whatever_the_tiling_and_welds_across_tiles(tmp_path):
+@pytest.mark.parametrize("sensor", [False, True])
+def test_a_tiled_job_bridges_alike_whatever_the_tiling_and_welds_across_tiles(tmp_path, sensor):
     """Scan lines 1.5 m apart on a sloping plane, meshed by two tilings whose borders fall elsewhere: in each mesh
     the lines' span is one disc (no gap left open, no crack at a tile border; scraps of the solved field curl at
-    the data's outer edge, where nothing is bridged), on the plane, and the two agree."""
+    the data's outer edge, where nothing is bridged), on the plane, and the two agree. With sensor origins (LAS
+    with GPS time and a trajectory: a scanner 30 m before the first line) the same."""
     from tiled_gridpull.config import SolverConfig
     from tiled_gridpull.metrics import point_to_mesh, sample_surface
     from tiled_gridpull.tiled_job import reconstruct_scene
@@ -149,13 +151,22 @@ def test_a_tiled_job_bridges_alike_whatever_the_tiling_and_welds_across_tiles(tm
     for y in np.arange(0.3, 12.0, 1.5):
         x = np.arange(0.3, 12.0, 0.02)
         pts.append(np.stack([x, np.full_like(x, y), _height(x, y)], axis=1))
-    np.save(tmp_path / "lines.npy", np.concatenate(pts))
+    pts = np.concatenate(pts)
+    src, traj = tmp_path / "lines.npy", None
+    if sensor:
+        from tiled_gridpull.synthetic.lidar_files import write_las, write_trajectory
+
+        src, traj = tmp_path / "lines.las", tmp_path / "trajectory.csv"
+        write_las(src, pts, gps_time=np.full(len(pts), 100.0))
+        write_trajectory(traj, np.array([99.0, 101.0]), np.array([[6.0, -30.0, _height(6.0, -30.0) + 1.73]] * 2))
+    else:
+        np.save(src, pts)
     solver = SolverConfig(m2=8, refine_m2=6, coarse_iterations=100, iterations=100, queries=20000)
     meshes = {}
     for tile in (6.4, 9.6):
         tiling = TilingConfig(voxel_size=CELL, tile_size=tile, overlap=3.2, trim_distance=3.0, bridge=24)
-        meshes[tile] = reconstruct_scene([str(tmp_path / "lines.npy")], tmp_path / f"m{tile}.ply", tiling, solver,
-                                         tmp_path / f"job{tile}")
+        meshes[tile] = reconstruct_scene([str(src)], tmp_path / f"m{tile}.ply", tiling, solver, tmp_path / f"job{tile}",
+                                         trajectory=traj)
         assert meshes[tile].metadata["tiles"]["solved"] > 1
     n = np.linalg.norm([SLOPE[0], SLOPE[1], 1.0])
     for tile, m in meshes.items():
