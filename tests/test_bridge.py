@@ -176,9 +176,12 @@ def test_a_tiled_job_bridges_alike_whatever_the_tiling_and_welds_across_tiles(tm
         main = np.bincount(labels).argmax()
         # the lines' span is one piece (small closed bubbles of a lone line's solved field may float beside it)
         assert np.mean(labels[inner_faces] == main) > 0.98, tile
-        # no hole and no crack inside: every boundary edge lies at the data's outer edge
+        # no hole and no crack inside: every boundary edge lies at the data's outer edge (with sensor origins a
+        # few lie on the last line itself, y = 10.8 m, where the bridge meets that line's strip: the last ring has
+        # nothing beyond it, so the shadow test leaves some of its columns to the solved field)
         be = m.vertices[boundary_edges(m)].mean(axis=1)
-        assert not np.any((be[:, 0] > 1) & (be[:, 0] < 11) & (be[:, 1] > 1) & (be[:, 1] < 10.8)), tile
+        top = 10.5 if sensor else 10.8
+        assert not np.any((be[:, 0] > 1) & (be[:, 0] < 11) & (be[:, 1] > 1) & (be[:, 1] < top)), tile
         # between the lines (over 0.3 m from each, where the solved field has handed over) the bridge lies on
         # the plane; beside the lines the solved field of a lone scan line (no slope across itself) is less sure
         v = m.vertices

@@ -143,8 +143,9 @@ def fit_columns(rep, pixel, cols, radius, skip, max_gap, rms_tol, step_tol, max_
     far_cos : float
         Where the nearest representative's sensor is known and ``far_cos`` < 1, the column is bridged only if a
         representative within ``radius`` lies beyond it as that sensor sees it: within ``acos(far_cos)`` of the
-        line of sight, the cone widened by half a bin. Between two rings the next ring is there; in the shadow
-        of a box, a car or a wall the ground beyond is hidden for as long as the shadow. 1 or more: no such test.
+        line of sight, the cone widened by half a bin (a sample within half a bin of the column counts). Between
+        two rings the next ring is there; in the shadow of a box, a car or a wall the ground beyond is hidden for
+        as long as the shadow. 1 or more: no such test.
 
     Returns
     -------
@@ -216,13 +217,14 @@ def fit_columns(rep, pixel, cols, radius, skip, max_gap, rms_tol, step_tol, max_
                 an = math.sqrt(ax * ax + ay * ay)
                 beyond = an == 0.0
                 # within the cone, widened by half a bin: a bin's sample lies up to that far beside the line of
-                # sight even where its ring crosses it (the last ring, a few cells beyond the column)
+                # sight even where its ring crosses it (the last ring, a few cells beyond the column), and a sample
+                # within half a bin of the column itself counts (the column lies on a ring, not in a shadow)
                 slope = math.sqrt(max(1.0 - far_cos * far_cos, 0.0)) / far_cos
                 for t in range(k):
                     along = (nb[t, 0] * ax + nb[t, 1] * ay) / an if an > 0.0 else 0.0
-                    if along > 0.0:
+                    if along > -0.5 * pixel:
                         side = math.sqrt(max(nb[t, 3] - along * along, 0.0))
-                        if side <= slope * along + 0.5 * pixel:
+                        if side <= slope * max(along, 0.0) + 0.5 * pixel:
                             beyond = True
                             break
                 if not beyond:
