@@ -386,8 +386,13 @@ def main() -> None:
                   "cells, sensor at the origin, Poisson's normals facing it; AHN3 and Autzen as above) by 10 % of "
                   "their points held out. GridPull `default` is the shipped config (bridge 24 cells), `no bridge` "
                   "the same with `bridge 0`; Poisson depth 11 (synthetic) or 10 (real), 5 % density trim, same "
-                  "run. docs/solver.md, \"Bridging scan-line gaps\", reads them. The 2026-11-26 run shared the "
-                  "machine with test runs and CPU-burning processes: read its accuracy, not its times.", "",
+                  "run. Rows marked `trajectory` (the run of 15:31-15:49) reconstruct the synthetic streets with "
+                  "their sensor trajectory (`--trajectory`, as `make demo`): sensor-facing orientation, and bridges "
+                  "that keep shadows open; they also split the footprint into what some sensor position sees "
+                  "(`seen by a sensor`: beam span, range, nothing in the way, "
+                  "`synthetic.lidar.visible_from`) and the recall there. docs/solver.md, \"Bridging scan-line "
+                  "gaps\", reads them. The 2026-11-26 runs shared the machine with test runs and CPU-burning "
+                  "processes: read their accuracy, not their times.", "",
                   footprint_table, ""]
     classes_table = scenes.render_classes(load("scenes"))
     if classes_table:

@@ -310,22 +310,30 @@ def gridpull_row(row: dict, base: dict, poisson: dict, variant: str, **extra) ->
             "x_poisson_memory": (row["peak_rss_mb"] or 0.0) / poisson["peak_rss_mb"]}
 
 
-def footprint_scores_of(mesh: Path, gt: Path, laz: Path) -> dict:
+def footprint_scores_of(mesh: Path, gt: Path, laz: Path, trajectory: Path | None = None) -> dict:
     """The footprint yardstick (:func:`tiled_gridpull.metrics.footprint_scores`, R = 1.5 and 3 m, tau 0.1 m) and
-    the observed-region scores (:func:`evaluate`) of a scene mesh."""
+    the observed-region scores (:func:`evaluate`) of a scene mesh; with the scan's ``trajectory`` (CSV: time, x,
+    y, z) also the share of the footprint some sensor position sees and the recall there."""
+    import numpy as np
+
     from tiled_gridpull.io import read_mesh, read_points
     from tiled_gridpull.metrics import footprint_scores
 
-    fp = footprint_scores(read_mesh(mesh), read_mesh(gt), read_points(laz).xyz)
+    sensors = None
+    if trajectory is not None:
+        sensors = np.loadtxt(trajectory, delimiter=",", skiprows=1, ndmin=2)[:, 1:4]
+    fp = footprint_scores(read_mesh(mesh), read_mesh(gt), read_points(laz).xyz, sensors=sensors)
     return {**evaluate(mesh, gt, laz), **{k: v for k, v in fp.items() if k != "tau"}}
 
 
-def footprint(workers: int, work: Path, grid: bool = False) -> None:
+def footprint(workers: int, work: Path, grid: bool = False, synthetic_only: bool = False) -> None:
     """Gaps between scan lines (issue 36): on synthetic streets the footprint recall (truth within 1.5 and 3 m of
     a point, hits within 0.1 m), the mesh's precision, boundary edges and pieces, the observed-region scores; on
     a real KITTI frame (sensor at the origin, 0.3 m cells) and the airborne files the held-out points' distance.
     Trimmed Poisson (depth 11 synthetic, 10 real; sensor-oriented normals on the KITTI frame), GridPull with the
-    shipped configs and with ``bridge 0``, same run."""
+    shipped configs and with ``bridge 0``, same run. The synthetic scenes are reconstructed with their trajectory
+    (sensor origins, as a mapping car delivers them: walls face the street, shadows stay unbridged) and scored
+    also over what some sensor position sees."""
     import numpy as np
 
     from tiled_gridpull.io import read_points
@@ -338,14 +346,20 @@ def footprint(workers: int, work: Path, grid: bool = False) -> None:
     for name, kw in scenes:
         d = work / name.split()[0]
         sample = make_street_sample(d, origin=(500000.0, 4000000.0, 100.0), **kw)
-        base = {"scene": name, "suite": "footprint", "points": sample["n_points"], "workers": workers, "cell": 0.1}
+        base = {"scene": name, "suite": "footprint", "points": sample["n_points"], "workers": workers, "cell": 0.1,
+                "trajectory": bool(sample.get("trajectory"))}
         pout = d / "poisson.ply"
         poisson = poisson_scene(sample["laz"], pout, 11)
-        record(poisson_row(base, poisson, 11, **footprint_scores_of(pout, sample["gt_mesh"], sample["laz"])))
+        traj = sample.get("trajectory")
+        record(poisson_row(base, poisson, 11, **footprint_scores_of(pout, sample["gt_mesh"], sample["laz"], traj)))
         for v in ("default", "no bridge"):
             out = d / f"gridpull_{v.replace(' ', '_')}.ply"
-            row = reconstruct(sample["laz"], out, workers, scene_args(VARIANTS[v]))
-            record(gridpull_row(row, base, poisson, v, **footprint_scores_of(out, sample["gt_mesh"], sample["laz"])))
+            row = reconstruct(sample["laz"], out, workers,
+                              [*scene_args(VARIANTS[v]), *(["--trajectory", str(traj)] if traj else [])])
+            record(gridpull_row(row, base, poisson, v,
+                                **footprint_scores_of(out, sample["gt_mesh"], sample["laz"], traj)))
+    if synthetic_only:
+        return
     kitti = REPO.parent / "shared" / "data" / "kitti" / "000000.bin"
     if kitti.exists():
         scan = np.fromfile(kitti, np.float32).reshape(-1, 4)
@@ -433,6 +447,7 @@ def main() -> None:
     ap.add_argument("suite", choices=("street", "workers", "lidar", "tiles", "wide", "holdout", "classes", "thin",
                                       "footprint"))
     ap.add_argument("--grid", action="store_true", help="footprint: also the 1M-point grid of streets")
+    ap.add_argument("--synthetic-only", action="store_true", help="footprint: the synthetic streets alone")
     ap.add_argument("--variants", nargs="+", choices=sorted(VARIANTS), default=["today", "default"],
                     help="wide: GridPull settings to run beside Poisson")
     ap.add_argument("--depth", type=int, default=None,
@@ -464,7 +479,7 @@ def main() -> None:
         elif a.suite == "thin":
             thin_walls(a.workers, work)
         elif a.suite == "footprint":
-            footprint(a.workers, work, a.grid)
+            footprint(a.workers, work, a.grid, a.synthetic_only)
         elif a.suite == "classes":
             classes(a.points[0], a.workers, work, a.variants, a.depth or 11)
         elif a.suite == "wide":
@@ -590,8 +605,8 @@ def render_footprint(rows: list[dict]) -> str:
     runs = [r for r in rows if r.get("suite") == "footprint"]
     if not runs:
         return ""
-    table = [{**r, "what": "Poisson (trimmed)" if r["method"] == "poisson" else f"GridPull {r['variant']}"}
-             for r in runs]
+    table = [{**r, "what": ("Poisson (trimmed)" if r["method"] == "poisson" else f"GridPull {r['variant']}")
+              + (", trajectory" if r.get("trajectory") and r["method"] != "poisson" else "")} for r in runs]
     synth = [r for r in table if "footprint_recall@1.5" in r]
     real = [r for r in table if "holdout_mean" in r]
     out = []
@@ -599,7 +614,8 @@ def render_footprint(rows: list[dict]) -> str:
         out.append(markdown_table(synth, [
             ("date", "date", ""), ("scene", "scene", ""), ("points", "points", ""), ("what", "method", ""),
             ("wall_s", "wall s", ".1f"), ("footprint_recall@1.5", "footprint recall@0.1, R 1.5 m", ".3f"),
-            ("footprint_recall@3", "R 3 m", ".3f"), ("precision@0.1", "precision@0.1", ".3f"),
+            ("footprint_recall@3", "R 3 m", ".3f"), ("footprint_seen@1.5", "seen by a sensor, R 1.5 m", ".3f"),
+            ("footprint_seen_recall@1.5", "recall there", ".3f"), ("precision@0.1", "precision@0.1", ".3f"),
             ("boundary_edges", "boundary edges", ""), ("components", "pieces", ""),
             ("chamfer_l1_m", "observed CD-L1 m", ".4f"), ("normal_consistency", "NC", ".4f"),
             ("fscore_0.1m", "F@0.1", ".3f")]))

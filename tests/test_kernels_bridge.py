@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from tiled_gridpull.kernels.bridge import bin_ground, fit_columns
+from tiled_gridpull.kernels.bridge import bin_ground, bin_sensor, fit_columns
 
 PIXEL = 2.0
 ARGS = dict(radius=24.0, skip=2.0, max_gap=4, rms_tol=0.25, step_tol=1.5, max_slope=0.6)
@@ -21,7 +21,8 @@ def _reps(lines, nx=40, ny=40):
 def _fit(rep, cols, **kw):
     a = {**ARGS, **kw}
     return fit_columns(rep, PIXEL, np.asarray(cols, np.float64), a["radius"], a["skip"], a["max_gap"],
-                       a["rms_tol"], a["step_tol"], a["max_slope"])
+                       a["rms_tol"], a["step_tol"], a["max_slope"],
+                       a.get("sensor", np.full((*rep.shape[:2], 2), np.nan)), a.get("far_cos", 2.0))
 
 
 def test_bin_ground_means_the_lowest_layer_of_each_bin():
@@ -100,3 +101,93 @@ def test_the_plane_of_noisy_ground_is_the_weighted_least_squares_plane():
     assert done.sum() >= 30
     want = np.array([_weighted_plane(rep, cx, cy, ARGS["radius"]) for cx, cy in cols[done]])
     np.testing.assert_allclose(out[done], want, rtol=0, atol=1e-9)
+
+
+def _scan(lines, sensor, nx=40, ny=40, cut=None, extra=None):
+    """Ground samples on lines y = const every 0.5 cell along x (less those ``cut(x, y)`` removes, plus
+    ``extra`` points), binned, and the sensor of each bin: all seen from ``sensor`` (cells)."""
+    pts = []
+    for y, z in lines:
+        x = np.arange(0.0, nx * PIXEL, 0.5)
+        p = np.stack([x, np.full_like(x, y), np.full_like(x, z)], axis=1)
+        pts.append(p[~cut(p[:, 0], p[:, 1])] if cut is not None else p)
+    if extra is not None:
+        pts.append(extra)
+    p = np.concatenate(pts)
+    s = np.broadcast_to(np.asarray(sensor, np.float64), p.shape)
+    rep = bin_ground(p[:, 0].copy(), p[:, 1].copy(), p[:, 2].copy(), PIXEL, nx, ny, 1.0)
+    seen_from = bin_sensor(p[:, 0].copy(), p[:, 1].copy(), p[:, 2].copy(), s[:, 0].copy(), s[:, 1].copy(),
+                           s[:, 2].copy(), PIXEL, nx, ny, 1.0)
+    return rep, seen_from
+
+
+def test_bin_sensor_takes_the_sensor_whose_rings_lie_densest():
+    # bin (0, 0): seen from 100 cells away and from 10 cells away (the nearer wins) and a point 5 cells up
+    # whose sensor is nearer still (not the lowest layer: ignored); bin (1, 1): its sensor below it (none)
+    x = np.array([0.5, 1.5, 1.0, 3.0])
+    y = np.array([0.5, 1.0, 1.0, 3.0])
+    z = np.array([1.0, 1.2, 6.5, 7.0])
+    sx = np.array([100.0, 10.0, 1.0, 3.0])
+    sy = np.zeros(4)
+    sz = np.array([18.0, 18.0, 24.0, 5.0])
+    out = bin_sensor(x, y, z, sx, sy, sz, 2.0, 3, 3, 1.0)
+    assert np.allclose(out[0, 0], [10.0, 0.0])
+    assert np.isnan(out[1, 1]).all() and np.isnan(out[2, 2]).all()
+
+
+def test_a_shadow_behind_a_box_stays_open_with_the_sensor_known():
+    # rings every 12 cells seen from 100 cells before y = 0; a box 12 cells wide on the ground at y = 28 (its
+    # side reaches the ground: its bins read the ground at its foot) hides a widening wedge behind it
+    sensor = (40.0, -100.0, 22.3)
+
+    def shadow(x, y):
+        return (y > 28.0) & (np.abs(x - 40.0) < 6.0 * (y + 100.0) / 128.0)
+
+    bx, bz = np.meshgrid(np.arange(34.0, 46.01, 0.5), np.arange(5.0, 20.01, 0.5))
+    box = np.stack([bx.ravel(), np.full(bx.size, 28.0), bz.ravel()], axis=1)
+    lines = [(y, 5.0) for y in np.arange(0.0, 79.0, 12.0)]
+    rep, seen_from = _scan(lines, sensor, cut=shadow, extra=box)
+    far = np.cos(np.radians(15))
+    inside, beside = [(40.0, 54.0), (40.0, 66.0)], [(10.0, 54.0), (70.0, 66.0)]
+    # without the sensor the shadow's sides surround its middle: bridged
+    assert np.isfinite(_fit(rep, inside)).all()
+    # with it nothing lies beyond the middle as the sensor sees it: the shadow stays open, the rings beside close
+    assert np.isnan(_fit(rep, inside, sensor=seen_from, far_cos=far)).all()
+    out = _fit(rep, beside, sensor=seen_from, far_cos=far)
+    assert np.isfinite(out).all() and np.allclose(out[:, 0], 5.0)
+    # without the box the same columns all close: the next ring lies beyond each
+    rep, seen_from = _scan(lines, sensor)
+    assert np.isfinite(_fit(rep, inside + beside, sensor=seen_from, far_cos=far)).all()
+
+
+def test_two_tiles_decide_the_columns_they_share_alike_with_the_sensor_known():
+    # rings 10 cells apart around a sensor below the tiles' edge, a box's shadow across them; two blocks 30 cells
+    # apart (an even shift: the 2-cell bins align) each see their own points only; the columns both see within
+    # the radius on every side are decided alike (the bridged height to rounding)
+    sensor = np.array([65.0, -60.0, 22.3])
+    pts = []
+    for r in np.arange(70.0, 200.0, 10.0):
+        a = np.arange(0.0, np.pi, 0.5 / r)
+        pts.append(np.stack([sensor[0] + r * np.cos(a), sensor[1] + r * np.sin(a), np.full_like(a, 5.0)], axis=1))
+    p = np.concatenate(pts)
+    ang = np.degrees(np.arctan2(p[:, 1] - sensor[1], p[:, 0] - sensor[0]))
+    dist = np.hypot(p[:, 0] - sensor[0], p[:, 1] - sensor[1])
+    p = p[~((np.abs(ang - 90.0) < 5.0) & (dist > 95.0))]  # the shadow of a box 95 cells out
+    decided = {}
+    for shift in (0, 30):
+        q = p[(p[:, 0] >= shift) & (p[:, 0] < shift + 100) & (p[:, 1] >= 0) & (p[:, 1] < 120)] - [shift, 0, 0]
+        s = np.broadcast_to(sensor - [shift, 0, 0], q.shape)
+        rep = bin_ground(q[:, 0].copy(), q[:, 1].copy(), q[:, 2].copy(), PIXEL, 50, 60, 1.0)
+        seen = bin_sensor(q[:, 0].copy(), q[:, 1].copy(), q[:, 2].copy(), s[:, 0].copy(), s[:, 1].copy(),
+                          s[:, 2].copy(), PIXEL, 50, 60, 1.0)
+        cx, cy = np.meshgrid(np.arange(56.0, 74.0), np.arange(26.0, 94.0), indexing="ij")
+        cols = np.stack([cx.ravel() - shift, cy.ravel()], axis=1)
+        decided[shift] = _fit(rep, cols, sensor=seen, far_cos=np.cos(np.radians(15)))
+    a, b = decided[0], decided[30]
+    assert np.array_equal(np.isfinite(a[:, 0]), np.isfinite(b[:, 0]))
+    ok = np.isfinite(a[:, 0])
+    # the gaps between rings are bridged, the shadow's middle not
+    x, y = np.meshgrid(np.arange(56.0, 74.0), np.arange(26.0, 94.0), indexing="ij")
+    in_shadow = (np.abs(x - 65.0) < 3.0).ravel() & (y.ravel() > 40.0)
+    assert ok.mean() > 0.25 and not ok[in_shadow].any() and ok[~in_shadow].mean() > 0.3
+    np.testing.assert_allclose(a[ok], b[ok], rtol=0, atol=1e-9)

@@ -217,3 +217,46 @@ def test_footprint_scores_refuses_bad_settings(kw):
     pts = np.zeros((3, 3))
     with pytest.raises(ValueError):
         footprint_scores(rect(0, 1, 0, 1), rect(0, 1, 0, 1), pts, **kw)
+
+
+def test_visible_from_leaves_out_shadows_and_what_the_beams_do_not_reach():
+    from tiled_gridpull.synthetic.lidar import visible_from
+
+    ground = rect(0, 20, -5, 5)
+    # a wall 2 m wide and 3 m high across the line of sight at x = 10
+    wv = np.array([[10, -1, 0], [10, 1, 0], [10, 1, 3], [10, -1, 3]], np.float64)
+    scene = Mesh(np.concatenate([ground.vertices, wv]), np.concatenate([ground.faces, [[4, 5, 6], [4, 6, 7]]]))
+    sensor = np.array([[0.0, 0.0, 1.73]])
+    q = np.array([[15, 0, 0],      # ground in the wall's shadow
+                  [15, 3, 0],      # ground beside the shadow, 6.5 degrees down
+                  [2, 0, 0],       # ground 41 degrees down: below the lowest beam (-24.8)
+                  [10, 0, 1.0],    # the wall's face, in view
+                  [10, 0, 2.9],    # the wall 6.7 degrees up: above the highest beam (+2)
+                  [19, -4.5, 0]], np.float64)
+    assert visible_from(scene, q, sensor).tolist() == [False, True, False, True, False, True]
+    # a second sensor past the wall sees its shadow; far ranges do not return
+    assert visible_from(scene, q[:1], np.array([[0.0, 0.0, 1.73], [20.0, 0.0, 1.73]])).tolist() == [True]
+    assert not visible_from(scene, q[1:2], sensor, max_range=10.0)[0]
+
+
+def test_footprint_scores_split_what_a_sensor_sees():
+    # truth: the ground [0, 20] x [-5, 5] and a wall 2 m wide at x = 10, seen from (0, 0, 1.73); the points:
+    # lines across the ground, none in the wall's shadow (|y| < x / 10 beyond it)
+    ground = rect(0, 20, -5, 5)
+    wv = np.array([[10, -1, 0], [10, 1, 0], [10, 1, 3], [10, -1, 3]], np.float64)
+    gt = Mesh(np.concatenate([ground.vertices, wv]), np.concatenate([ground.faces, [[4, 5, 6], [4, 6, 7]]]))
+    gx, gy = np.meshgrid(np.arange(4.0, 20.01, 1.0), np.arange(-5.0, 5.01, 0.1))
+    keep = (gx < 10) | (np.abs(gy) > gx / 10)
+    pts = np.stack([gx[keep], gy[keep], np.zeros(keep.sum())], axis=1)
+    sensor = np.array([[0.0, 0.0, 1.73]])
+    # two meshes: the whole ground, and the ground less a strip inside the shadow
+    parts = [rect(0, 20, -5, -1), rect(0, 20, 1, 5), rect(0, 10.5, -1, 1)]
+    holed = Mesh(np.concatenate([p.vertices for p in parts]), np.concatenate([p.faces + 4 * k
+                                                                             for k, p in enumerate(parts)]))
+    whole = footprint_scores(ground, gt, pts, radii=(1.5,), n_samples=100_000, sensors=sensor)
+    cut = footprint_scores(holed, gt, pts, radii=(1.5,), n_samples=100_000, sensors=sensor)
+    assert 0.5 < whole["footprint_seen@1.5"] < 0.97 and cut["footprint_seen@1.5"] == whole["footprint_seen@1.5"]
+    # the strip is a miss of the footprint, not of what the sensor saw
+    assert cut["footprint_recall@1.5"] < whole["footprint_recall@1.5"] - 0.02
+    assert cut["footprint_seen_recall@1.5"] == pytest.approx(whole["footprint_seen_recall@1.5"], abs=0.002)
+    assert "footprint_seen@1.5" not in footprint_scores(ground, gt, pts, radii=(1.5,), n_samples=20_000)

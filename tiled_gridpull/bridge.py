@@ -12,7 +12,10 @@ carry the ``BRIDGE`` flag).
 
 What is never bridged: a gap with points on one side only (a building's shadow, the scan's outer edge, water
 with no returns wider than ``2 * radius``), a gap across a height step (the plane fit's residuals), steep
-ground, and anything farther than ``radius`` from the points. Each column is decided from the points within
+ground, and anything farther than ``radius`` from the points. Where the points' sensor origins are known
+(a trajectory, KITTI), a gap must also have ground beyond it as the sensor sees it: the next ring lies there,
+while the ground in the shadow of a car, a box or a wall is hidden for as long as the shadow, however near
+its sides. Each column is decided from the points within
 ``radius`` of it alone; with ``radius`` at most a tile's overlap, every tiling decides it the same way.
 """
 
@@ -68,6 +71,13 @@ class BridgeRule:
     open_width : int
         Bridged columns are opened (eroded, then dilated) by this many columns: specks and one-column spurs,
         which would be pieces and ragged edges of their own, go.
+    beyond_deg : float
+        With sensor origins: a column is bridged only where a ground sample within ``radius`` lies beyond it as
+        the sensor of its nearest sample sees it, within this angle of the line of sight (0: no such test).
+    sensor_max_gap_deg, sensor_rms_tol : float
+        ``max_gap_deg`` and ``rms_tol`` where the ``beyond_deg`` test applies: it keeps shadows open, which the
+        surround test and a tight plane fit did only in part, so both may let more sampling gaps close (beside
+        a shadow's edge, on gently curved ground); the step test still keeps kerbs and walls' feet open.
     """
 
     radius: float = 24.0
@@ -82,6 +92,9 @@ class BridgeRule:
     blend_to: float = 3.0
     half_height: int = 6
     open_width: int = 1
+    beyond_deg: float = 15.0
+    sensor_max_gap_deg: float = 150.0
+    sensor_rms_tol: float = 0.5
 
 
 def _opened(mask: np.ndarray, width: int) -> np.ndarray:
@@ -109,7 +122,8 @@ def bridged_cells(fld: Field, cells: np.ndarray) -> np.ndarray:
     return out
 
 
-def bridge_field(fld: Field, points: np.ndarray, rule: BridgeRule) -> tuple[Field, dict]:
+def bridge_field(fld: Field, points: np.ndarray, rule: BridgeRule,
+                 sensor: np.ndarray | None = None) -> tuple[Field, dict]:
     """The field with the ground's sampling gaps bridged.
 
     Parameters
@@ -119,6 +133,8 @@ def bridge_field(fld: Field, points: np.ndarray, rule: BridgeRule) -> tuple[Fiel
     points : (N, 3) float64
         The tile's points (world units).
     rule : BridgeRule
+    sensor : (N, 3) float, optional
+        Each point's sensor origin, same frame: shadows stay open (``rule.beyond_deg``).
 
     Returns
     -------
@@ -139,9 +155,19 @@ def bridge_field(fld: Field, points: np.ndarray, rule: BridgeRule) -> tuple[Fiel
                         float(rule.layer))
     ii, jj = np.meshgrid(np.arange(X), np.arange(Y), indexing="ij")
     cols = np.stack([ii.ravel(), jj.ravel()], axis=1).astype(np.float64)
-    max_gap = int(math.floor(rule.max_gap_deg / (360.0 / kb.SECTORS)))
+    seen = sensor is not None and rule.beyond_deg > 0
+    max_gap = int(math.floor((rule.sensor_max_gap_deg if seen else rule.max_gap_deg) / (360.0 / kb.SECTORS)))
+    rms_tol = rule.sensor_rms_tol if seen else rule.rms_tol
+    if seen:
+        # one float64 column at a time: a tile's sensor origins come as float32 (N, 3)
+        sc = [(np.asarray(sensor[:, a], np.float64) - float(lat.origin[a])) / lat.cell_size for a in range(3)]
+        seen_from = kb.bin_sensor(cells[:, 0].copy(), cells[:, 1].copy(), cells[:, 2].copy(), sc[0], sc[1], sc[2],
+                                  float(rule.pixel), nx, ny, float(rule.layer))
+        far_cos = math.cos(math.radians(rule.beyond_deg))
+    else:
+        seen_from, far_cos = np.full((nx, ny, 2), np.nan), 2.0
     fit = kb.fit_columns(rep, float(rule.pixel), cols, float(rule.radius), float(rule.skip), max_gap,
-                         float(rule.rms_tol), float(rule.step_tol), float(rule.max_slope))
+                         float(rms_tol), float(rule.step_tol), float(rule.max_slope), seen_from, far_cos)
     mask = np.isfinite(fit[:, 0]).reshape(X, Y)
     if rule.open_width > 0:
         mask = _opened(mask, rule.open_width)

@@ -262,7 +262,7 @@ def class_scores(pred: Mesh, gt: Mesh, classes: dict, n_samples: int = 100_000, 
 
 
 def footprint_scores(pred: Mesh, gt: Mesh, points: np.ndarray, radii=FOOTPRINT_RADII, tau: float = 0.1,
-                     n_samples: int = 200_000, seed: int = 0) -> dict:
+                     n_samples: int = 200_000, seed: int = 0, sensors: np.ndarray | None = None) -> dict:
     """How much of the scanned footprint a scene mesh covers, and how much of the mesh is right.
 
     The footprint is the ground-truth surface within ``R`` of any input point. It is method-neutral: a hole
@@ -285,6 +285,11 @@ def footprint_scores(pred: Mesh, gt: Mesh, points: np.ndarray, radii=FOOTPRINT_R
     n_samples : int
         Area-uniform samples on each mesh (the footprint keeps those of ``gt`` within ``R``).
     seed : int
+    sensors : (S, 3) float, optional
+        Sensor positions of a simulated scan (synthetic scenes: the 64-beam scanner of
+        :mod:`tiled_gridpull.synthetic.lidar`): the footprint is also split into what some sensor sees and what
+        none does (walls' backs, car undersides, shadows, walls above the highest beam), which only a guess
+        could cover.
 
     Returns
     -------
@@ -292,7 +297,8 @@ def footprint_scores(pred: Mesh, gt: Mesh, points: np.ndarray, radii=FOOTPRINT_R
         ``footprint_recall@R`` (share of the footprint's samples within ``tau`` of ``pred``'s surface, exact
         point-to-triangle distances) and ``footprint_samples@R`` for each ``R``; ``precision@tau`` (share of
         ``pred``'s samples within ``tau`` of ``gt``'s surface); ``tau``; ``boundary_edges`` and ``components``
-        (pieces) of ``pred``.
+        (pieces) of ``pred``. With ``sensors`` also ``footprint_seen@R`` (share of the footprint some sensor
+        sees) and ``footprint_seen_recall@R`` (the recall over that share).
     """
     if pred.n_faces == 0:
         raise ValueError("the reconstructed mesh has no faces")
@@ -315,6 +321,15 @@ def footprint_scores(pred: Mesh, gt: Mesh, points: np.ndarray, radii=FOOTPRINT_R
         mine = within & (near <= r)
         out[f"footprint_samples@{r:g}"] = int(mine.sum())
         out[f"footprint_recall@{r:g}"] = float(hit[mine].mean()) if mine.any() else None
+    if sensors is not None:
+        from .synthetic.lidar import visible_from
+
+        seen = np.zeros(len(g_pts), bool)
+        seen[within] = visible_from(gt, g_pts[within], sensors)
+        for r in radii:
+            mine = within & (near <= r)
+            out[f"footprint_seen@{r:g}"] = float(seen[mine].mean()) if mine.any() else None
+            out[f"footprint_seen_recall@{r:g}"] = float(hit[mine & seen].mean()) if (mine & seen).any() else None
     p_pts, _ = sample_surface(pred, n_samples, seed)
     out[f"precision@{tau:g}"] = float(np.mean(point_to_mesh(p_pts, gt)[0] <= tau))
     topo = pred.topology

@@ -40,6 +40,7 @@ from pathlib import Path
 import numpy as np
 
 from ._version import __version__
+from .bridge import BridgeRule
 from .config import SolverConfig
 from .errors import ConfigError, InputError
 from .io.atomic import json_default, write_json
@@ -211,7 +212,10 @@ def solve_key(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig, centre
                    "centre": list(centre) if rule == "outward" and centre is not None else None,
                    "version": __version__,
                    # only when on: keys of jobs that do not bridge stay those they were
-                   **({"bridge": tiling.bridge} if tiling.bridge else {})})
+                   **({"bridge": tiling.bridge} if tiling.bridge else {}),
+                   # bridges of tiles with sensor origins keep shadows open since 2026-11-26
+                   **({"bridge_seen": [BridgeRule().beyond_deg, BridgeRule().sensor_max_gap_deg,
+                                       BridgeRule().sensor_rms_tol]} if tiling.bridge and spec.has_sensor else {})})
 
 
 def mesh_key(spec: TileSpec, field_sha: str, neighbors: list[tuple[str, str]], tiling: TilingConfig,

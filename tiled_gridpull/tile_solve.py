@@ -103,7 +103,8 @@ def solve_tile(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig, field
                 flipped = True
         if tiling.bridge > 0 and rule in ("up", "sensor"):
             # ground is bridged where outside is up; a closed object cut into tiles ("outward") has no ground
-            fld, bridged = bridge_field(fld, xyz, BridgeRule(radius=tiling.bridge))
+            # with sensor origins the ground in a shadow stays open (nothing lies beyond it as the sensor sees it)
+            fld, bridged = bridge_field(fld, xyz, BridgeRule(radius=tiling.bridge), sensor32)
             summary.update(bridged)
         off_bricks = np.asarray(spec.block.offset, np.int64) // BRICK
         field_sha = save_tile_field(field_path, fld.band.brick_coords.astype(np.int64) + off_bricks, fld.values,

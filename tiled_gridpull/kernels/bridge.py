@@ -5,7 +5,9 @@ lowest layer of points there). For a lattice column, the representatives within 
 ``SECTORS`` directions; the column is bridged only where they surround it (no run of empty sectors wider than
 ``max_gap`` sectors), lie on one plane (weighted RMS residual and the largest residual of the nearest
 representative of each sector below tolerances) and that plane is not steep. Every column is decided from the
-representatives within ``radius`` alone, so two tiles that both hold them decide it alike.
+representatives within ``radius`` alone, so two tiles that both hold them decide it alike. Where the points'
+sensor origins are known, the column must also have a representative beyond it as the sensor sees it
+(:func:`bin_sensor`): the next ring lies there, the ground in a shadow has none.
 """
 
 from __future__ import annotations
@@ -67,8 +69,53 @@ def bin_ground(x, y, z, pixel, nx, ny, layer):
     return rep
 
 
+@njit(cache=True)
+def bin_sensor(x, y, z, sx, sy, sz, pixel, nx, ny, layer):
+    """The sensor that saw each bin's ground: of the points :func:`bin_ground` averages (the lowest layer), the
+    one whose rings lie densest there.
+
+    A spinning scanner ``h`` above the ground meets it at horizontal range ``r`` with rings ``beam * (r^2 + h^2)
+    / h`` apart (``beam`` the angle between beams): where several sweeps saw a bin, the sensor with the least
+    ``(r^2 + h^2) / h`` samples it most closely, and its rings are those a gap there lies between.
+
+    Parameters
+    ----------
+    x, y, z, sx, sy, sz : (N,) float64
+        Points and their sensor origins, in cells.
+    pixel, nx, ny, layer
+        As :func:`bin_ground`.
+
+    Returns
+    -------
+    sensor : (nx, ny, 2) float64
+        x, y of that sensor; NaN where a bin holds no point, or no sensor above its lowest layer's points.
+    """
+    low = np.full((nx, ny), np.inf)
+    for n in range(x.shape[0]):
+        i = int(math.floor(x[n] / pixel))
+        j = int(math.floor(y[n] / pixel))
+        if 0 <= i < nx and 0 <= j < ny and z[n] < low[i, j]:
+            low[i, j] = z[n]
+    best = np.full((nx, ny), np.inf)
+    sensor = np.full((nx, ny, 2), np.nan)
+    for n in range(x.shape[0]):
+        i = int(math.floor(x[n] / pixel))
+        j = int(math.floor(y[n] / pixel))
+        if 0 <= i < nx and 0 <= j < ny and z[n] <= low[i, j] + layer:
+            h = sz[n] - z[n]
+            if h > 0.0:
+                dx = sx[n] - x[n]
+                dy = sy[n] - y[n]
+                s = (dx * dx + dy * dy + h * h) / h
+                if s < best[i, j]:
+                    best[i, j] = s
+                    sensor[i, j, 0] = sx[n]
+                    sensor[i, j, 1] = sy[n]
+    return sensor
+
+
 @njit(cache=True, parallel=True)
-def fit_columns(rep, pixel, cols, radius, skip, max_gap, rms_tol, step_tol, max_slope):
+def fit_columns(rep, pixel, cols, radius, skip, max_gap, rms_tol, step_tol, max_slope, sensor, far_cos):
     """Bridged height of each lattice column, or NaN where it is not bridged.
 
     Parameters
@@ -91,6 +138,14 @@ def fit_columns(rep, pixel, cols, radius, skip, max_gap, rms_tol, step_tol, max_
         any sector (cells): more means a height step (a kerb, a car, a wall's foot) within reach.
     max_slope : float
         Largest gradient of the fitted plane (rise over run).
+    sensor : (nx, ny, 2) float64
+        The sensor x, y of each representative (:func:`bin_sensor`); NaN: unknown.
+    far_cos : float
+        Where the nearest representative's sensor is known and ``far_cos`` < 1, the column is bridged only if a
+        representative within ``radius`` lies beyond it as that sensor sees it: within ``acos(far_cos)`` of the
+        line of sight, the cone widened by half a bin (a sample within half a bin of the column counts). Between
+        two rings the next ring is there; in the shadow of a box, a car or a wall the ground beyond is hidden for
+        as long as the shadow. 1 or more: no such test.
 
     Returns
     -------
@@ -109,6 +164,7 @@ def fit_columns(rep, pixel, cols, radius, skip, max_gap, rms_tol, step_tol, max_
         jc = int(math.floor(cy / pixel))
         # the representatives within reach, gathered once (offsets from the column, height, squared distance)
         nb = np.empty((cap, 4))
+        nb_bin = np.empty((cap, 2), np.int64)
         k = 0
         for i in range(max(0, ic - reach), min(nx, ic + reach + 1)):
             for j in range(max(0, jc - reach), min(ny, jc + reach + 1)):
@@ -122,15 +178,20 @@ def fit_columns(rep, pixel, cols, radius, skip, max_gap, rms_tol, step_tol, max_
                     nb[k, 1] = dy
                     nb[k, 2] = rep[i, j, 2]
                     nb[k, 3] = d2
+                    nb_bin[k, 0] = i
+                    nb_bin[k, 1] = j
                     k += 1
         if k == 0:
             continue
         near_d = np.full(SECTORS, np.inf)
         near_k = np.full(SECTORS, -1, np.int64)
         nearest = np.inf
+        nearest_t = 0
         for t in range(k):
             d2 = nb[t, 3]
-            nearest = min(nearest, d2)
+            if d2 < nearest:
+                nearest = d2
+                nearest_t = t
             s = int((math.atan2(nb[t, 1], nb[t, 0]) + math.pi) / (2.0 * math.pi) * SECTORS) % SECTORS
             if d2 < near_d[s]:
                 near_d[s] = d2
@@ -147,6 +208,27 @@ def fit_columns(rep, pixel, cols, radius, skip, max_gap, rms_tol, step_tol, max_
                 run = 0
         if widest > max_gap:
             continue
+        if far_cos < 1.0:
+            sx = sensor[nb_bin[nearest_t, 0], nb_bin[nearest_t, 1], 0]
+            sy = sensor[nb_bin[nearest_t, 0], nb_bin[nearest_t, 1], 1]
+            if not math.isnan(sx):
+                ax = cx - sx
+                ay = cy - sy
+                an = math.sqrt(ax * ax + ay * ay)
+                beyond = an == 0.0
+                # within the cone, widened by half a bin: a bin's sample lies up to that far beside the line of
+                # sight even where its ring crosses it (the last ring, a few cells beyond the column), and a sample
+                # within half a bin of the column itself counts (the column lies on a ring, not in a shadow)
+                slope = math.sqrt(max(1.0 - far_cos * far_cos, 0.0)) / far_cos
+                for t in range(k):
+                    along = (nb[t, 0] * ax + nb[t, 1] * ay) / an if an > 0.0 else 0.0
+                    if along > -0.5 * pixel:
+                        side = math.sqrt(max(nb[t, 3] - along * along, 0.0))
+                        if side <= slope * max(along, 0.0) + 0.5 * pixel:
+                            beyond = True
+                            break
+                if not beyond:
+                    continue
         farthest = 0.0
         for s in range(SECTORS):
             if near_k[s] >= 0 and near_d[s] > farthest:

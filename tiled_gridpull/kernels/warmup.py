@@ -42,7 +42,9 @@ KERNELS: dict[str, tuple[tuple, float]] = {
                             _c(_I64, 2), _c(_I64, 1), _c(_I64, 2), _c(_I64, 2), _c(_I64, 1), _c(_I64, 1),
                             _c(_F32, 2), _c(_U8, 2)), 4.1),
     "bridge.bin_ground": ((_c(_F64, 1),) * 3 + (_F64, _I64, _I64, _F64), 0.7),
-    "bridge.fit_columns": ((_c(_F64, 3), _F64, _c(_F64, 2), _F64, _F64, _I64, _F64, _F64, _F64), 4.6),
+    "bridge.fit_columns": ((_c(_F64, 3), _F64, _c(_F64, 2), _F64, _F64, _I64, _F64, _F64, _F64, _c(_F64, 3), _F64),
+                           4.6),
+    "bridge.bin_sensor": ((_c(_F64, 1),) * 6 + (_F64, _I64, _I64, _F64), 0.7),
     "graph.vertex_components": ((_I64, _c(_I64, 2)), 0.6),
     "interp.sample_field": ((_F, _TABLE, _c(_I64, 1), _c(_F32, 2), _F32), 2.0),
     "losses.query_losses": ((_F, _c(_U8, 1), _TABLE, _c(_I64, 1), _c(_F32, 2), _c(_F32, 2), _c(_I32, 1),
@@ -63,7 +65,7 @@ KERNELS: dict[str, tuple[tuple, float]] = {
 
 
 #: the kernels only a tiled job calls (blending tiles, bridging scan-line gaps); one-shape mode calls the others
-TILED_ONLY = ("blend.blend_bricks", "bridge.bin_ground", "bridge.fit_columns")
+TILED_ONLY = ("blend.blend_bricks", "bridge.bin_ground", "bridge.fit_columns", "bridge.bin_sensor")
 
 
 def kernel(name: str):

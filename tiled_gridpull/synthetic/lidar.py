@@ -21,7 +21,7 @@ from .street import StreetScene, build_street, grid_street_lines, scene_rng, str
 
 __all__ = ["Scan", "scan_street", "sensor_poses", "hdl64_directions", "points_per_frame", "frames_for_points",
            "street_length_for_frames", "grid_passes", "SENSOR_HEIGHT_M", "MIN_RANGE_M",
-           "POINTS_PER_FRAME_DEFAULT"]
+           "POINTS_PER_FRAME_DEFAULT", "visible_from"]
 
 SENSOR_HEIGHT_M = 1.73  # KITTI's Velodyne mounting height above the road
 MIN_RANGE_M = 0.5  # hits closer than this (the carrier vehicle) are dropped, as real drivers do
@@ -351,6 +351,68 @@ def _cast_rays(poses, dirs, first, count, tri, nrm, lo, hi, cs, dims, start, tri
             out_refl[r] = np.float32(0.1 + 0.8 * cosi)
         else:
             out_t[r] = np.inf
+
+
+@njit(cache=True, parallel=True)
+def _visible(q, sensors, tri, lo, hi, cs, dims, start, tris, el_lo, el_hi, max_range, stop_short):
+    """Whether each query is seen by some sensor: within the elevation span and range, and no triangle on the
+    segment between them (up to ``stop_short`` before the query, which lies on a triangle itself)."""
+    n = q.shape[0]
+    out = np.zeros(n, np.bool_)
+    for i in prange(n):
+        for s in range(sensors.shape[0]):
+            dx = q[i, 0] - sensors[s, 0]
+            dy = q[i, 1] - sensors[s, 1]
+            dz = q[i, 2] - sensors[s, 2]
+            L = math.sqrt(dx * dx + dy * dy + dz * dz)
+            el = math.atan2(dz, math.sqrt(dx * dx + dy * dy))
+            if L > max_range or L < MIN_RANGE_M + stop_short or el < el_lo or el > el_hi:
+                continue
+            _, f = _first_hit(sensors[s, 0], sensors[s, 1], sensors[s, 2], dx / L, dy / L, dz / L, tri, lo, hi,
+                              cs, dims, start, tris, MIN_RANGE_M, L - stop_short)
+            if f < 0:
+                out[i] = True
+                break
+    return out
+
+
+def visible_from(mesh: Mesh, points: np.ndarray, sensors: np.ndarray, max_range: float = 80.0,
+                 elevation_deg: tuple[float, float] = ELEVATION_DEG, stop_short: float = 0.03) -> np.ndarray:
+    """Which points on a mesh some sensor position sees: the scanner's elevation span and range hold them,
+    and the segment from the sensor stops on no triangle short of them.
+
+    What no sensor sees (the back of a wall, a car's underside, the ground in a shadow, a wall above the
+    highest beam) no scan samples: a reconstruction can only guess it.
+
+    Parameters
+    ----------
+    mesh : Mesh
+        The scene (world coordinates).
+    points : (N, 3) float
+        Points on the mesh, e.g. area-uniform samples.
+    sensors : (S, 3) float
+        Sensor positions (world), e.g. a trajectory's.
+    max_range : float
+        Farthest range that returns (m).
+    elevation_deg : (float, float)
+        Highest and lowest beam elevation (degrees; the sensor's z axis vertical).
+    stop_short : float
+        The segment ends this far before the point (m), whose own triangle it would otherwise meet.
+
+    Returns
+    -------
+    (N,) bool
+    """
+    pts = np.asarray(points, np.float64).reshape(-1, 3)
+    sen = np.asarray(sensors, np.float64).reshape(-1, 3)
+    if len(pts) == 0 or len(sen) == 0:
+        return np.zeros(len(pts), bool)
+    centre = sen.mean(axis=0)  # local coordinates: float64 exact at UTM magnitudes
+    caster = _RayCaster(mesh.vertices - centre, mesh.faces)
+    hi_el, lo_el = (math.radians(float(e)) for e in elevation_deg)
+    return _visible(np.ascontiguousarray(pts - centre), np.ascontiguousarray(sen - centre), caster.tri,
+                    caster.lo, caster.hi, caster.cs, caster.dims, caster.start, caster.tris, lo_el, hi_el,
+                    float(max_range), float(stop_short))
 
 
 class _RayCaster:
