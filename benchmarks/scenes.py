@@ -319,10 +319,16 @@ def footprint_scores_of(mesh: Path, gt: Path, laz: Path, trajectory: Path | None
     from tiled_gridpull.io import read_mesh, read_points
     from tiled_gridpull.metrics import footprint_scores
 
-    sensors = None
+    truth = read_mesh(gt)
+    seen_by = None
     if trajectory is not None:
+        from tiled_gridpull.synthetic.lidar import visible_from
+
         sensors = np.loadtxt(trajectory, delimiter=",", skiprows=1, ndmin=2)[:, 1:4]
-    fp = footprint_scores(read_mesh(mesh), read_mesh(gt), read_points(laz).xyz, sensors=sensors)
+
+        def seen_by(p):
+            return visible_from(truth, p, sensors)
+    fp = footprint_scores(read_mesh(mesh), truth, read_points(laz).xyz, seen_by=seen_by)
     return {**evaluate(mesh, gt, laz), **{k: v for k, v in fp.items() if k != "tau"}}
 
 

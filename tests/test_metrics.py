@@ -253,8 +253,13 @@ def test_footprint_scores_split_what_a_sensor_sees():
     parts = [rect(0, 20, -5, -1), rect(0, 20, 1, 5), rect(0, 10.5, -1, 1)]
     holed = Mesh(np.concatenate([p.vertices for p in parts]), np.concatenate([p.faces + 4 * k
                                                                              for k, p in enumerate(parts)]))
-    whole = footprint_scores(ground, gt, pts, radii=(1.5,), n_samples=100_000, sensors=sensor)
-    cut = footprint_scores(holed, gt, pts, radii=(1.5,), n_samples=100_000, sensors=sensor)
+    from tiled_gridpull.synthetic.lidar import visible_from
+
+    def seen_by(p):
+        return visible_from(gt, p, sensor)
+
+    whole = footprint_scores(ground, gt, pts, radii=(1.5,), n_samples=100_000, seen_by=seen_by)
+    cut = footprint_scores(holed, gt, pts, radii=(1.5,), n_samples=100_000, seen_by=seen_by)
     assert 0.5 < whole["footprint_seen@1.5"] < 0.97 and cut["footprint_seen@1.5"] == whole["footprint_seen@1.5"]
     # the strip is a miss of the footprint, not of what the sensor saw
     assert cut["footprint_recall@1.5"] < whole["footprint_recall@1.5"] - 0.02

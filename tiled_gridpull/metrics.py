@@ -262,7 +262,7 @@ def class_scores(pred: Mesh, gt: Mesh, classes: dict, n_samples: int = 100_000, 
 
 
 def footprint_scores(pred: Mesh, gt: Mesh, points: np.ndarray, radii=FOOTPRINT_RADII, tau: float = 0.1,
-                     n_samples: int = 200_000, seed: int = 0, sensors: np.ndarray | None = None) -> dict:
+                     n_samples: int = 200_000, seed: int = 0, seen_by=None) -> dict:
     """How much of the scanned footprint a scene mesh covers, and how much of the mesh is right.
 
     The footprint is the ground-truth surface within ``R`` of any input point. It is method-neutral: a hole
@@ -285,9 +285,10 @@ def footprint_scores(pred: Mesh, gt: Mesh, points: np.ndarray, radii=FOOTPRINT_R
     n_samples : int
         Area-uniform samples on each mesh (the footprint keeps those of ``gt`` within ``R``).
     seed : int
-    sensors : (S, 3) float, optional
-        Sensor positions of a simulated scan (synthetic scenes: the 64-beam scanner of
-        :mod:`tiled_gridpull.synthetic.lidar`): the footprint is also split into what some sensor sees and what
+    seen_by : callable, optional
+        ``seen_by(samples)`` -> (M,) bool: which of ``gt``'s (M, 3) samples some sensor of the scan sees (for a
+        simulated scan, ``lambda p: synthetic.lidar.visible_from(gt, p, sensors)``; passed in, so that metrics
+        does not depend on the simulator). The footprint is then also split into what some sensor sees and what
         none does (walls' backs, car undersides, shadows, walls above the highest beam), which only a guess
         could cover.
 
@@ -297,7 +298,7 @@ def footprint_scores(pred: Mesh, gt: Mesh, points: np.ndarray, radii=FOOTPRINT_R
         ``footprint_recall@R`` (share of the footprint's samples within ``tau`` of ``pred``'s surface, exact
         point-to-triangle distances) and ``footprint_samples@R`` for each ``R``; ``precision@tau`` (share of
         ``pred``'s samples within ``tau`` of ``gt``'s surface); ``tau``; ``boundary_edges`` and ``components``
-        (pieces) of ``pred``. With ``sensors`` also ``footprint_seen@R`` (share of the footprint some sensor
+        (pieces) of ``pred``. With ``seen_by`` also ``footprint_seen@R`` (share of the footprint some sensor
         sees) and ``footprint_seen_recall@R`` (the recall over that share).
     """
     if pred.n_faces == 0:
@@ -321,11 +322,9 @@ def footprint_scores(pred: Mesh, gt: Mesh, points: np.ndarray, radii=FOOTPRINT_R
         mine = within & (near <= r)
         out[f"footprint_samples@{r:g}"] = int(mine.sum())
         out[f"footprint_recall@{r:g}"] = float(hit[mine].mean()) if mine.any() else None
-    if sensors is not None:
-        from .synthetic.lidar import visible_from
-
+    if seen_by is not None:
         seen = np.zeros(len(g_pts), bool)
-        seen[within] = visible_from(gt, g_pts[within], sensors)
+        seen[within] = np.asarray(seen_by(g_pts[within]), bool)
         for r in radii:
             mine = within & (near <= r)
             out[f"footprint_seen@{r:g}"] = float(seen[mine].mean()) if mine.any() else None
