@@ -21,6 +21,18 @@ SECTORS = 12
 
 
 @njit(cache=True)
+def _lowest(x, y, z, pixel, nx, ny):
+    """(nx, ny) float64: the lowest z of the points in each ``pixel``-wide bin; inf where a bin holds none."""
+    low = np.full((nx, ny), np.inf)
+    for n in range(x.shape[0]):
+        i = int(math.floor(x[n] / pixel))
+        j = int(math.floor(y[n] / pixel))
+        if 0 <= i < nx and 0 <= j < ny and z[n] < low[i, j]:
+            low[i, j] = z[n]
+    return low
+
+
+@njit(cache=True)
 def bin_ground(x, y, z, pixel, nx, ny, layer):
     """Mean position of the lowest layer of points in each ``pixel`` x ``pixel`` bin of a 2D grid (cells).
 
@@ -43,12 +55,7 @@ def bin_ground(x, y, z, pixel, nx, ny, layer):
     rep : (nx, ny, 3) float64
         Mean x, y, z of each bin's lowest layer; NaN where a bin holds no point.
     """
-    low = np.full((nx, ny), np.inf)
-    for n in range(x.shape[0]):
-        i = int(math.floor(x[n] / pixel))
-        j = int(math.floor(y[n] / pixel))
-        if 0 <= i < nx and 0 <= j < ny and z[n] < low[i, j]:
-            low[i, j] = z[n]
+    low = _lowest(x, y, z, pixel, nx, ny)
     acc = np.zeros((nx, ny, 4))
     for n in range(x.shape[0]):
         i = int(math.floor(x[n] / pixel))
@@ -90,12 +97,7 @@ def bin_sensor(x, y, z, sx, sy, sz, pixel, nx, ny, layer):
     sensor : (nx, ny, 2) float64
         x, y of that sensor; NaN where a bin holds no point, or no sensor above its lowest layer's points.
     """
-    low = np.full((nx, ny), np.inf)
-    for n in range(x.shape[0]):
-        i = int(math.floor(x[n] / pixel))
-        j = int(math.floor(y[n] / pixel))
-        if 0 <= i < nx and 0 <= j < ny and z[n] < low[i, j]:
-            low[i, j] = z[n]
+    low = _lowest(x, y, z, pixel, nx, ny)
     best = np.full((nx, ny), np.inf)
     sensor = np.full((nx, ny, 2), np.nan)
     for n in range(x.shape[0]):
