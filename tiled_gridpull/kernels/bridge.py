@@ -160,14 +160,17 @@ def fit_columns(rep, pixel, cols, radius, skip, max_gap, rms_tol, step_tol, max_
     reach = int(math.ceil(radius / pixel)) + 1
     r2 = radius * radius
     cap = (2 * reach + 1) * (2 * reach + 1)
+    # the beyond test's cone: half-width over length (far_cos < 1 only)
+    slope = math.sqrt(max(1.0 - far_cos * far_cos, 0.0)) / far_cos if far_cos < 1.0 else 0.0
     for c in prange(m):
         cx, cy = cols[c, 0], cols[c, 1]
         ic = int(math.floor(cx / pixel))
         jc = int(math.floor(cy / pixel))
         # the representatives within reach, gathered once (offsets from the column, height, squared distance)
         nb = np.empty((cap, 4))
-        nb_bin = np.empty((cap, 2), np.int64)
         k = 0
+        nearest = np.inf
+        near_i, near_j = -1, -1  # the nearest representative's bin (its sensor is the one the beyond test uses)
         for i in range(max(0, ic - reach), min(nx, ic + reach + 1)):
             for j in range(max(0, jc - reach), min(ny, jc + reach + 1)):
                 if math.isnan(rep[i, j, 2]):
@@ -180,20 +183,16 @@ def fit_columns(rep, pixel, cols, radius, skip, max_gap, rms_tol, step_tol, max_
                     nb[k, 1] = dy
                     nb[k, 2] = rep[i, j, 2]
                     nb[k, 3] = d2
-                    nb_bin[k, 0] = i
-                    nb_bin[k, 1] = j
+                    if d2 < nearest:
+                        nearest = d2
+                        near_i, near_j = i, j
                     k += 1
         if k == 0:
             continue
         near_d = np.full(SECTORS, np.inf)
         near_k = np.full(SECTORS, -1, np.int64)
-        nearest = np.inf
-        nearest_t = 0
         for t in range(k):
             d2 = nb[t, 3]
-            if d2 < nearest:
-                nearest = d2
-                nearest_t = t
             s = int((math.atan2(nb[t, 1], nb[t, 0]) + math.pi) / (2.0 * math.pi) * SECTORS) % SECTORS
             if d2 < near_d[s]:
                 near_d[s] = d2
@@ -211,8 +210,8 @@ def fit_columns(rep, pixel, cols, radius, skip, max_gap, rms_tol, step_tol, max_
         if widest > max_gap:
             continue
         if far_cos < 1.0:
-            sx = sensor[nb_bin[nearest_t, 0], nb_bin[nearest_t, 1], 0]
-            sy = sensor[nb_bin[nearest_t, 0], nb_bin[nearest_t, 1], 1]
+            sx = sensor[near_i, near_j, 0]
+            sy = sensor[near_i, near_j, 1]
             if not math.isnan(sx):
                 ax = cx - sx
                 ay = cy - sy
@@ -221,7 +220,6 @@ def fit_columns(rep, pixel, cols, radius, skip, max_gap, rms_tol, step_tol, max_
                 # within the cone, widened by half a bin: a bin's sample lies up to that far beside the line of
                 # sight even where its ring crosses it (the last ring, a few cells beyond the column), and a sample
                 # within half a bin of the column itself counts (the column lies on a ring, not in a shadow)
-                slope = math.sqrt(max(1.0 - far_cos * far_cos, 0.0)) / far_cos
                 for t in range(k):
                     along = (nb[t, 0] * ax + nb[t, 1] * ay) / an if an > 0.0 else 0.0
                     if along > -0.5 * pixel:
