@@ -199,6 +199,10 @@ def scan_record(scan: dict) -> dict:
 # ------------------------------------------------------------------------------------------------ tile results
 
 
+#: the settings of the shadow test (bridging with sensor origins) that a solve's key names
+_BRIDGE_SEEN = [BridgeRule.beyond_deg, BridgeRule.sensor_max_gap_deg, BridgeRule.sensor_rms_tol]
+
+
 def solve_key(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig, centre=None) -> str:
     """Key of a tile's solve: its points (content hash), block, and the settings a tile solve reads."""
     try:
@@ -214,8 +218,7 @@ def solve_key(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig, centre
                    # only when on: keys of jobs that do not bridge stay those they were
                    **({"bridge": tiling.bridge} if tiling.bridge else {}),
                    # bridges of tiles with sensor origins keep shadows open since 2026-11-26
-                   **({"bridge_seen": [BridgeRule().beyond_deg, BridgeRule().sensor_max_gap_deg,
-                                       BridgeRule().sensor_rms_tol]} if tiling.bridge and spec.has_sensor else {})})
+                   **({"bridge_seen": _BRIDGE_SEEN} if tiling.bridge and spec.has_sensor else {})})
 
 
 def mesh_key(spec: TileSpec, field_sha: str, neighbors: list[tuple[str, str]], tiling: TilingConfig,
