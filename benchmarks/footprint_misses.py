@@ -28,8 +28,7 @@ import numpy as np
 def classify(sample_dir: Path, mesh_path: Path, radius: float = 1.5, tau: float = 0.1, n_samples: int = 200_000,
              seed: int = 0) -> dict:
     from tiled_gridpull.io import read_mesh, read_points
-    from tiled_gridpull.metrics import point_to_mesh, sample_surface
-    from tiled_gridpull.nearest import distances_to_cloud
+    from tiled_gridpull.metrics import footprint_samples, point_to_mesh
     from tiled_gridpull.synthetic.lidar import visible_from
 
     meta = json.loads((sample_dir / "street.json").read_text())
@@ -37,8 +36,8 @@ def classify(sample_dir: Path, mesh_path: Path, radius: float = 1.5, tau: float 
     pts = read_points(meta["laz"]).xyz
     sensors = np.loadtxt(meta["trajectory"], delimiter=",", skiprows=1, ndmin=2)[:, 1:4]
     # the footprint's samples as footprint_scores draws them
-    g, _ = sample_surface(gt, n_samples, seed + 1)
-    g = g[np.isfinite(distances_to_cloud(g, pts, radius))]
+    g, near = footprint_samples(gt, pts, radius, n_samples, seed)
+    g = g[np.isfinite(near)]
     hit = point_to_mesh(g, read_mesh(mesh_path))[0] <= tau
     face = point_to_mesh(g, gt)[1]
     terrain = np.zeros(len(g), bool)

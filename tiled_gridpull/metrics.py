@@ -31,7 +31,7 @@ from .mesh import Mesh
 from .mesh_repair import boundary_loops
 from .nearest import distances_to_cloud
 
-__all__ = ["sample_surface", "point_to_mesh", "evaluate", "class_scores", "footprint_scores",
+__all__ = ["sample_surface", "point_to_mesh", "evaluate", "class_scores", "footprint_samples", "footprint_scores",
            "DEFAULT_THRESHOLDS", "FOOTPRINT_RADII"]
 
 DEFAULT_THRESHOLDS = (0.002, 0.004, 0.01)
@@ -261,6 +261,21 @@ def class_scores(pred: Mesh, gt: Mesh, classes: dict, n_samples: int = 100_000, 
     return out
 
 
+def footprint_samples(gt: Mesh, points: np.ndarray, radius: float, n_samples: int = 200_000,
+                      seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """The ground-truth samples :func:`footprint_scores` draws, and each one's distance to the input points.
+
+    Returns
+    -------
+    samples : (n_samples, 3) float64
+        Area-uniform samples on ``gt``.
+    near : (n_samples,) float64
+        Distance to the nearest point of ``points`` (same units); inf beyond ``radius``.
+    """
+    g_pts, _ = sample_surface(gt, n_samples, seed + 1)
+    return g_pts, distances_to_cloud(g_pts, points, radius)
+
+
 def footprint_scores(pred: Mesh, gt: Mesh, points: np.ndarray, radii=FOOTPRINT_RADII, tau: float = 0.1,
                      n_samples: int = 200_000, seed: int = 0, seen_by=None) -> dict:
     """How much of the scanned footprint a scene mesh covers, and how much of the mesh is right.
@@ -311,8 +326,7 @@ def footprint_scores(pred: Mesh, gt: Mesh, points: np.ndarray, radii=FOOTPRINT_R
     points = np.asarray(points, np.float64)
     if points.ndim != 2 or points.shape[1] != 3 or len(points) == 0:
         raise ValueError("points must be a non-empty (N, 3) array")
-    g_pts, _ = sample_surface(gt, n_samples, seed + 1)
-    near = distances_to_cloud(g_pts, points, max(radii))
+    g_pts, near = footprint_samples(gt, points, max(radii), n_samples, seed)
     out: dict = {"tau": float(tau)}
     within = np.isfinite(near)
     hit = np.zeros(len(g_pts), bool)
