@@ -319,3 +319,31 @@ def test_the_history_sums_do_not_depend_on_the_launch(setup):
                         False, sq, True)
         got.append((sums.copy_to_host().tobytes(), tv.copy_to_host().tobytes(), sq.copy_to_host().tobytes()))
     assert got[0] == got[1] == got[2]
+
+
+def test_nearest_pool_on_the_card_is_the_hosts_pool(setup):
+    """The card draws each batch's queries itself and finds their nearest points in the hashed grid: the same rows
+    as the host's pool (draw_queries + PointGrid) and as pykdtree."""
+    from pykdtree.kdtree import KDTree
+
+    from tiled_gridpull.nearest import PointGrid
+
+    P = setup[0]
+    pool, nq, seed, it0, sigma = 3, 150, 7, 40, np.float32(0.8)
+    grid = PointGrid.for_queries(P, float(sigma))
+    out = cuda.device_array((pool, nq), np.int32)
+    order, keys, starts, counts, bits = grid.arrays
+    K.nearest_pool[launch(pool * nq)](cuda.to_device(P), cuda.to_device(order), cuda.to_device(keys),
+                                      cuda.to_device(starts), cuda.to_device(counts), bits, *map(float, grid.origin),
+                                      grid.cell, *map(int, grid.dims), seed, it0, len(P) / nq, sigma,
+                                      cuda.to_device(ksamp.NORMALS), out)
+    card = out.copy_to_host()
+    tree = KDTree(P)
+    for b in range(pool):
+        centres = np.empty(nq, np.int64)
+        q = np.empty((nq, 3), np.float32)
+        ksamp.draw_queries(P, seed, it0 + b, sigma, centres, q)
+        host, _ = grid.query(P, q, centres)
+        assert np.array_equal(card[b], host)
+        assert np.mean(card[b] == tree.query(q, k=1)[1]) > 0.99
+    assert len(np.unique(card)) > nq  # the batches are different queries

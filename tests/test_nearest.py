@@ -96,3 +96,66 @@ def test_nearest_in_cloud_is_exact_for_georeferenced_coordinates():
     assert np.all(np.isinf(d_b[far])) and np.all(i_b[far] == len(pts))
     np.testing.assert_array_equal(i_b[~far], i[~far])
     np.testing.assert_array_equal(distances_to_cloud(q + shift, pts + shift, bound), d_b)
+
+
+# --- PointGrid: the tree-free search the CUDA backend runs on the card -------------------------------------------
+
+def _surface_cloud(n: int, seed: int = 0) -> np.ndarray:
+    """Points on a wavy sheet and a sphere: dense and sparse parts, as LiDAR tiles have."""
+    rng = np.random.default_rng(seed)
+    x, y = rng.uniform(0, 60, n), rng.uniform(0, 60, n)
+    sheet = np.c_[x, y, 2 * np.sin(x / 5)]
+    d = rng.normal(size=(n // 4, 3))
+    ball = d / np.linalg.norm(d, axis=1, keepdims=True) * 8 + 30
+    return np.vstack([sheet, ball]).astype(np.float32)
+
+
+@pytest.mark.parametrize("sigma", [0.1, 0.5, 3.0])
+def test_point_grid_is_exact(sigma):
+    from tiled_gridpull.kernels import sampling as ksamp
+    from tiled_gridpull.nearest import PointGrid
+
+    P = _surface_cloud(20000)
+    nq = 30000
+    centres = np.empty(nq, np.int64)
+    q = np.empty((nq, 3), np.float32)
+    ksamp.draw_queries(P, 5, 1, np.float32(sigma), centres, q)
+    grid = PointGrid.for_queries(P, sigma)
+    idx, d = grid.query(P, q, centres)
+    d_ref, i_ref = KDTree(P).query(q, k=1)
+    assert np.abs(d - d_ref).max() < 1e-5 * max(1.0, sigma)
+    assert np.mean(idx == i_ref) > 0.999  # the rest: float32 near-ties of the tree
+    # exact ties go to the lowest row, whatever the start
+    far = np.full(nq, len(P) - 1, np.int64)
+    assert np.array_equal(grid.query(P, q, far)[0], idx)
+
+
+def test_point_grid_answers_queries_outside_its_cells_and_lowest_row_ties():
+    from tiled_gridpull.nearest import PointGrid
+
+    P = np.array([[0, 0, 0], [2, 0, 0], [0, 2, 0], [10, 10, 10]], np.float32)
+    grid = PointGrid.build(P, 0.5)
+    q = np.array([[-40, -3, 1], [1, 0, 0], [1, 1, 0], [30, 30, 30], [2.1, -0.1, 0]], np.float32)
+    idx, d = grid.query(P, q, np.full(len(q), 3))
+    assert idx.tolist() == [0, 0, 0, 3, 1]  # [1, 0, 0] and [1, 1, 0] are ties (2 and 3 points): the lowest row wins
+    assert np.allclose(d, KDTree(P).query(q, k=1)[0], atol=1e-6)
+    one = PointGrid.build(P[:1], 1.0)
+    assert one.query(P[:1], q, np.zeros(len(q), np.int64))[0].tolist() == [0] * len(q)
+
+
+def test_point_grid_sizes_its_cell_to_the_points_and_refuses_bad_input():
+    from tiled_gridpull.nearest import PointGrid
+
+    P = _surface_cloud(20000)
+    for sigma in (0.05, 0.2, 1.0, 20.0):
+        g = PointGrid.for_queries(P, sigma)
+        per_cell = len(P) / np.count_nonzero(g.table_keys >= 0)
+        assert sigma / 4 <= g.cell <= sigma * 4
+        # within the clamp, the occupancy lands near the target
+        if sigma / 4 < g.cell < sigma * 4:
+            assert PointGrid.TARGET_PER_CELL / 2.5 < per_cell < PointGrid.TARGET_PER_CELL * 2.5, (sigma, g.cell)
+        assert np.count_nonzero(g.table_keys >= 0) * 2 <= len(g.table_keys)
+    with pytest.raises(ValueError, match="at least one point"):
+        PointGrid.build(np.zeros((0, 3), np.float32), 1.0)
+    with pytest.raises(ValueError, match="positive cell"):
+        PointGrid.build(P, 0.0)

@@ -54,10 +54,12 @@ class LevelRun:
         Initial field (cells).
     cfg : SolverConfig
     st : LevelSchedule
-    nn : NearestPoints
-        For the queries of iterations outside the pool (``query_pool == 0``).
+    nn : NearestPoints or None
+        For the queries of iterations outside the pool (``query_pool == 0``); None where the backend found the
+        pool's nearest points itself.
     pool_nn : (B, Nq) int32 or None
-        Nearest point of each query of each pool batch.
+        Nearest point of each query of each pool batch: a host array, or the backend's device array
+        (:meth:`~tiled_gridpull.solver_cuda.CudaBackend.nearest_pool`).
     """
 
     P: np.ndarray
@@ -66,7 +68,7 @@ class LevelRun:
     values: np.ndarray
     cfg: SolverConfig
     st: LevelSchedule
-    nn: NearestPoints
+    nn: NearestPoints | None
     pool_nn: np.ndarray | None
     progress: Callable[[int, int, dict], None] | None
     history_every: int

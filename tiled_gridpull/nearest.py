@@ -5,16 +5,21 @@ nearest neighbours (one pykdtree query at set-up); a query whose best candidate 
 outside that list is answered from it (see :mod:`tiled_gridpull.kernels.nn`), the rest by the KD-tree itself.
 Where the lists would answer too few queries (points much denser than the query spread, as on LiDAR close to
 the scanner) they are not built and every query goes to the KD-tree.
+
+:class:`PointGrid` answers the same queries exactly without a tree (a uniform grid of cells hashed by key), in
+scalar code that the CUDA backend compiles for the card.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 from pykdtree.kdtree import KDTree
 
 from .kernels import nn as knn_kernels
 
-__all__ = ["NearestPoints", "distances_to_cloud", "nearest_in_cloud"]
+__all__ = ["NearestPoints", "PointGrid", "distances_to_cloud", "nearest_in_cloud"]
 
 
 def distances_to_cloud(queries: np.ndarray, points: np.ndarray, upper_bound: float = np.inf) -> np.ndarray:
@@ -176,4 +181,115 @@ class NearestPoints:
             d, i = self.tree.query(q[sel], k=1)
             idx[sel] = i
             d2[sel] = d.astype(np.float32) ** 2
+        return idx, np.sqrt(d2)
+
+
+@dataclass(frozen=True, eq=False)
+class PointGrid:
+    """Input points bucketed in a uniform grid of cubic cells, for exact nearest-point queries without a tree.
+
+    Only occupied cells are stored, in an open-addressing hash table, so a grid over a tile's bounding box costs
+    memory in proportion to its points, not its volume. The search (:func:`~tiled_gridpull.kernels.nn.grid_nearest_one`)
+    visits shells of cells around the query and is exact; the CUDA backend runs it on the card
+    (:func:`~tiled_gridpull.kernels.cuda.nearest_pool`), :meth:`query` on the CPU.
+
+    Attributes
+    ----------
+    origin : (3,) float64
+        Corner of cell (0, 0, 0) (units of the points).
+    cell : float
+        Cell edge.
+    dims : (3,) int64
+        Cells along each axis.
+    order : (N,) int32
+        Point rows sorted by cell.
+    table_keys : (T,) int64
+        Cell key ``(ix * gy + iy) * gz + iz`` of each table slot, -1 where empty; ``T = 2**bits``.
+    table_starts, table_counts : (T,) int32
+        The cell's run in ``order``.
+    bits : int
+    """
+
+    origin: np.ndarray
+    cell: float
+    dims: np.ndarray
+    order: np.ndarray
+    table_keys: np.ndarray
+    table_starts: np.ndarray
+    table_counts: np.ndarray
+    bits: int
+
+    #: Points per occupied cell the automatic cell edge aims at: a query then reads a few dozen points in the 27
+    #: cells around it, and few cells are empty.
+    TARGET_PER_CELL = 4.0
+
+    @classmethod
+    def build(cls, points: np.ndarray, cell: float) -> PointGrid:
+        """Bucket ``points`` ((N, 3) float32, N >= 1) in cells of edge ``cell`` (> 0, same units)."""
+        P = np.asarray(points, dtype=np.float32)
+        if P.ndim != 2 or P.shape[1] != 3 or len(P) == 0:
+            raise ValueError(f"PointGrid needs an (N, 3) array of at least one point, got shape {P.shape}")
+        if not cell > 0:
+            raise ValueError(f"PointGrid needs a positive cell edge, got {cell}")
+        lo = P.min(axis=0).astype(np.float64)
+        ijk = np.floor((P - lo) / cell).astype(np.int64)
+        dims = ijk.max(axis=0) + 1
+        keys = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
+        order = np.argsort(keys, kind="stable")
+        sk = keys[order]
+        first = np.flatnonzero(np.r_[True, sk[1:] != sk[:-1]])
+        counts = np.diff(np.r_[first, len(sk)]).astype(np.int32)
+        bits = max(4, int(np.ceil(np.log2(2 * len(first)))))
+        tk = np.full(1 << bits, -1, np.int64)
+        ts = np.zeros(1 << bits, np.int32)
+        tc = np.zeros(1 << bits, np.int32)
+        knn_kernels.fill_cell_table(sk[first], first.astype(np.int32), counts, bits, tk, ts, tc)
+        return cls(origin=lo, cell=float(cell), dims=dims, order=order.astype(np.int32), table_keys=tk,
+                   table_starts=ts, table_counts=tc, bits=bits)
+
+    @classmethod
+    def for_queries(cls, points: np.ndarray, sigma: float) -> PointGrid:
+        """A grid whose cell suits queries spread by ``sigma`` around ``points``.
+
+        The cell starts at ``sigma`` and is rescaled (at most three builds, and within ``sigma / 4`` and
+        ``4 sigma``) until an occupied cell holds about :attr:`TARGET_PER_CELL` points: on surfaces the count goes
+        as the edge squared; where cells are finer than the point spacing it saturates at one, and the edge
+        grows by the largest step."""
+        grid = cls.build(points, sigma)
+        for _ in range(2):
+            per_cell = len(grid.order) / max(int(np.count_nonzero(grid.table_keys >= 0)), 1)
+            scale = 4.0 if per_cell < 1.1 else np.sqrt(cls.TARGET_PER_CELL / per_cell)
+            cell = float(np.clip(grid.cell * scale, sigma / 4, sigma * 4))
+            if 0.7 < cell / grid.cell < 1.4:
+                break
+            grid = cls.build(points, cell)
+        return grid
+
+    @property
+    def arrays(self) -> tuple:
+        """The search's arguments after the points: order, table keys, starts, counts, bits."""
+        return self.order, self.table_keys, self.table_starts, self.table_counts, self.bits
+
+    def query(self, points: np.ndarray, q: np.ndarray, centres: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Nearest point of each query, exact (ties: the lowest row).
+
+        Parameters
+        ----------
+        points : (N, 3) float32
+            The points the grid was built from.
+        q : (Nq, 3) float32
+        centres : (Nq,) int
+            A point near each query (where it was drawn); any row works, a near one makes the search short.
+
+        Returns
+        -------
+        idx : (Nq,) int64
+        dist : (Nq,) float64
+        """
+        q = np.ascontiguousarray(q, dtype=np.float32)
+        idx = np.empty(len(q), np.int64)
+        d2 = np.empty(len(q), np.float64)
+        knn_kernels.nearest_on_grid(np.ascontiguousarray(points, dtype=np.float32), *self.arrays, self.origin,
+                                    self.cell, self.dims.astype(np.int64), q,
+                                    np.ascontiguousarray(centres, dtype=np.int64), idx, d2)
         return idx, np.sqrt(d2)

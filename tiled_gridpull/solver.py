@@ -236,6 +236,8 @@ class CpuBackend:
     """The solver's iterations on the CPU's threads (the numba kernels of :mod:`tiled_gridpull.kernels`)."""
 
     name = "cpu"
+    #: the query pool's nearest points are found by the caller (:class:`NearestPoints`), not by the backend
+    finds_nearest = False
 
     def adopt(self, field: Field) -> None:
         """Nothing to keep: the field's values are the host arrays."""
@@ -302,6 +304,13 @@ def backend_for(device: str):
     return CpuBackend()
 
 
+def _nearest_info(nn: NearestPoints) -> dict:
+    """What a level's :class:`NearestPoints` did, for the level's info."""
+    return {"nn_queries": nn.queries, "nn_fallback_fraction": nn.fallbacks / max(nn.queries, 1),
+            "nn_candidates": int(nn.knn.shape[1]) if nn.knn is not None else 0,
+            "nn_fast_share_predicted": nn.fast_share, "nn_lists_skipped": nn.lists_skipped}
+
+
 def _optimize(P: np.ndarray, N: np.ndarray | None, band: Band, values: np.ndarray, cfg: SolverConfig,
               st: LevelSchedule, progress: ProgressFn | None, history_every: int, it0: int, total: int, level: int,
               history: list, backend=None) -> Field:
@@ -315,12 +324,18 @@ def _optimize(P: np.ndarray, N: np.ndarray | None, band: Band, values: np.ndarra
         N = np.ascontiguousarray(N[order])
     sigma = np.float32(st.sigma)
     pool = st.query_pool
-    nn = NearestPoints(P, cfg.sampling.knn, sigma=float(sigma),
-                       expected_queries=st.queries * (pool if pool else st.iterations))
     nq = st.queries
-    tp = time.perf_counter()
+    nn = None
     pool_nn = None
-    if pool:
+    tp = time.perf_counter()
+    if pool and backend.finds_nearest:
+        # the card draws the pool's queries and searches a point grid itself: no tree, nothing copied back
+        pool_nn, nn_info = backend.nearest_pool(P, cfg.sampling.seed, it0, pool, nq, sigma)
+    else:
+        nn = NearestPoints(P, cfg.sampling.knn, sigma=float(sigma),
+                           expected_queries=st.queries * (pool if pool else st.iterations))
+        tp = time.perf_counter()
+    if pool and nn is not None:
         # nearest points found once per batch; the batch's queries are re-drawn from the counter-based RNG each
         # time it comes round (0.2 ms), so the pool holds 4 bytes per query
         centres = np.empty(nq, np.int64)
@@ -341,11 +356,7 @@ def _optimize(P: np.ndarray, N: np.ndarray | None, band: Band, values: np.ndarra
         "time_solve_s": time.perf_counter() - t0,
         "time_query_pool_s": t_pool,
         **timings,
-        "nn_queries": nn.queries,
-        "nn_fallback_fraction": nn.fallbacks / max(nn.queries, 1),
-        "nn_candidates": int(nn.knn.shape[1]) if nn.knn is not None else 0,
-        "nn_fast_share_predicted": nn.fast_share,
-        "nn_lists_skipped": nn.lists_skipped,
+        **(_nearest_info(nn) if nn is not None else nn_info),
         "device": backend.name,
     }
     fld = Field(band, d.reshape(band.n_bricks, 512), signed=cfg.mode == "sdf", info=info)

@@ -2,9 +2,10 @@
 
 Per iteration, three launches (:mod:`tiled_gridpull.kernels.cuda`): the queries (drawn, evaluated and scattered in
 one kernel), the sqrt form's TV norms, and the fused TV + Adam step; the host computes the learning rate and reads
-nothing back except at the history's iterations. Nearest points stay on the CPU (pykdtree, once per pool batch,
-:func:`tiled_gridpull.solver._optimize`); their indices go to the card once per level. Between levels the finer
-band's initial values are sampled from the coarser field still on the card.
+nothing back except at the history's iterations. The query pool's nearest points are found on the card too
+(:meth:`CudaBackend.nearest_pool`: a hashed point grid built on the host, searched by one thread per query) and stay
+there; only without a pool (``query_pool: 0``) does each iteration's batch come from the CPU's KD-tree. Between
+levels the finer band's initial values are sampled from the coarser field still on the card.
 
 Results are bitwise reproducible on one card (the query gradients are summed in fixed point) and agree with the
 CPU's within float32 rounding per step (tests/test_cuda_kernels.py, tests/test_device.py).
@@ -26,6 +27,7 @@ from .field import Field
 from .kernels import CELL_PULL
 from .kernels import sampling as ksamp
 from .level import ADAM_BETA1, ADAM_BETA2, ADAM_EPS, LevelRun, upsample
+from .nearest import PointGrid
 
 __all__ = ["CudaBackend", "ONE_LAUNCH_ENV"]
 
@@ -38,6 +40,8 @@ log = logging.getLogger(__name__)
 
 #: threads per block: one brick's 512 slots (the TV gather then reads its neighbours from the same brick)
 BLOCK = 512
+#: threads per block of the nearest-point search (a thread holds a shell walk's state; no shared memory)
+NEAREST_BLOCK = 256
 #: under the simulator every thread is a Python thread: a few of them loop over the items instead
 SIM_THREADS = 8
 
@@ -46,6 +50,8 @@ class CudaBackend:
     """Runs :class:`~tiled_gridpull.solver.LevelRun` s on the current CUDA card (or numba's simulator)."""
 
     name = "cuda"
+    #: the query pool's nearest points are found on the card (:meth:`nearest_pool`)
+    finds_nearest = True
     #: set once the one-launch kernel failed in this process (then every solve launches per step)
     _one_launch_failed = False
 
@@ -62,10 +68,49 @@ class CudaBackend:
         self.cooperative = os.environ.get(ONE_LAUNCH_ENV) == "1" and not CudaBackend._one_launch_failed
         self._last: tuple[Field, object] | None = None  # the last level's field and its values on the card
 
-    def _grid(self, n: int) -> tuple[int, int]:
+    def _grid(self, n: int, block: int = BLOCK) -> tuple[int, int]:
         if self.simulator:
             return 1, min(SIM_THREADS, max(n, 1))
-        return max(1, -(-n // BLOCK)), BLOCK
+        return max(1, -(-n // block)), block
+
+    def _normal_table(self):
+        if self._normals is None:
+            self._normals = self.cuda.to_device(ksamp.NORMALS)
+        return self._normals
+
+    def nearest_pool(self, P: np.ndarray, seed: int, it0: int, pool: int, nq: int, sigma: np.float32) -> tuple:
+        """Nearest point of every query of a level's pool, found on the card; they stay there for :meth:`iterate`.
+
+        Parameters
+        ----------
+        P : (N, 3) float32
+            The level's points (index coordinates, Morton order), as the host's pool would draw around.
+        seed, it0 : int
+            Sampling seed and the level's first iteration: batch ``b`` holds iteration ``it0 + b``'s queries.
+        pool, nq : int
+            Batches and queries per batch.
+        sigma : float32
+            Query spread (cells).
+
+        Returns
+        -------
+        pool_nn : (pool, nq) int32 device array
+        info : dict
+            ``nn_queries``, ``nn_grid_cell`` (the grid's cell edge, cells) and ``nn_device`` for the level's info.
+        """
+        with _card_errors(f"the nearest points of {pool * nq:,} queries"):
+            grid = PointGrid.for_queries(P, float(sigma))
+            to = self.cuda.to_device
+            out = self.cuda.device_array((pool, nq), np.int32)
+            blocks, threads = self._grid(pool * nq, NEAREST_BLOCK)
+            ox, oy, oz = (float(v) for v in grid.origin)
+            gx, gy, gz = (int(v) for v in grid.dims)
+            order, keys, starts, counts, bits = grid.arrays
+            self.k.nearest_pool[blocks, threads](to(P), to(order), to(keys), to(starts), to(counts), bits, ox, oy, oz,
+                                                 grid.cell, gx, gy, gz, int(seed), int(it0), P.shape[0] / nq, sigma,
+                                                 self._normal_table(), out)
+            self.cuda.synchronize()  # so the level's pool time is the card's
+        return out, {"nn_queries": pool * nq, "nn_grid_cell": grid.cell, "nn_device": True}
 
     def _level_in_one_launch(self, run: LevelRun, d_a, d_b, m, v, acc, inv, common, pool, step, sigma, form, tv_scale,
                              counts, loss_sums, tv_sums):
@@ -134,8 +179,7 @@ class CudaBackend:
         t0 = time.perf_counter()
         band, cfg, st = run.band, run.cfg, run.st
         to = cuda.to_device
-        if self._normals is None:
-            self._normals = to(ksamp.NORMALS)
+        self._normal_table()
         n_slots = band.n_slots
         pending, self._pending_init = self._pending_init, None
         d_a = pending if pending is not None and pending.shape[0] == n_slots else to(run.values.reshape(-1))
@@ -155,7 +199,9 @@ class CudaBackend:
         loss_sums = to(np.zeros((iters, 4), k.SUMS_DTYPE))  # fixed point (k.SUMS_SCALE): repeats bit for bit
         tv_sums = to(np.zeros(iters, k.SUMS_DTYPE))
         nq = st.queries
-        pool = to(run.pool_nn) if run.pool_nn is not None else None
+        pool = run.pool_nn
+        if pool is not None and not hasattr(pool, "copy_to_host"):  # a host pool (a CPU-found one): copy it over
+            pool = to(pool)
         fresh = cuda.device_array(nq, np.int32) if pool is None else None
         centres = np.empty(nq, np.int64)
         q = np.empty((nq, 3), np.float32)

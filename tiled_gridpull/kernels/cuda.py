@@ -10,6 +10,8 @@ what differs is how the work is cut and summed:
   bitwise reproducible on one card. The CPU sums in float32 in query order; the two agree to float32 rounding.
 * **TV and Adam** (:func:`tv_norms`, :func:`tv_adam`): one thread per slot gathers its six in-band neighbours
   (the CPU kernel scatters along edges brick by brick; the same sums, in another order).
+* **Nearest points** (:func:`nearest_pool`): one thread per query of the level's pool draws it and finds its exact
+  nearest input point in the hashed point grid (:func:`.nn.grid_nearest_one`, the CPU twin's source).
 * **Upsampling** (:func:`upsample`): one thread per fine slot samples the coarse field still on the card.
 
 The device functions are not written twice: :func:`device_function` recompiles the CPU kernels' inline helpers
@@ -33,6 +35,7 @@ from numba import cuda  # noqa: E402
 
 from . import interp as _interp  # noqa: E402
 from . import losses as _losses  # noqa: E402
+from . import nn as _nn  # noqa: E402
 from . import sampling as _sampling  # noqa: E402
 
 #: Fixed-point unit of the query-gradient accumulator: 2^-26 (1.5e-8; a query's corner gradient is O(1), so
@@ -70,7 +73,8 @@ def device_function(dispatcher, env: dict):
 _ENV: dict = {}
 for _mod, _names in ((_interp, ("slot_of", "locate", "corner_slots", "eval_corners", "corner_gradients")),
                      (_sampling, ("mix64", "uniforms", "iteration_key", "draw_one")),
-                     (_losses, ("query_one",))):
+                     (_losses, ("query_one",)),
+                     (_nn, ("cell_slot", "_gap", "grid_nearest_one"))):
     for _name in _names:
         _ENV[_name] = device_function(getattr(_mod, _name), _ENV)
 
@@ -80,6 +84,7 @@ _eval_corners = _ENV["eval_corners"]
 _draw_one = _ENV["draw_one"]
 _iteration_key = _ENV["iteration_key"]
 _query_one = _ENV["query_one"]
+_grid_nearest_one = _ENV["grid_nearest_one"]
 
 
 @cuda.jit(device=True, inline=True)
@@ -352,3 +357,35 @@ def upsample(coarse, table, nx, ny, nz, brick_coords, factor, fill, out):
             out[s] = np.float32(f) * ff
         else:
             out[s] = np.float32(fill / factor) * ff
+
+
+@cuda.jit(cache=True)
+def nearest_pool(points, order, table_keys, table_starts, table_counts, bits, ox, oy, oz, h, gx, gy, gz, seed, it0,
+                 step, sigma, normal_table, out):
+    """Nearest input point of every query of a level's pool: batch ``b`` holds the queries of iteration ``it0 + b``
+    (:func:`.sampling.draw_one`), as the host's pool (:func:`tiled_gridpull.solver._optimize`).
+
+    Parameters
+    ----------
+    points : (N, 3) float32
+        Input points (index coordinates, Morton order).
+    order, table_keys, table_starts, table_counts, bits, ox, oy, oz, h, gx, gy, gz
+        The point grid (:class:`tiled_gridpull.nearest.PointGrid`).
+    seed, it0 : int
+        The sampling seed and the level's first iteration.
+    step, sigma : float
+        ``N / Nq`` and the query spread (cells).
+    normal_table : (65536,) float32
+    out : (B, Nq) int32, out
+        Row of the nearest point (ties: the lowest row).
+    """
+    start, stride = cuda.grid(1), cuda.gridsize(1)
+    nq = out.shape[1]
+    for n in range(start, out.shape[0] * nq, stride):
+        b = n // nq
+        i = n - b * nq
+        key = _iteration_key(seed, it0 + b)
+        c, qx, qy, qz = _draw_one(points, key, i, step, sigma, normal_table)
+        best, _ = _grid_nearest_one(points, order, table_keys, table_starts, table_counts, bits, ox, oy, oz, h, gx, gy,
+                                    gz, qx, qy, qz, c)
+        out[b, i] = best
