@@ -209,3 +209,13 @@ def test_a_tiled_job_bridges_alike_whatever_the_tiling_and_welds_across_tiles(tm
         c = m.vertices[m.faces].mean(axis=1)
         inner_area.append(m.face_normals()[1][_between(c)].sum())
     assert abs(inner_area[0] - inner_area[1]) < 0.01 * inner_area[0]
+
+
+def test_unique_rows_is_numpys_unique_by_rows():
+    from tiled_gridpull.bridge import _unique_rows
+
+    rng = np.random.default_rng(4)
+    shape = (7, 300, 33)
+    rows = np.stack([rng.integers(0, s, 5000) for s in shape], axis=1)
+    rows = np.concatenate([rows, rows[:700], [[6, 299, 32], [0, 0, 0]]])
+    assert np.array_equal(_unique_rows(rows, shape), np.unique(rows, axis=0))

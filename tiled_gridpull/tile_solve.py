@@ -54,6 +54,16 @@ def solve_tile(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig, field
     t0 = time.perf_counter()
     reset_peak_rss()
     summary: dict = {"tile": spec.name, "index": list(spec.index), "points": spec.block_points}
+    # where a tile's time goes besides the solve's levels (seconds): on a card the solve is the small part
+    phases: dict = {}
+    summary["phases_s"] = phases
+    mark = [time.perf_counter()]
+
+    def lap(name: str) -> None:
+        now = time.perf_counter()
+        phases[name] = phases.get(name, 0.0) + now - mark[0]
+        mark[0] = now
+
     try:
         stored, sensor32 = read_tile_points(spec)
         xyz = stored.astype(np.float64)
@@ -64,6 +74,7 @@ def solve_tile(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig, field
             summary["duplicates_dropped"] = int(len(xyz) - len(keep))
             xyz = xyz[keep]
             sensor32 = sensor32[keep] if sensor32 is not None else None
+        lap("read")
         if solver.noise.denoise_passes > 0:
             xyz, keep = _denoise(xyz, spec, tiling, solver, summary)
             sensor32 = sensor32[keep] if sensor32 is not None else None
@@ -80,6 +91,7 @@ def solve_tile(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig, field
                 summary["points_thinned"] = int(len(xyz) - len(keep))
                 xyz = xyz[keep]
                 sensor32 = sensor32[keep] if sensor32 is not None else None
+        lap("prepare")
         local = Lattice((0.0, 0.0, 0.0), spec.block.cell_size, spec.block.shape)
         rule = orientation_rule(tiling, sensor32 is not None)
         init = None
@@ -94,7 +106,9 @@ def solve_tile(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig, field
             normals = orient_normals(normals, xyz, sensor32.astype(np.float64) if rule == "sensor" else None,
                                      away_from=away)
             init = lambda band: plane_distance_init(band, xyz / band.lattice.cell_size, normals)  # noqa: E731
+        lap("normals")
         fld = solve(xyz, local, solver, init=init, history_every=100)
+        lap("solve")
         flipped = False
         if normals is not None:
             _, grads = fld.sample(xyz)
@@ -106,9 +120,11 @@ def solve_tile(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig, field
             # with sensor origins the ground in a shadow stays open (nothing lies beyond it as the sensor sees it)
             fld, bridged = bridge_field(fld, xyz, BridgeRule(radius=tiling.bridge), sensor32)
             summary.update(bridged)
+        lap("orient_and_bridge")
         off_bricks = np.asarray(spec.block.offset, np.int64) // BRICK
         field_sha = save_tile_field(field_path, fld.band.brick_coords.astype(np.int64) + off_bricks, fld.values,
                                     fld.band.flags)
+        lap("save")
         hist = fld.info.get("history", [])
         summary.update(status="solved", flipped=flipped, orientation=rule, field_sha256=field_sha,
                        band_params=int(fld.band.n_params), bricks=int(fld.band.n_bricks),
