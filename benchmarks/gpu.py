@@ -283,6 +283,12 @@ def _sidecar(mesh: Path) -> dict:
                 acc["iterations"] = acc.get("iterations", 0) + (x.get("iterations") or 0)
         keep["task_s_per_level"] = per
         keep["solve_task_s"] = sum(t.get("time_s", 0.0) for t in side.get("tile_summaries", []))
+        phases: dict = {}
+        for t in side.get("tile_summaries", []):
+            for k, v in (t.get("phases_s") or {}).items():
+                phases[k] = phases.get(k, 0.0) + v
+        keep["task_s_phases"] = phases
+        keep["mesh_task_s"] = sum(t.get("time_s", 0.0) for t in side.get("mesh_summaries", []))
     if "solve" in side:
         keep["solve_levels"] = [{k: v for k, v in x.items() if k.startswith("time") or k == "iterations"}
                                 for x in side["solve"].get("levels", [])]
@@ -304,27 +310,49 @@ def stage_shape(out: Path, work: Path, devices=("cuda", "cpu")) -> None:
         out_line(out, row)
 
 
-def stage_scene(out: Path, work: Path, name: str, n_points: int, layout: str, devices, workers: int) -> None:
+def stage_scene(out: Path, work: Path, name: str, n_points: int, layout: str, devices, workers: int,
+                repeat: int = 1, one_launch: bool = False) -> None:
+    """The scene tiled on a local Dask cluster on each device; CUDA ``repeat`` times (scored once: a card repeats
+    its mesh bit for bit, which the repeats check), and with ``one_launch`` once more with one launch per level
+    (its mesh compared byte for byte with the per-step launches')."""
     d = work / name
     if not (d / "street.laz").exists():
         t = time.perf_counter()
         subprocess.run([*CLI, "sample", "street", str(d), "--points", str(n_points), "--layout", layout,
                         "--origin", "500000", "4000000", "100", "-q"], check=True)
         out_line(out, {"stage": name, "sample_s": time.perf_counter() - t})
+    runs = []
     for dev in devices:
-        mesh = d / f"mesh_{dev}.ply"
+        runs += [(dev, False, i) for i in range(repeat if dev == "cuda" else 1)]
+        if dev == "cuda" and one_launch:
+            runs.append((dev, True, 0))
+    first_sha: dict = {}
+    for dev, one, i in runs:
+        mesh = d / f"mesh_{dev}{'_one' if one else ''}.ply"
         shutil.rmtree(mesh.with_suffix(".job"), ignore_errors=True)
-        wall = _cli(["reconstruct", str(d / "street.laz"), "-o", str(mesh), "--config",
-                     str(REPO / "configs" / "scene.yaml"), "--device", dev, "--workers", str(workers), "-q",
-                     "--overwrite"])
+        env = dict(os.environ)
+        if one:
+            from tiled_gridpull.solver_cuda import ONE_LAUNCH_ENV
+
+            env[ONE_LAUNCH_ENV] = "1"
+        t = time.perf_counter()
+        subprocess.run([*CLI, "reconstruct", str(d / "street.laz"), "-o", str(mesh), "--config",
+                        str(REPO / "configs" / "scene.yaml"), "--device", dev, "--workers", str(workers), "-q",
+                        "--overwrite"], check=True, env=env)
+        wall = time.perf_counter() - t
+        sha = hashlib.sha256(mesh.read_bytes()).hexdigest()
         row = {"stage": name, "device": dev, "points": n_points, "workers": workers, "wall_s": wall,
-               **_sidecar(mesh)}
-        try:
-            row.update(_sampled_scores(mesh, d / "street_gt.ply", d / "street.laz"))
-        except Exception as exc:  # the timings are worth keeping without the scores
-            row["score_error"] = f"{type(exc).__name__}: {exc}"[:500]
+               "one_launch": one, "repeat": i, "mesh_sha256": sha, **_sidecar(mesh)}
+        if dev in first_sha:
+            row["same_mesh_as_first"] = sha == first_sha[dev]
+        else:
+            first_sha[dev] = sha
+            try:
+                row.update(_sampled_scores(mesh, d / "street_gt.ply", d / "street.laz"))
+            except Exception as exc:  # the timings are worth keeping without the scores
+                row["score_error"] = f"{type(exc).__name__}: {exc}"[:500]
         out_line(out, row)
-        shutil.copy(mesh.with_suffix(".json"), out.parent / f"{name}_{dev}_sidecar.json")
+        shutil.copy(mesh.with_suffix(".json"), out.parent / f"{name}_{dev}{'_one' if one else ''}_{i}_sidecar.json")
 
 
 def main(argv=None) -> int:
@@ -335,6 +363,8 @@ def main(argv=None) -> int:
     ap.add_argument("--budget", type=float, default=1e9, help="skip stages that start after this many seconds")
     ap.add_argument("--workers", type=int, default=os.cpu_count())
     ap.add_argument("--scene-devices", default="cuda", help="devices of the scene stages, comma-separated")
+    ap.add_argument("--repeat", type=int, default=1, help="CUDA runs of each scene (timing medians)")
+    ap.add_argument("--one-launch", action="store_true", help="each scene once more with one launch per level")
     ap.add_argument("--small", action="store_true", help="tiny sizes: a smoke test of the script (the simulator)")
     a = ap.parse_args(argv)
     stages = ["env", "agree", "step", "shape", "wide", "street"] if "all" in a.stages else a.stages
@@ -358,9 +388,10 @@ def main(argv=None) -> int:
             elif st == "warm":
                 stage_scene(a.out, a.work, "warm", 20_000, "street", devices[:1], a.workers)
             elif st == "wide":
-                stage_scene(a.out, a.work, "wide", 1_000_000, "grid", devices, a.workers)
+                stage_scene(a.out, a.work, "wide", 1_000_000, "grid", devices, a.workers, a.repeat, a.one_launch)
             elif st == "street":
-                stage_scene(a.out, a.work, "street", 14_000_000, "street", devices, a.workers)
+                stage_scene(a.out, a.work, "street", 14_000_000, "street", devices, a.workers, a.repeat,
+                            a.one_launch)
         except Exception as exc:  # one stage's failure must not lose the others' figures
             out_line(a.out, {"stage": st, "error": f"{type(exc).__name__}: {exc}"[:2000]})
     return 0
@@ -394,6 +425,8 @@ def table(rows: list[dict]) -> str:
         dev = r["device"] if isinstance(r["device"], str) else (r["device"] or {}).get("device")
         if dev is None and r.get("devices"):
             dev = ", ".join(r["devices"])
+        if r.get("one_launch"):
+            dev += ", one launch per level"
         if "task_s_per_level" in r:
             per = " / ".join(f"{v['time_solve_s']:.0f}" for _, v in sorted(r["task_s_per_level"].items()))
             task = f"{r['solve_task_s']:.0f}"
@@ -405,6 +438,18 @@ def table(rows: list[dict]) -> str:
         lines.append(f"| {name} | {dev} | {r.get('run', 0)} | {r['wall_s']:.1f} | {task} | {per} | "
                      f"{r.get('chamfer_l1_sampled', float('nan')):.4g} | {'' if f is None else f'{f:.3f}'} | "
                      f"{r.get('normal_consistency_sampled', float('nan')):.4f} |")
+    phased = [r for r in rows if r.get("task_s_phases")]
+    if phased:
+        names = ("read", "normals", "solve", "orient_and_bridge", "save")
+        lines += ["", "| where the tile tasks' time goes (task-s, summed over tiles) | device | run | "
+                  + " | ".join(names) + " | solve: nearest-point pool | mesh tasks |",
+                  "|---|---|---|" + "---|" * (len(names) + 2)]
+        for r in phased:
+            dev = r["device"] if isinstance(r["device"], str) else ", ".join(r.get("devices") or {})
+            pool = sum(v.get("time_query_pool_s", 0.0) for v in r["task_s_per_level"].values())
+            lines.append(f"| {r['stage']} | {dev}{', one launch' if r.get('one_launch') else ''} | {r.get('run', 0)} | "
+                         + " | ".join(f"{r['task_s_phases'].get(n, 0.0):.0f}" for n in names)
+                         + f" | {pool:.0f} | {r.get('mesh_task_s', 0.0):.0f} |")
     agree = [r for r in rows if r["stage"] == "agree" and "error" not in r]
     if agree:
         lines += ["", "| agreement (20k-point sphere) | run | near-surface field mean / max diff (cells) | "
