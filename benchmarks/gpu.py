@@ -435,9 +435,13 @@ def table(rows: list[dict]) -> str:
             task = f"{(r.get('timings_s') or {}).get('solve', 0):.1f}"
         name = {"shape": "torus 100k, R = 256", "wide": "grid of streets 1M, 0.1 m", "street": "street 14M"}[r["stage"]]
         f = r.get("fscore_sampled@0.1")
-        lines.append(f"| {name} | {dev} | {r.get('run', 0)} | {r['wall_s']:.1f} | {task} | {per} | "
-                     f"{r.get('chamfer_l1_sampled', float('nan')):.4g} | {'' if f is None else f'{f:.3f}'} | "
-                     f"{r.get('normal_consistency_sampled', float('nan')):.4f} |")
+        if "chamfer_l1_sampled" not in r and r.get("same_mesh_as_first") is not None:
+            same = "same mesh bytes as the run's first" if r["same_mesh_as_first"] else "mesh differs from the first"
+            scores = f"{same} | | "
+        else:
+            scores = (f"{r.get('chamfer_l1_sampled', float('nan')):.4g} | {'' if f is None else f'{f:.3f}'} | "
+                      f"{r.get('normal_consistency_sampled', float('nan')):.4f}")
+        lines.append(f"| {name} | {dev} | {r.get('run', 0)} | {r['wall_s']:.1f} | {task} | {per} | {scores} |")
     phased = [r for r in rows if r.get("task_s_phases")]
     if phased:
         names = ("read", "normals", "solve", "orient_and_bridge", "save")

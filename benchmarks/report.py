@@ -460,8 +460,9 @@ def main() -> None:
         from benchmarks import gpu as gpu_bench
 
         parts += ["## GPU (`benchmarks/gpu.py`)", "",
-                  "One NVIDIA H200 and its machine's 16 cores, 2026-11-26, two sessions' device time: runs 1-2 in "
-                  "the first, 3-4 in the second (each figure is one run unless several runs are listed). Run 1: "
+                  "One NVIDIA H200 and its machine's 16 cores, 2026-11-26, three sessions' device time: runs 1-2 in "
+                  "the first, 3-4 in the second, 5-6 in the third (each figure is one run unless several runs are "
+                  "listed). Run 1: "
                   "one launch per iteration and kernel; run 2: the fused step stopped rewriting the query "
                   "accumulator of slots no query reached (3.4x on the step), the opt-in one-launch-per-level "
                   "kernel tried first and falling back (no cooperative grid for 512-thread blocks; its compile is "
@@ -487,7 +488,22 @@ def main() -> None:
                   "our 2-core machine; target 20 s); the 100k torus at R = 256 in 6.2 s (target 2 s: the solve is "
                   "2.7 s, marching cubes 1.1 s, the rest Python start-up and I/O). On the card a tile's time goes "
                   "to the CPU: in the street's finest level the nearest-point pools take 75 of 83 task-seconds, "
-                  "the card's iterations 2.5; 16 worker processes share the card, each with its own context.", ""]
+                  "the card's iterations 2.5; 16 worker processes share the card, each with its own context.", "",
+                  "Runs 5-6 (third session): the query pool's nearest points are found on the card (a hashed point "
+                  "grid, one thread per query) instead of by the CPU's KD-tree, and bridging no longer sorts rows "
+                  "with `np.unique(axis=0)` (3x less bridging time, same fields); tile tasks record where their "
+                  "time goes (the phase table). The nearest-point pools fell from 114 to 13 task-s on the street "
+                  "and from 102 to 8 on the grid of streets. End to end: the 14M-point street in 60.3 and 59.4 s "
+                  "(14-15 s of it reading and partitioning; normals are now the largest share of its tile time, "
+                  "156 task-s); the grid of streets in 50.3 and 46.0 s on the card against 186.6 s on the 16 "
+                  "cores (run 6, a fresh machine; sampled CD-L1 0.1544 m against the card's 0.1545 m); the torus "
+                  "in 5.4 s (solve 1.9 s). "
+                  "Both scenes repeated their meshes byte for byte. One launch per level, timed on scene tiles "
+                  "for the first time, is slower there (60.8 against 46-50 s, 71.2 against 59-60 s; likely because "
+                  "each of the 16 processes' cooperative launches holds the whole card in turn) though 2.7x "
+                  "faster on the lone sphere "
+                  "(0.19 against 0.52 s): it stays opt-in. Rows without scores repeat the run's first mesh byte "
+                  "for byte (same scores).", ""]
     estimates_table = estimate.render(load("estimates"))
     if estimates_table:
         parts += ["## The dry run's time estimate against finished jobs (`benchmarks/estimate.py`)", "",
