@@ -11,10 +11,12 @@ os.environ.setdefault("NUMBA_ENABLE_CUDASIM", "1")
 if os.environ["NUMBA_ENABLE_CUDASIM"] == "1":
     import sys
 
-    # The simulator runs each CUDA thread as a Python thread while the launching thread polls them in a busy loop
-    # that keeps the GIL for a whole switch interval (5 ms by default): a 6-iteration solve took 273 s. At 0.1 ms
-    # the same solve takes 28 s; threaded tests elsewhere (Dask) only switch more often.
-    sys.setswitchinterval(1e-4)
+    from tiled_gridpull.device import SIMULATOR_SWITCH_INTERVAL
+
+    # the simulator's launching thread busy-polls its threads holding the GIL a whole switch interval (5 ms by
+    # default): tiled_gridpull.device.cuda_module shortens it where the package launches (a CLI in a subprocess
+    # too), this for the tests that reach the simulator another way first
+    sys.setswitchinterval(SIMULATOR_SWITCH_INTERVAL)
 
 import numpy as np
 import pytest

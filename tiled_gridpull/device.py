@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import functools
 import os
+import sys
 from types import ModuleType
 
 from .errors import ConfigError, MissingDependencyError
@@ -76,6 +77,10 @@ def driver_present() -> bool:
     return False
 
 
+#: The interpreter's switch interval (s) while numba's CUDA simulator is on (see :func:`cuda_module`)
+SIMULATOR_SWITCH_INTERVAL = 1e-4
+
+
 def cuda_module() -> ModuleType:
     """:mod:`tiled_gridpull.kernels.cuda`, imported once numba-cuda is importable; one-line error without it."""
     try:
@@ -85,6 +90,11 @@ def cuda_module() -> ModuleType:
                                      f"{exc}") from None
     from .kernels import cuda as kernels
 
+    if os.environ.get("NUMBA_ENABLE_CUDASIM") == "1" and sys.getswitchinterval() > SIMULATOR_SWITCH_INTERVAL:
+        # The simulator runs each CUDA thread as a Python thread while the launching thread polls them in a busy
+        # loop that keeps the GIL for a whole switch interval (5 ms by default): a 6-iteration solve took 273 s,
+        # 28 s at 0.1 ms. Here, not in the tests' conftest alone, so that a CLI run in a subprocess gets it too.
+        sys.setswitchinterval(SIMULATOR_SWITCH_INTERVAL)
     return kernels
 
 
