@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from tiled_gridpull.band import build_band
-from tiled_gridpull.bridge import BRIDGE, BridgeRule, bridge_field, bridged_cells
+from tiled_gridpull.bridge import BRIDGE, BridgeRule, bridge_field, bridged_cells, unique_rows
 from tiled_gridpull.field import Field
 from tiled_gridpull.isosurface import extract_mesh
 from tiled_gridpull.kernels import CELL_OPT, PARAM
@@ -49,6 +49,15 @@ def _mesh(fld: Field, points: np.ndarray, bridge: bool):
     if bridge:
         keep = bridged_cells(fld, np.floor(mesh.vertices[mesh.faces].mean(axis=1) / CELL).astype(np.int64))
     return trim_faces(mesh, None, points, 3 * CELL, keep=keep)[0]
+
+
+@pytest.mark.parametrize("n, lo, hi", [(0, 0, 1), (1, 5, 6), (50, -1, 3), (20000, -1, 300), (7, -(1 << 40), 1 << 40)])
+def test_unique_rows_is_numpys_unique_over_rows(n, lo, hi):
+    # the bridge's bricks come in this order (it fixes the field file's bytes): the same rows, the same order
+    rows = np.random.default_rng(n).integers(lo, hi, (n, 3))
+    got = unique_rows(rows)
+    assert got.dtype == np.int64 and got.shape[1] == 3
+    np.testing.assert_array_equal(got, np.unique(rows, axis=0).reshape(-1, 3))
 
 
 def test_scan_lines_farther_apart_than_the_band_are_bridged_onto_their_plane():
@@ -210,12 +219,3 @@ def test_a_tiled_job_bridges_alike_whatever_the_tiling_and_welds_across_tiles(tm
         inner_area.append(m.face_normals()[1][_between(c)].sum())
     assert abs(inner_area[0] - inner_area[1]) < 0.01 * inner_area[0]
 
-
-def test_unique_rows_is_numpys_unique_by_rows():
-    from tiled_gridpull.bridge import _unique_rows
-
-    rng = np.random.default_rng(4)
-    shape = (7, 300, 33)
-    rows = np.stack([rng.integers(0, s, 5000) for s in shape], axis=1)
-    rows = np.concatenate([rows, rows[:700], [[6, 299, 32], [0, 0, 0]]])
-    assert np.array_equal(_unique_rows(rows, shape), np.unique(rows, axis=0))

@@ -113,6 +113,45 @@ def _opened(mask: np.ndarray, width: int) -> np.ndarray:
     return out
 
 
+def unique_rows(rows: np.ndarray) -> np.ndarray:
+    """The distinct rows of an integer array, sorted lexicographically: ``np.unique(rows, axis=0)``, the same
+    array, several times faster.
+
+    ``np.unique(axis=0)`` sorts the rows as structured records, compared field by field; on the 8 corners of
+    every bridged vertex of a dense tile (millions of rows) that was 16 % of the demo's densest tile. Each row
+    is packed into one int64 instead (its columns shifted to start at 0, mixed radix), whose order is the rows'
+    lexicographic order, and unpacked after a plain 1-D sort.
+
+    Parameters
+    ----------
+    rows : (M, 3) integer
+        Any values whose ranges' product fits in an int64 (lattice indices of a tile, negative ones included).
+
+    Returns
+    -------
+    (K, 3) int64
+        Sorted by column 0, then 1, then 2.
+    """
+    rows = np.asarray(rows, np.int64)
+    if len(rows) == 0:
+        return np.empty((0, rows.shape[1]), np.int64)
+    lo = rows.min(axis=0)
+    span = rows.max(axis=0) - lo + 1
+    if np.prod(span.astype(np.float64)) >= 2.0 ** 62:  # would overflow: the slow path
+        return np.unique(rows, axis=0)
+    key = rows[:, 0] - lo[0]
+    for c in range(1, rows.shape[1]):
+        key = key * span[c] + (rows[:, c] - lo[c])
+    # sorted and compared by hand: numpy 2.4's np.unique took 60x a plain sort on 2M int64 keys (7.4 s vs 0.11 s)
+    key = np.sort(key)
+    key = key[np.r_[True, key[1:] != key[:-1]]]
+    out = np.empty((len(key), rows.shape[1]), np.int64)
+    for c in range(rows.shape[1] - 1, 0, -1):
+        key, out[:, c] = np.divmod(key, span[c])
+    out[:, 0] = key
+    return out + lo
+
+
 def bridged_cells(fld: Field, cells: np.ndarray) -> np.ndarray:
     """Whether each cell (M, 3) int (lowest corner, block index) carries the ``BRIDGE`` flag."""
     slot = vertex_slots(fld.band.brick_table, cells)
@@ -120,17 +159,6 @@ def bridged_cells(fld: Field, cells: np.ndarray) -> np.ndarray:
     out = np.zeros(len(slot), bool)
     out[ok] = (fld.band.flags.reshape(-1)[slot[ok]] & BRIDGE) != 0
     return out
-
-
-def _unique_rows(rows: np.ndarray, shape) -> np.ndarray:
-    """``np.unique(rows, axis=0)`` of (n, 3) integer rows within ``[0, shape)``, through one int64 key per row.
-
-    The same rows in the same (lexicographic) order; ``np.unique`` with ``axis`` sorts a structured view instead,
-    which took 9 of a wide-scene tile's 13 s of bridging."""
-    sy, sz = int(shape[1]), int(shape[2])
-    rows = np.asarray(rows, np.int64)
-    u = np.unique((rows[:, 0] * sy + rows[:, 1]) * sz + rows[:, 2])
-    return np.stack([u // (sy * sz), (u // sz) % sy, u % sz], axis=1)
 
 
 def bridge_field(fld: Field, points: np.ndarray, rule: BridgeRule,
@@ -202,8 +230,8 @@ def bridge_field(fld: Field, points: np.ndarray, rule: BridgeRule,
 
     # bricks: the band's, then those only the bridge reaches
     coords = band.brick_coords.astype(np.int64)
+    need = unique_rows(verts // BRICK)
     bshape = band.brick_table.shape
-    need = _unique_rows(verts // BRICK, bshape)
     have = band.brick_table[need[:, 0], need[:, 1], need[:, 2]] >= 0
     new = need[~have]
     coords = np.concatenate([coords, new]) if len(new) else coords
@@ -224,9 +252,8 @@ def bridge_field(fld: Field, points: np.ndarray, rule: BridgeRule,
 
     # cells touching a bridged vertex: optimised when all 8 corners are parameters, bridged when all 8 are bridged
     corner = np.indices((2, 2, 2)).reshape(3, -1).T
-    cand = (verts[:, None, :] - corner[None]).reshape(-1, 3)
-    cand = _unique_rows(cand[np.all((cand >= 0) & (cand < np.asarray([X - 1, Y - 1, Z - 1])), axis=1)],
-                        (X - 1, Y - 1, Z - 1))
+    cand = unique_rows((verts[:, None, :] - corner[None]).reshape(-1, 3))
+    cand = cand[np.all((cand >= 0) & (cand < np.asarray([X - 1, Y - 1, Z - 1])), axis=1)]
     cs = np.stack([vertex_slots(table, cand + c) for c in corner], axis=1)
     present = np.all(cs >= 0, axis=1)
     cand, cs = cand[present], cs[present]

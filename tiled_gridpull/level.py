@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -93,8 +94,10 @@ class LevelRun:
     def sqrt_tv(self) -> bool:
         return self.st.tv_form == "sqrt"
 
-    @property
+    @cached_property
     def n_params(self) -> int:
+        """The band's parameter count (at least 1), counted once: the band does not change during the level, and
+        counting its flags at every iteration (for :attr:`tv_scale`) was 1.3 % of a dense tile's solve."""
         return max(self.band.n_params, 1)
 
     @property
