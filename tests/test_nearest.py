@@ -159,3 +159,21 @@ def test_point_grid_sizes_its_cell_to_the_points_and_refuses_bad_input():
         PointGrid.build(np.zeros((0, 3), np.float32), 1.0)
     with pytest.raises(ValueError, match="positive cell"):
         PointGrid.build(P, 0.0)
+
+
+def test_point_grid_cell_keys_do_not_overflow_for_fine_cells_over_a_wide_cloud():
+    """Clusters 1e5 apart in cells of 0.01: 1e7 cells an axis, whose product (1e21) would wrap the int64 cell keys
+    (negative keys read as empty hash slots, dropping cells): the search must stay exact."""
+    from tiled_gridpull.nearest import PointGrid
+
+    rng = np.random.default_rng(0)
+    cen = rng.uniform(0, 1e5, (50, 3))
+    P = (cen[:, None, :] + rng.normal(0, 0.01, (50, 40, 3))).reshape(-1, 3).astype(np.float32)
+    q = (P[rng.integers(0, len(P), 3000)] + rng.normal(0, 0.01, (3000, 3))).astype(np.float32)
+    d_ref = KDTree(P).query(q, k=1)[0]
+    for cell in (0.01, 0.02):
+        grid = PointGrid.build(P, cell)
+        assert np.all(grid.table_keys >= -1)
+        assert np.prod(grid.dims.astype(np.float64)) < 2.0 ** 62
+        _, d = grid.query(P, q, rng.integers(0, len(P), len(q)))
+        assert np.abs(d - d_ref).max() < 1e-4

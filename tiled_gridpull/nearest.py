@@ -225,13 +225,17 @@ class PointGrid:
 
     @classmethod
     def build(cls, points: np.ndarray, cell: float) -> PointGrid:
-        """Bucket ``points`` ((N, 3) float32, N >= 1) in cells of edge ``cell`` (> 0, same units)."""
+        """Bucket ``points`` ((N, 3) float32, N >= 1) in cells of edge ``cell`` (> 0, same units; raised to a
+        2^-20th of the cloud's extent where it is finer, so that the cell keys fit an int64)."""
         P = np.asarray(points, dtype=np.float32)
         if P.ndim != 2 or P.shape[1] != 3 or len(P) == 0:
             raise ValueError(f"PointGrid needs an (N, 3) array of at least one point, got shape {P.shape}")
         if not cell > 0:
             raise ValueError(f"PointGrid needs a positive cell edge, got {cell}")
         lo = P.min(axis=0).astype(np.float64)
+        # at most 2^20 + 1 cells an axis, so the cell keys (the dims' product, < 2^61) stay positive int64s: a
+        # wrapped, negative key reads as an empty slot and drops its cell (any edge keeps the search exact)
+        cell = max(float(cell), float((P.max(axis=0) - lo).max()) / 2.0 ** 20)
         ijk = np.floor((P - lo) / cell).astype(np.int64)
         dims = ijk.max(axis=0) + 1
         keys = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
