@@ -159,6 +159,10 @@ def test_point_grid_sizes_its_cell_to_the_points_and_refuses_bad_input():
         PointGrid.build(np.zeros((0, 3), np.float32), 1.0)
     with pytest.raises(ValueError, match="positive cell"):
         PointGrid.build(P, 0.0)
+    g = PointGrid.build(P, 1.0)
+    for bad in (np.nan, np.inf):
+        with pytest.raises(ValueError, match="finite queries"):
+            g.query(P, np.array([[bad, 0, 0]], np.float32), np.zeros(1, np.int64))
 
 
 def test_point_grid_cell_keys_do_not_overflow_for_fine_cells_over_a_wide_cloud():

@@ -291,6 +291,9 @@ class PointGrid:
         dist : (Nq,) float64
         """
         q = np.ascontiguousarray(q, dtype=np.float32)
+        if not np.isfinite(q).all():
+            # a NaN or inf query would walk shells without end
+            raise ValueError("PointGrid.query needs finite queries")
         idx = np.empty(len(q), np.int64)
         d2 = np.empty(len(q), np.float64)
         knn_kernels.nearest_on_grid(np.ascontiguousarray(points, dtype=np.float32), *self.arrays, self.origin,
