@@ -14,9 +14,10 @@ from .band import Band
 from .config import LevelSchedule, SolverConfig
 from .field import Field
 from .kernels import interp as ki
+from .kernels import sampling as ksamp
 from .nearest import NearestPoints
 
-__all__ = ["LevelRun", "upsample", "ADAM_BETA1", "ADAM_BETA2", "ADAM_EPS"]
+__all__ = ["LevelRun", "pool_rows", "upsample", "ADAM_BETA1", "ADAM_BETA2", "ADAM_EPS"]
 
 ADAM_BETA1, ADAM_BETA2, ADAM_EPS = 0.9, 0.999, 1e-8
 
@@ -37,6 +38,38 @@ def upsample(coarse: Field, band: Band, factor: int = 2, fill: float = 1e3) -> n
                            np.asarray(coarse.band.lattice.shape, np.int64), pos, np.float32(fill / factor))
     # the kernel clamps to the lattice: positions beyond it (slots past the fine block's edge) are never used
     return (f * np.float32(factor)).reshape(band.n_bricks, 512)
+
+
+def pool_rows(P: np.ndarray, seed: int, it0: int, pool: int, nq: int, sigma: np.float32,
+              nearest: Callable[[np.ndarray, np.ndarray], np.ndarray]) -> np.ndarray:
+    """The query pool's nearest points, found on the host: batch ``b`` holds the ``nq`` queries of iteration
+    ``it0 + b`` (:func:`~tiled_gridpull.kernels.sampling.draw_queries`).
+
+    The pool keeps only the rows (4 bytes a query): a batch's queries are re-drawn from the counter-based RNG each
+    time it comes round (0.2 ms).
+
+    Parameters
+    ----------
+    P : (N, 3) float32
+        The level's points (index coordinates, Morton order).
+    seed, it0, pool, nq : int
+    sigma : float32
+        Query spread (cells).
+    nearest : callable
+        ``nearest(q, centres)``: the row of each query's nearest point, (Nq,) int, for queries (Nq, 3) float32
+        drawn around rows ``centres`` (Nq,) int64.
+
+    Returns
+    -------
+    (pool, nq) int32
+    """
+    centres = np.empty(nq, np.int64)
+    q = np.empty((nq, 3), np.float32)
+    rows = np.empty((pool, nq), np.int32)
+    for b in range(pool):
+        ksamp.draw_queries(P, seed, it0 + b, sigma, centres, q)
+        rows[b] = nearest(q, centres)
+    return rows
 
 
 @dataclass(eq=False)

@@ -29,7 +29,7 @@ from .kernels import losses as kl
 from .kernels import sampling as ksamp
 from .kernels import step as ks
 from .lattice import Lattice
-from .level import ADAM_BETA1, ADAM_BETA2, ADAM_EPS, LevelRun, upsample
+from .level import ADAM_BETA1, ADAM_BETA2, ADAM_EPS, LevelRun, pool_rows, upsample
 from .nearest import NearestPoints
 
 __all__ = ["solve", "sphere_init", "upsample", "ProgressFn", "InitFn", "CpuBackend", "backend_for"]
@@ -325,25 +325,17 @@ def _optimize(P: np.ndarray, N: np.ndarray | None, band: Band, values: np.ndarra
     sigma = np.float32(st.sigma)
     pool = st.query_pool
     nq = st.queries
-    nn = None
-    pool_nn = None
-    tp = time.perf_counter()
     if pool and backend.finds_nearest:
         # the card draws the pool's queries and searches a point grid itself: no tree, nothing copied back
+        nn = None
+        tp = time.perf_counter()
         pool_nn, nn_info = backend.nearest_pool(P, cfg.sampling.seed, it0, pool, nq, sigma)
     else:
         nn = NearestPoints(P, cfg.sampling.knn, sigma=float(sigma),
                            expected_queries=st.queries * (pool if pool else st.iterations))
         tp = time.perf_counter()
-    if pool and nn is not None:
-        # nearest points found once per batch; the batch's queries are re-drawn from the counter-based RNG each
-        # time it comes round (0.2 ms), so the pool holds 4 bytes per query
-        centres = np.empty(nq, np.int64)
-        q = np.empty((nq, 3), np.float32)
-        pool_nn = np.empty((pool, nq), np.int32)
-        for b in range(pool):
-            ksamp.draw_queries(P, cfg.sampling.seed, it0 + b, sigma, centres, q)
-            pool_nn[b] = nn.query(q, centres)[0]
+        pool_nn = (pool_rows(P, cfg.sampling.seed, it0, pool, nq, sigma, lambda q, c: nn.query(q, c)[0])
+                   if pool else None)
     t_pool = time.perf_counter() - tp
     run = LevelRun(P=P, normals=N if N is not None else np.zeros((0, 3), np.float32), band=band,
                    values=values, cfg=cfg, st=st, nn=nn, pool_nn=pool_nn, progress=progress,

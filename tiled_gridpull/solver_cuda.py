@@ -26,7 +26,7 @@ from .errors import GridPullError, MemoryBudgetError
 from .field import Field
 from .kernels import CELL_PULL
 from .kernels import sampling as ksamp
-from .level import ADAM_BETA1, ADAM_BETA2, ADAM_EPS, LevelRun, upsample
+from .level import ADAM_BETA1, ADAM_BETA2, ADAM_EPS, LevelRun, pool_rows, upsample
 from .nearest import PointGrid
 
 __all__ = ["CudaBackend", "ONE_LAUNCH_ENV"]
@@ -96,7 +96,7 @@ class CudaBackend:
         -------
         pool_nn : (pool, nq) int32 device array
         info : dict
-            ``nn_queries``, ``nn_grid_cell`` (the grid's cell edge, cells) and ``nn_device`` for the level's info.
+            ``nn_queries`` and ``nn_grid_cell`` (the grid's cell edge, cells) for the level's info.
         """
         with _card_errors(f"the nearest points of {pool * nq:,} queries"):
             grid = PointGrid.for_queries(P, float(sigma))
@@ -106,13 +106,7 @@ class CudaBackend:
                 # the simulated search costs ~13 ms a query in Python threads (a 6-iteration test solve: 24 s of
                 # 44): the simulator takes the same rows from the search's CPU twin, and the kernel itself is
                 # tested against that twin (tests/test_cuda_kernels.py)
-                centres = np.empty(nq, np.int64)
-                q = np.empty((nq, 3), np.float32)
-                rows = np.empty((pool, nq), np.int32)
-                for b in range(pool):
-                    ksamp.draw_queries(P, seed, it0 + b, sigma, centres, q)
-                    rows[b] = grid.query(P, q, centres)[0]
-                out.copy_to_device(rows)
+                out.copy_to_device(pool_rows(P, seed, it0, pool, nq, sigma, lambda q, c: grid.query(P, q, c)[0]))
             else:
                 blocks, threads = self._grid(pool * nq, NEAREST_BLOCK)
                 ox, oy, oz = (float(v) for v in grid.origin)
@@ -122,7 +116,7 @@ class CudaBackend:
                                                      oz, grid.cell, gx, gy, gz, int(seed), int(it0), P.shape[0] / nq,
                                                      sigma, self._normal_table(), out)
                 self.cuda.synchronize()  # so the level's pool time is the card's
-        return out, {"nn_queries": pool * nq, "nn_grid_cell": grid.cell, "nn_device": True}
+        return out, {"nn_queries": pool * nq, "nn_grid_cell": grid.cell}
 
     def _level_in_one_launch(self, run: LevelRun, d_a, d_b, m, v, acc, inv, common, pool, step, sigma, form, tv_scale,
                              counts, loss_sums, tv_sums):
