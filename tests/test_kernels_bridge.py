@@ -1,8 +1,11 @@
 """The bridge's column kernel: which lattice columns a ground gap closes over, and at what height."""
 
-import numpy as np
+import math
 
-from tiled_gridpull.kernels.bridge import bin_ground, bin_sensor, fit_columns
+import numpy as np
+from numba import njit
+
+from tiled_gridpull.kernels.bridge import SECTORS, bin_ground, bin_sensor, fit_columns, sector_of
 
 PIXEL = 2.0
 ARGS = dict(radius=24.0, skip=2.0, max_gap=4, rms_tol=0.25, step_tol=1.5, max_slope=0.6)
@@ -191,3 +194,33 @@ def test_two_tiles_decide_the_columns_they_share_alike_with_the_sensor_known():
     in_shadow = (np.abs(x - 65.0) < 3.0).ravel() & (y.ravel() > 40.0)
     assert ok.mean() > 0.25 and not ok[in_shadow].any() and ok[~in_shadow].mean() > 0.3
     np.testing.assert_allclose(a[ok], b[ok], rtol=0, atol=1e-9)
+
+
+@njit(cache=True)
+def _sectors(dx, dy):
+    out = np.empty(dx.shape[0], np.int64)
+    for n in range(dx.shape[0]):
+        out[n] = sector_of(dx[n], dy[n])
+    return out
+
+
+def test_sector_of_gives_the_atan2_formulas_sector_everywhere_and_on_the_edges():
+    rng = np.random.default_rng(7)
+    # random directions at several scales, the axes and the 30 / 60 degree edges (both signs of zero), and offsets
+    # a few ulps off an edge
+    r = 10.0 ** rng.uniform(-6, 3, 20000)
+    a = rng.uniform(-math.pi, math.pi, 20000)
+    dx, dy = [r * np.cos(a)], [r * np.sin(a)]
+    edges = np.radians(np.arange(-180, 181, 30, dtype=np.float64))
+    for rr in (1e-3, 1.0, 7.3, 1e3):
+        ex, ey = rr * np.cos(edges), rr * np.sin(edges)
+        dx += [ex, np.nextafter(ex, np.inf), np.nextafter(ex, -np.inf), ex]
+        dy += [ey, ey, ey, np.nextafter(ey, np.inf)]
+    dx += [np.array([1.0, -1.0, 0.0, 0.0, 1.0, -1.0, 0.0, -0.0])]
+    dy += [np.array([0.0, 0.0, 1.0, -1.0, -0.0, -0.0, 0.0, -1.0])]
+    dx, dy = np.concatenate(dx), np.concatenate(dy)
+    expected = np.array([int((math.atan2(y, x) + math.pi) / (2.0 * math.pi) * SECTORS) % SECTORS
+                         for x, y in zip(dx, dy)])
+    got = _sectors(dx, dy)
+    assert np.array_equal(got, expected), np.flatnonzero(got != expected)[:10]
+    assert set(np.unique(got)) == set(range(SECTORS))

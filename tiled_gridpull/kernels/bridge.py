@@ -116,6 +116,32 @@ def bin_sensor(x, y, z, sx, sy, sz, pixel, nx, ny, layer):
     return sensor
 
 
+_ROOT3 = math.sqrt(3.0)
+
+
+@njit(cache=True, inline="always")
+def sector_of(dx, dy):
+    """Which of the ``SECTORS`` 30-degree sectors the offset ``(dx, dy)`` points into: ``floor((atan2(dy, dx) + pi)
+    / (2 pi) * SECTORS) mod SECTORS``.
+
+    Decided by comparing ``|dy|`` with ``|dx| tan 30`` and ``|dx| tan 60``, which costs a few multiplies where
+    ``atan2`` was most of :func:`fit_columns`' time; offsets within a relative 1e-9 of a sector's edge (on an
+    axis, or at 30 / 60 degrees from one) take the ``atan2`` formula itself, so every offset gets the sector that
+    formula gives.
+    """
+    ax = abs(dx)
+    ay = abs(dy)
+    e30 = ay * _ROOT3 - ax  # < 0: less than 30 degrees from the x axis
+    e60 = ay - ax * _ROOT3  # < 0: less than 60 degrees
+    tol = 1e-9 * (ax + ay)
+    if ax <= tol or ay <= tol or abs(e30) <= tol or abs(e60) <= tol:
+        return int((math.atan2(dy, dx) + math.pi) / (2.0 * math.pi) * SECTORS) % SECTORS
+    w = 0 if e30 < 0.0 else (1 if e60 < 0.0 else 2)
+    if dx > 0.0:
+        return 6 + w if dy > 0.0 else 5 - w
+    return 11 - w if dy > 0.0 else w
+
+
 @njit(cache=True, parallel=True)
 def fit_columns(rep, pixel, cols, radius, skip, max_gap, rms_tol, step_tol, max_slope, sensor, far_cos):
     """Bridged height of each lattice column, or NaN where it is not bridged.
@@ -159,6 +185,7 @@ def fit_columns(rep, pixel, cols, radius, skip, max_gap, rms_tol, step_tol, max_
     out = np.full((m, 3), np.nan)
     reach = int(math.ceil(radius / pixel)) + 1
     r2 = radius * radius
+    cull2 = (radius + 1e-6) ** 2
     cap = (2 * reach + 1) * (2 * reach + 1)
     # the beyond test's cone: half-width over length (far_cos < 1 only)
     slope = math.sqrt(max(1.0 - far_cos * far_cos, 0.0)) / far_cos if far_cos < 1.0 else 0.0
@@ -166,14 +193,21 @@ def fit_columns(rep, pixel, cols, radius, skip, max_gap, rms_tol, step_tol, max_
         cx, cy = cols[c, 0], cols[c, 1]
         ic = int(math.floor(cx / pixel))
         jc = int(math.floor(cy / pixel))
-        # the representatives within reach, gathered once (offsets from the column, height, squared distance)
-        nb = np.empty((cap, 4))
+        # the representatives within reach, gathered once (offsets from the column, height, squared distance, and
+        # the plane fit's weight once it is known)
+        nb = np.empty((cap, 5))
         k = 0
         nearest = np.inf
         near_i, near_j = -1, -1  # the nearest representative's bin (its sensor is the one the beyond test uses)
         for i in range(max(0, ic - reach), min(nx, ic + reach + 1)):
+            # a bin whose nearest edge lies beyond the radius holds no representative within it (a margin, for a
+            # mean rounded a hair outside its bin)
+            ex = max(i * pixel - cx, cx - (i + 1) * pixel, 0.0)
+            if ex * ex > cull2:
+                continue
             for j in range(max(0, jc - reach), min(ny, jc + reach + 1)):
-                if math.isnan(rep[i, j, 2]):
+                ey = max(j * pixel - cy, cy - (j + 1) * pixel, 0.0)
+                if ex * ex + ey * ey > cull2 or math.isnan(rep[i, j, 2]):
                     continue
                 dx = rep[i, j, 0] - cx
                 dy = rep[i, j, 1] - cy
@@ -193,10 +227,17 @@ def fit_columns(rep, pixel, cols, radius, skip, max_gap, rms_tol, step_tol, max_
         near_k = np.full(SECTORS, -1, np.int64)
         for t in range(k):
             d2 = nb[t, 3]
-            s = int((math.atan2(nb[t, 1], nb[t, 0]) + math.pi) / (2.0 * math.pi) * SECTORS) % SECTORS
+            s = sector_of(nb[t, 0], nb[t, 1])
             if d2 < near_d[s]:
                 near_d[s] = d2
                 near_k[s] = t
+        # the tests below each reject on their own, so the cheap ones come first: a densely sampled column
+        farthest = 0.0
+        for s in range(SECTORS):
+            if near_k[s] >= 0 and near_d[s] > farthest:
+                farthest = near_d[s]
+        if farthest <= skip * skip:
+            continue
         # widest run of empty sectors, wrapping around
         run = 0
         widest = 0
@@ -229,12 +270,6 @@ def fit_columns(rep, pixel, cols, radius, skip, max_gap, rms_tol, step_tol, max_
                             break
                 if not beyond:
                     continue
-        farthest = 0.0
-        for s in range(SECTORS):
-            if near_k[s] >= 0 and near_d[s] > farthest:
-                farthest = near_d[s]
-        if farthest <= skip * skip:
-            continue
         # weighted plane z = h + gx (x - cx) + gy (y - cy): Gaussian weights as wide as the gap, so the nearest
         # samples on every side shape the plane and far ones only steady it; at least as wide as the farthest
         # side's nearest sample, or a column on a scan line would see only its own line, which has no slope
@@ -245,6 +280,7 @@ def fit_columns(rep, pixel, cols, radius, skip, max_gap, rms_tol, step_tol, max_
         b = np.zeros(3)
         for t in range(k):
             w = math.exp(-nb[t, 3] * inv)
+            nb[t, 4] = w
             dx, dy, zz = nb[t, 0], nb[t, 1], nb[t, 2]
             A[0, 0] += w
             A[0, 1] += w * dx
@@ -274,7 +310,7 @@ def fit_columns(rep, pixel, cols, radius, skip, max_gap, rms_tol, step_tol, max_
         ss = 0.0
         sw = 0.0
         for t in range(k):
-            w = math.exp(-nb[t, 3] * inv)
+            w = nb[t, 4]
             e = nb[t, 2] - (h + gx * nb[t, 0] + gy * nb[t, 1])
             ss += w * e * e
             sw += w
