@@ -244,11 +244,13 @@ FRONTIER_READING = (
     "accuracy target (CD-L1 0.0488 m = 0.38x Poisson depth 11's 0.1293, F@0.1 0.869 >= 0.85), within 3 % of "
     "standard at the same cell (0.0475 m, 0.875) in 0.54x its time, but takes 2.27x Poisson depth 11's time: the "
     "time target is missed by 2.3x. At 0.5 m it is inside Poisson's time (0.86x) and misses the accuracy instead "
-    "(0.0874 m = 0.68x Poisson, F@0.1 0.792). On AHN3 at its 0.5 m cell draft holds out better than standard and "
-    "Poisson (0.1279 m against 0.1337 and 0.1542) in half standard's time, at 1.89x Poisson depth 10's time "
-    "(1.89x: missed by 1.9x); at 1 m it matches Poisson's time (1.00x) but not its accuracy (0.2277 m). On Autzen "
-    "at 2 ft it equals standard's accuracy (0.365 ft against 0.362; Poisson 0.707) in 0.47x standard's time, but "
-    "6.7x Poisson depth 10's; at 4 ft 3.3x, still closer than Poisson (0.542 ft). A job's fixed costs (the local "
+    "(0.0874 m = 0.68x Poisson, F@0.1 0.792). The airborne rows were re-run on a quiet machine (load about 1, "
+    "20:46): on AHN3 at its 0.5 m cell draft holds out better than standard and Poisson (0.1279 m against 0.1337 "
+    "and 0.1542) in 0.57x standard's time, at 1.87x Poisson depth 10's time (missed by 1.9x, as in the loaded run: "
+    "1.89x); on Autzen at 2 ft it equals standard's accuracy (0.365 ft against 0.362; Poisson 0.707) in 0.55x "
+    "standard's time, at 4.7x Poisson depth 10's (6.7x in the loaded run). In the loaded run, AHN3 at 1 m matched "
+    "Poisson's time (1.00x) but not its accuracy (0.2277 m), and Autzen at 4 ft took 3.3x Poisson's time, still "
+    "closer than Poisson (0.542 ft). A job's fixed costs (the local "
     "cluster's start, about 4 s, reading and every point's set-up: about 50 us a point before thinning) are a "
     "floor that Poisson's few seconds on these small files do not leave room for. **fine** drew the same queries "
     "as standard on AHN3 (its tiles are dense: 4 per point already reach the 50,000 cap), so it held out the same "
@@ -436,6 +438,18 @@ def main() -> None:
                   "at 4M, one segment's worth of overhead), index reads 0.89-1.14x (every tile's task decompresses "
                   "the octree nodes its block overlaps, including the shallow ones that span the whole survey). "
                   "Time is what more workers buy: the driver's share is the join, or nothing.", ""]
+    phase_rows = [r for r in load("tile_phases") if r.get("phase") != "machine"]
+    if phase_rows:
+        from benchmarks import tile_phases as phases_bench
+
+        parts += ["## A dense tile's set-up on one thread (`benchmarks/tile_phases.py`)", "",
+                  "The densest block of the demo's street (`make demo`'s sample), on one thread as a local "
+                  "cluster's worker runs it: its normals (16-neighbour PCA) and the bridge's column fits, each beside "
+                  "the formulation it replaced, in the same process (medians; ratio = kernel / reference, the median "
+                  "of the runs' ratios). The normals kernel fuses the gather, covariance and a 3 x 3 Jacobi "
+                  "eigenvector; the bridge's columns take each ground sample's sector by comparisons instead of "
+                  "`atan2`, with the same output bit for bit.", "",
+                  phases_bench.table(phase_rows), ""]
     attributes_file = REPO / "benchmarks" / "results" / "attributes.json"
     if attributes_file.exists():
         from benchmarks import attributes as attributes_bench
