@@ -5,7 +5,8 @@ import math
 import numpy as np
 from numba import njit
 
-from tiled_gridpull.kernels.bridge import SECTORS, bin_ground, bin_sensor, fit_columns, sector_of
+from tiled_gridpull.kernels.bridge import (SECTORS, bin_ground, bin_sensor, fit_columns, flag_bridged_cells,
+                                          sector_of)
 
 PIXEL = 2.0
 ARGS = dict(radius=24.0, skip=2.0, max_gap=4, rms_tol=0.25, step_tol=1.5, max_slope=0.6)
@@ -224,3 +225,48 @@ def test_sector_of_gives_the_atan2_formulas_sector_everywhere_and_on_the_edges()
     got = _sectors(dx, dy)
     assert np.array_equal(got, expected), np.flatnonzero(got != expected)[:10]
     assert set(np.unique(got)) == set(range(SECTORS))
+
+
+def test_flag_bridged_cells_flags_the_cells_a_direct_search_finds():
+    """The kernel against the distinct cells found with numpy: every cell with a bridged corner, flagged optimised
+    where its 8 corners are parameters and bridged where they are all bridged; cells with a corner in a missing
+    brick or past the lattice left alone; the count is of distinct bridged cells."""
+    from tiled_gridpull.band import dense_brick_table, vertex_slots
+    from tiled_gridpull.bridge import BRIDGE
+    from tiled_gridpull.kernels import CELL_OPT, PARAM
+
+    rng = np.random.default_rng(4)
+    shape = np.array([20, 18, 17])  # vertices; the last bricks are partial
+    bshape = tuple(int(v) for v in -(-shape // 8))
+    coords = np.argwhere(np.ones(bshape, bool))
+    coords = coords[rng.random(len(coords)) < 0.8].astype(np.int32)  # some bricks missing
+    table = dense_brick_table(bshape, coords)
+    n = len(coords) * 512
+    flags = (rng.random(n) < 0.9).astype(np.uint8) * np.uint8(PARAM)
+    verts = np.unique(rng.integers(0, shape, size=(600, 3)), axis=0)
+    verts = verts[vertex_slots(table, verts) >= 0]
+    is_bridge = np.zeros(n, np.uint8)
+    is_bridge[vertex_slots(table, verts)] = 1
+    # a few bridged blocks, so that some cells have all 8 corners bridged
+    block = np.stack(np.meshgrid(np.arange(3, 7), np.arange(2, 6), np.arange(9, 12), indexing="ij"), -1).reshape(-1, 3)
+    block = block[vertex_slots(table, block) >= 0]
+    verts = np.unique(np.concatenate([verts, block]), axis=0)
+    is_bridge[vertex_slots(table, verts)] = 1
+    flags[vertex_slots(table, block)] |= PARAM
+
+    corner = np.indices((2, 2, 2)).reshape(3, -1).T
+    cand = np.unique((verts[:, None, :] - corner[None]).reshape(-1, 3), axis=0)
+    cand = cand[np.all((cand >= 0) & (cand < shape - 1), axis=1)]
+    cs = np.stack([vertex_slots(table, cand + c) for c in corner], axis=1)
+    cs = cs[np.all(cs >= 0, axis=1)]
+    expected = flags.copy()
+    all_param = np.all((expected[cs] & PARAM) != 0, axis=1)
+    all_bridge = np.all(is_bridge[cs] == 1, axis=1)
+    expected[cs[all_param, 0]] |= CELL_OPT
+    expected[cs[all_bridge, 0]] |= BRIDGE
+
+    got = flags.copy()
+    count = flag_bridged_cells(got, is_bridge, table, np.ascontiguousarray(verts, np.int64), shape - 1, PARAM,
+                               CELL_OPT, BRIDGE)
+    assert np.array_equal(got, expected)
+    assert count == int(all_bridge.sum()) > 0 and all_param.sum() > 0

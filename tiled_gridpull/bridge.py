@@ -247,23 +247,14 @@ def bridge_field(fld: Field, points: np.ndarray, rule: BridgeRule,
     mixed = np.where(solved, (1.0 - w) * flat_v[sv] + w * plane, plane)
     flat_v[sv] = mixed.astype(np.float32)
     flat_f[sv] |= PARAM
-    is_bridge = np.zeros(len(flat_v), bool)
-    is_bridge[sv] = True
+    is_bridge = np.zeros(len(flat_v), np.uint8)
+    is_bridge[sv] = 1
 
     # cells touching a bridged vertex: optimised when all 8 corners are parameters, bridged when all 8 are bridged
-    corner = np.indices((2, 2, 2)).reshape(3, -1).T
-    cand = unique_rows((verts[:, None, :] - corner[None]).reshape(-1, 3))
-    cand = cand[np.all((cand >= 0) & (cand < np.asarray([X - 1, Y - 1, Z - 1])), axis=1)]
-    cs = np.stack([vertex_slots(table, cand + c) for c in corner], axis=1)
-    present = np.all(cs >= 0, axis=1)
-    cand, cs = cand[present], cs[present]
-    all_param = np.all((flat_f[cs] & PARAM) != 0, axis=1)
-    all_bridge = np.all(is_bridge[cs], axis=1)
-    lowest = cs[:, 0]
-    flat_f[lowest[all_param]] |= CELL_OPT
-    flat_f[lowest[all_bridge]] |= BRIDGE
+    n_bridged = kb.flag_bridged_cells(flat_f, is_bridge, table, np.ascontiguousarray(verts, np.int64),
+                                      np.asarray([X - 1, Y - 1, Z - 1], np.int64), PARAM, CELL_OPT, BRIDGE)
     coords32 = coords.astype(np.int32)
     new_band = Band(lat, band.m1, band.m2, coords32, table, brick_neighbors(coords32, table), flags,
                     dict(band.stats))
-    info = {"bridged_columns": int(len(hit)), "bridged_cells": int(all_bridge.sum())}
+    info = {"bridged_columns": int(len(hit)), "bridged_cells": int(n_bridged)}
     return Field(new_band, values, fld.signed, dict(fld.info)), info

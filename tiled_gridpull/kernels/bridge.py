@@ -327,3 +327,72 @@ def fit_columns(rep, pixel, cols, radius, skip, max_gap, rms_tol, step_tol, max_
         out[c, 1] = gx
         out[c, 2] = gy
     return out
+
+
+@njit(cache=True)
+def flag_bridged_cells(flags, is_bridge, table, verts, limit, param_bit, opt_bit, bridge_bit):
+    """Flag the cells around bridged vertices: ``opt_bit`` where all 8 corners are parameters, ``bridge_bit``
+    where all 8 are bridged; both on the slot of the cell's lowest corner.
+
+    Every cell that has one of ``verts`` as a corner is looked at, some several times (the flags are OR-ed, so
+    that is harmless, and cheaper than first finding the distinct cells). Serial: two cells' flags may share a
+    byte's other bits with a neighbour's update, and a parallel OR could lose one.
+
+    Parameters
+    ----------
+    flags : (n_slots,) uint8, in/out
+    is_bridge : (n_slots,) uint8
+        1 at the slots of bridged vertices.
+    table : (BX, BY, BZ) int32
+        Brick table.
+    verts : (M, 3) int64
+        The bridged vertices (lattice indices).
+    limit : (3,) int64
+        Cells per axis (the lattice's vertex counts - 1): cells beyond are skipped.
+    param_bit, opt_bit, bridge_bit : int
+
+    Returns
+    -------
+    int
+        Cells that took ``bridge_bit`` here (the distinct bridged cells, when none had it before).
+    """
+    BX, BY, BZ = table.shape
+    newly = 0
+    for m in range(verts.shape[0]):
+        for c in range(8):
+            cx = verts[m, 0] - (c >> 2)
+            cy = verts[m, 1] - ((c >> 1) & 1)
+            cz = verts[m, 2] - (c & 1)
+            if cx < 0 or cy < 0 or cz < 0 or cx >= limit[0] or cy >= limit[1] or cz >= limit[2]:
+                continue
+            all_param = True
+            all_bridge = True
+            low = -1
+            for k in range(8):
+                vx = cx + (k >> 2)
+                vy = cy + ((k >> 1) & 1)
+                vz = cz + (k & 1)
+                bx, by, bz = vx >> 3, vy >> 3, vz >> 3
+                if bx >= BX or by >= BY or bz >= BZ:
+                    low = -1
+                    break
+                b = table[bx, by, bz]
+                if b < 0:
+                    low = -1
+                    break
+                s = b * 512 + ((vx & 7) << 6) + ((vy & 7) << 3) + (vz & 7)
+                if k == 0:
+                    low = s
+                if (flags[s] & param_bit) == 0:
+                    all_param = False
+                if is_bridge[s] == 0:
+                    all_bridge = False
+            if low < 0:
+                continue
+            if all_param:
+                flags[low] |= opt_bit
+            if all_bridge:
+                if (flags[low] & bridge_bit) == 0:
+                    newly += 1
+                flags[low] |= bridge_bit
+    return newly

@@ -44,6 +44,7 @@ KERNELS: dict[str, tuple[tuple, float]] = {
     "bridge.bin_ground": ((_c(_F64, 1),) * 3 + (_F64, _I64, _I64, _F64), 0.7),
     "bridge.fit_columns": ((_c(_F64, 3), _F64, _c(_F64, 2), _F64, _F64, _I64, _F64, _F64, _F64, _c(_F64, 3), _F64),
                            4.6),
+    "bridge.flag_bridged_cells": ((_c(_U8, 1), _c(_U8, 1), _TABLE, _c(_I64, 2), _c(_I64, 1), _I64, _I64, _I64), 0.8),
     "bridge.bin_sensor": ((_c(_F64, 1),) * 6 + (_F64, _I64, _I64, _F64), 0.7),
     "graph.vertex_components": ((_I64, _c(_I64, 2)), 0.6),
     "interp.sample_field": ((_F, _TABLE, _c(_I64, 1), _c(_F32, 2), _F32), 2.0),
@@ -66,7 +67,8 @@ KERNELS: dict[str, tuple[tuple, float]] = {
 
 
 #: the kernels only a tiled job calls (blending tiles, bridging scan-line gaps); one-shape mode calls the others
-TILED_ONLY = ("blend.blend_bricks", "bridge.bin_ground", "bridge.fit_columns", "bridge.bin_sensor")
+TILED_ONLY = ("blend.blend_bricks", "bridge.bin_ground", "bridge.fit_columns", "bridge.bin_sensor",
+              "bridge.flag_bridged_cells")
 
 
 def kernel(name: str):
