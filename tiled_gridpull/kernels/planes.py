@@ -15,6 +15,19 @@ _SWEEPS = 12
 
 
 @njit(cache=True, inline="always")
+def _turn(app, aqq, apq, arp, arq, t, c, s):
+    """One Jacobi rotation's new ``a[p, p], a[q, q], a[r, p], a[r, q]`` (``a[p, q]`` becomes 0)."""
+    return app - t * apq, aqq + t * apq, c * arp - s * arq, s * arp + c * arq
+
+
+@njit(cache=True, inline="always")
+def _columns(x0p, x0q, x1p, x1q, x2p, x2q, c, s):
+    """The rotation applied to columns p and q of the eigenvector matrix (rows 0, 1, 2)."""
+    return (c * x0p - s * x0q, s * x0p + c * x0q, c * x1p - s * x1q, s * x1p + c * x1q, c * x2p - s * x2q,
+            s * x2p + c * x2q)
+
+
+@njit(cache=True, inline="always")
 def smallest_eigenvector(c00, c01, c02, c11, c12, c22):
     """Unit eigenvector of the smallest eigenvalue of the symmetric 3 x 3 matrix ``[[c00, c01, c02], [., c11,
     c12], [., ., c22]]`` by cyclic Jacobi rotations (float64).
@@ -46,36 +59,19 @@ def smallest_eigenvector(c00, c01, c02, c11, c12, c22):
             t = (1.0 if theta >= 0.0 else -1.0) / (abs(theta) + math.sqrt(theta * theta + 1.0))
             c = 1.0 / math.sqrt(t * t + 1.0)
             s = t * c
+            # a[p, q] -> 0; the third axis r's entries a[r, p], a[r, q] turn; so do V's columns p and q
             if pq == 0:
-                a00 = app - t * apq
-                a11 = aqq + t * apq
+                a00, a11, a02, a12 = _turn(app, aqq, apq, a02, a12, t, c, s)
                 a01 = 0.0
-                r0, r1 = a02, a12
-                a02 = c * r0 - s * r1
-                a12 = s * r0 + c * r1
-                v00, v01 = c * v00 - s * v01, s * v00 + c * v01
-                v10, v11 = c * v10 - s * v11, s * v10 + c * v11
-                v20, v21 = c * v20 - s * v21, s * v20 + c * v21
+                v00, v01, v10, v11, v20, v21 = _columns(v00, v01, v10, v11, v20, v21, c, s)
             elif pq == 1:
-                a00 = app - t * apq
-                a22 = aqq + t * apq
+                a00, a22, a01, a12 = _turn(app, aqq, apq, a01, a12, t, c, s)
                 a02 = 0.0
-                r0, r1 = a01, a12
-                a01 = c * r0 - s * r1
-                a12 = s * r0 + c * r1
-                v00, v02 = c * v00 - s * v02, s * v00 + c * v02
-                v10, v12 = c * v10 - s * v12, s * v10 + c * v12
-                v20, v22 = c * v20 - s * v22, s * v20 + c * v22
+                v00, v02, v10, v12, v20, v22 = _columns(v00, v02, v10, v12, v20, v22, c, s)
             else:
-                a11 = app - t * apq
-                a22 = aqq + t * apq
+                a11, a22, a01, a02 = _turn(app, aqq, apq, a01, a02, t, c, s)
                 a12 = 0.0
-                r0, r1 = a01, a02
-                a01 = c * r0 - s * r1
-                a02 = s * r0 + c * r1
-                v01, v02 = c * v01 - s * v02, s * v01 + c * v02
-                v11, v12 = c * v11 - s * v12, s * v11 + c * v12
-                v21, v22 = c * v21 - s * v22, s * v21 + c * v22
+                v01, v02, v11, v12, v21, v22 = _columns(v01, v02, v11, v12, v21, v22, c, s)
     if a00 <= a11 and a00 <= a22:
         x, y, z = v00, v10, v20
     elif a11 <= a22:
