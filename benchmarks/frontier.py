@@ -66,8 +66,12 @@ def gridpull(src: Path, out: Path, quality: str, cell: float, extra: list[str] |
 
     row = reconstruct(src, out, 2, ["--config", str(REPO / "configs" / "scene.yaml"), "--quality", quality,
                                     "--voxel-size", str(cell), *(extra or [])])
+    from tiled_gridpull.config import QUALITY_PRESETS
+
+    # the preset's settings as they were: repeats of one preset are only pooled while its schedule is unchanged
     return {"wall_s": row["wall_s"], "tiles": row["tiles"], "solve_task_s": row["stages_s"]["solve_task_s"],
-            "peak_rss_mb": row["peak_rss_mb"], "method": "gridpull", "setting": quality, "cell": cell}
+            "peak_rss_mb": row["peak_rss_mb"], "method": "gridpull", "setting": quality, "cell": cell,
+            "preset": QUALITY_PRESETS[quality]}
 
 
 def poisson(src: Path, out: Path, depth: int) -> dict:
@@ -195,7 +199,7 @@ def _with_ratios(rows: list[dict]) -> list[dict]:
 
 def render(rows: list[dict]) -> str:
     """Markdown tables of the latest run of each scene: the synthetic scene's, then the real files'."""
-    rows = _with_ratios(rows)
+    rows = all_rows = _with_ratios(rows)
     latest = {}
     for r in rows:
         latest[r["scene"]] = max(latest.get(r["scene"], ""), r["run"])
@@ -216,12 +220,47 @@ def render(rows: list[dict]) -> str:
                                            ("holdout_mean", "held-out mean", ".4f"),
                                            ("holdout_median", "median", ".4f"),
                                            ("holdout_within_cell", "within 1 cell", ".3f")]))
+    rep = repeats(all_rows)
+    if rep:
+        parts.append(rep)
     tile = [r for r in rows if r["scene"].endswith("-point tile")]
     if tile:
         parts.append(markdown_table(tile, [("date", "date", ""), ("scene", "cloud", ""), ("what", "preset @ cell", ""),
                                            ("wall_s", "job s (in process)", ".2f"), ("solve_s", "tile solve s", ".2f"),
                                            ("faces", "faces", "")]))
     return "\n\n".join(parts)
+
+
+def repeats(rows: list[dict]) -> str:
+    """The runs of each preset at today's settings (``preset`` as in :data:`QUALITY_PRESETS`) against the Poisson
+    depth of its target (11 for the synthetic scene, 10 for the real files), each beside its own run's Poisson:
+    the time ratios, their median and the median score. Empty where no preset ran at least twice."""
+    import statistics
+
+    from tiled_gridpull.config import QUALITY_PRESETS
+
+    groups: dict[tuple, list[dict]] = {}
+    for r in rows:
+        if r.get("method") == "gridpull" and r.get("preset") == QUALITY_PRESETS.get(r["setting"]):
+            depth = 11 if r["scene"] == WIDE else 10
+            if f"x_poisson_{depth}" in r:
+                groups.setdefault((r["scene"], r["what"], depth), []).append(r)
+    out = []
+    for (scene, what, depth), rs in sorted(groups.items()):
+        if len(rs) < 2:
+            continue
+        score = "chamfer_l1_m" if scene == WIDE else "holdout_mean"
+        ratios = [r[f"x_poisson_{depth}"] for r in rs]
+        out.append({"scene": scene, "what": what, "runs": len(rs), "depth": depth,
+                    "ratios": ", ".join(f"{x:.2f}" for x in ratios), "median": statistics.median(ratios),
+                    "score": statistics.median(r[score] for r in rs),
+                    "score_name": "CD-L1 m" if scene == WIDE else "held-out mean"})
+    if not out:
+        return ""
+    return markdown_table(out, [("scene", "scene", ""), ("what", "preset @ cell", ""), ("runs", "runs", ""),
+                                ("depth", "beside Poisson depth", ""), ("ratios", "time / Poisson's, each run", ""),
+                                ("median", "median", ".2f"), ("score_name", "score", ""),
+                                ("score", "median score", ".4f")])
 
 
 def plot(rows: list[dict], path: Path = PLOT) -> Path | None:
