@@ -12,8 +12,6 @@ from __future__ import annotations
 import numpy as np
 from pykdtree.kdtree import KDTree
 
-from .kernels import planes as kp
-
 __all__ = ["plane_fits", "local_planes", "estimate_normals", "orient_normals", "orient_by_propagation",
            "orientation_score"]
 
@@ -66,12 +64,9 @@ def plane_fits(points: np.ndarray, k: int, chunk: int = 200_000, bandwidth: floa
             yield s, e, *_bounded_planes(tree, pts, s, e, k, float(radius), bandwidth, reweights)
             continue
         _, idx = tree.query(pts[s:e], k=k)
-        idx = idx.reshape(e - s, k).astype(np.int64)
-        centroids = np.empty((e - s, 3))
-        normals = np.empty((e - s, 3))
-        kp.neighbourhood_planes(pts, idx, centroids, normals)
+        nb = pts[idx.reshape(e - s, k).astype(np.int64)]
+        centroids, normals = _weighted_planes(nb, None)
         if bandwidth > 0:
-            nb = pts[idx]
             anchor = pts[s:e]
             for _ in range(int(reweights)):
                 offset = np.einsum("nki,ni->nk", nb - anchor[:, None], normals)
@@ -121,13 +116,15 @@ def _bounded_planes(tree: KDTree, pts: np.ndarray, s: int, e: int, k: int, radiu
 
 def _weighted_planes(nb: np.ndarray, weights: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
     """Centroids (n, 3) and unit normals (n, 3) of neighbourhoods ``nb`` (n, k, 3), weights (n, k) or None."""
-    nb = np.ascontiguousarray(nb, dtype=np.float64)
-    # the centre point itself has a positive weight, so no row's sum vanishes
-    w = (np.ones(nb.shape[:2]) if weights is None else np.ascontiguousarray(weights, dtype=np.float64))
-    centroids = np.empty((len(nb), 3))
-    normals = np.empty((len(nb), 3))
-    kp.weighted_planes(nb, w, centroids, normals)
-    return centroids, normals
+    if weights is None:
+        centroids = nb.mean(axis=1)
+        d = nb - centroids[:, None]
+    else:
+        # the centre point itself has weight 1, so the sum never vanishes
+        centroids = np.einsum("nk,nki->ni", weights, nb) / weights.sum(axis=1)[:, None]
+        d = (nb - centroids[:, None]) * np.sqrt(weights)[:, :, None]
+    _, vecs = np.linalg.eigh(np.einsum("nki,nkj->nij", d, d))
+    return centroids, vecs[:, :, 0]
 
 
 def local_planes(points: np.ndarray, k: int = 16, chunk: int = 200_000) -> tuple[np.ndarray, np.ndarray]:
