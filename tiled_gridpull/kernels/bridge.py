@@ -149,7 +149,8 @@ def fit_columns(rep, pixel, cols, radius, skip, max_gap, rms_tol, step_tol, max_
     Parameters
     ----------
     rep : (nx, ny, 3) float64
-        Ground representatives per bin (:func:`bin_ground`), NaN where none.
+        Ground representatives per bin (:func:`bin_ground`), NaN where none. Each must lie inside its own bin
+        (``bin_ground``'s means do): bins whose nearest edge lies beyond ``radius`` are not read.
     pixel : float
         Bin size in cells.
     cols : (M, 2) float64
