@@ -117,10 +117,11 @@ def unique_rows(rows: np.ndarray) -> np.ndarray:
     """The distinct rows of an integer array, sorted lexicographically: ``np.unique(rows, axis=0)``, the same
     array, several times faster.
 
-    ``np.unique(axis=0)`` sorts the rows as structured records, compared field by field; on the 8 corners of
-    every bridged vertex of a dense tile (millions of rows) that was 16 % of the demo's densest tile. Each row
-    is packed into one int64 instead (its columns shifted to start at 0, mixed radix), whose order is the rows'
-    lexicographic order, and unpacked after a plain 1-D sort.
+    ``np.unique(axis=0)`` sorts the rows as structured records, compared field by field: on the bricks of a dense
+    tile's bridged vertices (and, before :func:`~tiled_gridpull.kernels.bridge.flag_bridged_cells`, the 8 cells
+    around each, 16 % of the demo's densest tile) that is several times a plain sort. Each row is packed into one
+    int64 instead (its columns shifted to start at 0, mixed radix), whose order is the rows' lexicographic order,
+    and unpacked after a plain 1-D sort.
 
     Parameters
     ----------
