@@ -139,3 +139,18 @@ def test_trilinear_reproduces_vertex_values(small_band):
     for c, val in zip(cells, f):
         slot = ki.slot_of(band.brick_table, *c)
         assert val == pytest.approx(values[slot], abs=1e-5)
+
+
+def test_bounded_slot_of_refuses_vertices_beyond_the_table_and_in_missing_bricks():
+    # bounded_slot_of is slot_of with the table's bounds checked (all_corners and flag_bridged_cells walk cells
+    # at the lattice's far faces, whose corners may fall one brick beyond the table)
+    from numba import njit
+
+    bounded = njit(lambda t, i, j, k: ki.bounded_slot_of(t, i, j, k))
+    table = np.full((2, 1, 3), -1, np.int32)
+    table[1, 0, 2] = 4
+    assert bounded(table, 8 + 3, 5, 16 + 7) == 4 * 512 + (3 << 6) + (5 << 3) + 7
+    assert bounded(table, 3, 5, 7) == -1          # brick (0, 0, 0) not allocated
+    assert bounded(table, 16, 0, 16) == -1        # x beyond the table
+    assert bounded(table, 8, 8, 16) == -1         # y beyond the table
+    assert bounded(table, 8, 0, 24) == -1         # z beyond the table

@@ -10,6 +10,7 @@ import numpy as np
 from numba import njit, prange
 
 from . import BRICK, BRICK_VOLUME
+from .interp import bounded_slot_of
 
 
 @njit(cache=True, parallel=True)
@@ -120,7 +121,6 @@ def all_corners(vmask, table, coords, cell_limit):
     """Cells whose 8 corner vertices are all set in ``vmask`` (cells at or beyond ``cell_limit`` excluded)."""
     nb = coords.shape[0]
     out = np.zeros_like(vmask)
-    BX, BY, BZ = table.shape
     for b in prange(nb):
         for x in range(BRICK):
             gx = coords[b, 0] * BRICK + x
@@ -136,15 +136,8 @@ def all_corners(vmask, table, coords, cell_limit):
                         continue
                     ok = 1
                     for c in range(8):
-                        vx = gx + (c >> 2)
-                        vy = gy + ((c >> 1) & 1)
-                        vz = gz + (c & 1)
-                        bx, by, bz = vx >> 3, vy >> 3, vz >> 3
-                        if bx >= BX or by >= BY or bz >= BZ:
-                            ok = 0
-                            break
-                        nbk = table[bx, by, bz]
-                        if nbk < 0 or vmask[nbk, ((vx & 7) << 6) | ((vy & 7) << 3) | (vz & 7)] == 0:
+                        s = bounded_slot_of(table, gx + (c >> 2), gy + ((c >> 1) & 1), gz + (c & 1))
+                        if s < 0 or vmask[s >> 9, s & 511] == 0:
                             ok = 0
                             break
                     out[b, (x << 6) | (y << 3) | z] = ok

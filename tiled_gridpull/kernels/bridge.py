@@ -17,6 +17,8 @@ import math
 import numpy as np
 from numba import njit, prange
 
+from .interp import bounded_slot_of
+
 SECTORS = 12
 
 
@@ -357,7 +359,6 @@ def flag_bridged_cells(flags, is_bridge, table, verts, limit, param_bit, opt_bit
     int
         Cells that took ``bridge_bit`` here (the distinct bridged cells, when none had it before).
     """
-    BX, BY, BZ = table.shape
     newly = 0
     for m in range(verts.shape[0]):
         for c in range(8):
@@ -370,18 +371,10 @@ def flag_bridged_cells(flags, is_bridge, table, verts, limit, param_bit, opt_bit
             all_bridge = True
             low = -1
             for k in range(8):
-                vx = cx + (k >> 2)
-                vy = cy + ((k >> 1) & 1)
-                vz = cz + (k & 1)
-                bx, by, bz = vx >> 3, vy >> 3, vz >> 3
-                if bx >= BX or by >= BY or bz >= BZ:
+                s = bounded_slot_of(table, cx + (k >> 2), cy + ((k >> 1) & 1), cz + (k & 1))
+                if s < 0:
                     low = -1
                     break
-                b = table[bx, by, bz]
-                if b < 0:
-                    low = -1
-                    break
-                s = b * 512 + ((vx & 7) << 6) + ((vy & 7) << 3) + (vz & 7)
                 if k == 0:
                     low = s
                 if (flags[s] & param_bit) == 0:

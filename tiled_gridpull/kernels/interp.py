@@ -23,6 +23,18 @@ def slot_of(table, i, j, k):
 
 
 @njit(cache=True, inline="always")
+def bounded_slot_of(table, i, j, k):
+    """Slot of vertex (i, j, k) (non-negative indices), or -1 when its brick is beyond the table or not allocated."""
+    bx, by, bz = i >> 3, j >> 3, k >> 3
+    if bx >= table.shape[0] or by >= table.shape[1] or bz >= table.shape[2]:
+        return -1
+    b = table[bx, by, bz]
+    if b < 0:
+        return -1
+    return b * 512 + ((i & 7) << 6) + ((j & 7) << 3) + (k & 7)
+
+
+@njit(cache=True, inline="always")
 def locate(px, py, pz, nx, ny, nz):
     """Cell (i, j, k) holding a point and its position t inside the cell; clipped to the lattice.
 
