@@ -450,11 +450,13 @@ def main() -> None:
     if phase_rows:
         from benchmarks import tile_phases as phases_bench
 
-        parts += ["## A dense tile's bridging on one thread (`benchmarks/tile_phases.py`)", "",
+        parts += ["## A dense tile's set-up on one thread (`benchmarks/tile_phases.py`)", "",
                   "The densest block of the demo's street (`make demo`'s sample), on one thread as a local "
-                  "cluster's worker runs it: the bridge's column fits beside the formulation they replaced, in the "
-                  "same process (medians; ratio = kernel / reference, the median of the runs' ratios): each ground "
-                  "sample's sector by comparisons instead of `atan2`, with the same output bit for bit.", "",
+                  "cluster's worker runs it: its normals (16-neighbour PCA) and the bridge's column fits, each beside "
+                  "the formulation it replaced, in the same process (medians; ratio = kernel / reference, the median "
+                  "of the runs' ratios). The normals kernel fuses the gather, covariance and a 3 x 3 Jacobi "
+                  "eigenvector; the bridge's columns take each ground sample's sector by comparisons instead of "
+                  "`atan2`, with the same output bit for bit.", "",
                   phases_bench.table(phase_rows), ""]
     attributes_file = REPO / "benchmarks" / "results" / "attributes.json"
     if attributes_file.exists():

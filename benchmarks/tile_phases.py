@@ -1,5 +1,9 @@
-"""What a dense street tile's bridging costs on one thread, beside the formulation it replaced, in one process.
+"""What a dense street tile's set-up costs on one thread: its normals (PCA plane fits over 16 neighbours) and the
+bridge's column fits, each beside a reference formulation in the same process.
 
+* ``normals``: :func:`tiled_gridpull.normals.estimate_normals` (the KD-tree query, then the numba plane kernel
+  :mod:`tiled_gridpull.kernels.planes`) against the numpy formulation it replaced (the same query, an (n, k, 3)
+  gather, ``einsum`` covariances and batched LAPACK ``eigh``), with the largest angle between their normals;
 * ``bridge columns``: :func:`tiled_gridpull.kernels.bridge.fit_columns` over every column of a 320 x 320-cell tile
   lattice (the scene config's 256-cell core and 32-cell margins at 0.1 m), bridge 24 cells, no sensor origins;
   its reference is the same kernel with each ground sample's sector taken by ``atan2`` (the formula
@@ -44,6 +48,20 @@ def street_tile(side: float = 32.0) -> np.ndarray:
     return xyz[keep]
 
 
+def numpy_normals(points: np.ndarray, k: int = 16, gaps: bool = False):
+    """The reference: numpy's gather, einsum and batched eigh over each point's ``k`` nearest neighbours; with
+    ``gaps``, also the gap between the two smallest eigenvalues over the largest."""
+    from pykdtree.kdtree import KDTree
+
+    _, idx = KDTree(points).query(points, k=k)
+    nb = points[idx.reshape(len(points), k).astype(np.int64)]
+    d = nb - nb.mean(axis=1)[:, None]
+    w, vecs = np.linalg.eigh(np.einsum("nki,nkj->nij", d, d))
+    if gaps:
+        return vecs[:, :, 0], (w[:, 1] - w[:, 0]) / np.maximum(w[:, 2], 1e-300)
+    return vecs[:, :, 0]
+
+
 def _atan2_fit_columns():
     """:func:`fit_columns` compiled with the ``atan2`` sector formula in place of :func:`sector_of`."""
     import inspect
@@ -80,9 +98,31 @@ def bridge_inputs(points: np.ndarray, cell: float = 0.1, n: int = 320) -> tuple:
 
 def run(repeat: int) -> list[dict]:
     from tiled_gridpull.kernels import bridge as kb
+    from tiled_gridpull.normals import estimate_normals
 
     pts = street_tile()
     rows = []
+    # normals
+    ours, (ref, gap) = estimate_normals(pts, 16), numpy_normals(pts, 16, gaps=True)  # warm: compiled, caches
+    # the angle from the cross product: arccos of a float32 normal's dot product is off by its rounding (1e-2 deg)
+    o = ours.astype(np.float64)
+    angle = np.degrees(np.arctan2(np.linalg.norm(np.cross(o, ref), axis=1), np.abs(np.sum(o * ref, axis=1))))
+    apart = gap > 1e-6
+    agreement = (f"largest angle {angle[apart].max():.2g} deg where the two smallest eigenvalues are apart (gap > "
+                 f"1e-6 of the largest: {apart.mean():.2%} of points)")
+    if not apart.all():  # a tied eigenspace: any of its vectors is the plane's normal
+        agreement += f"; {np.mean(angle[~apart] > 1.0):.2%} of the others differ by more than 1 deg"
+    t_k, t_r = [], []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        estimate_normals(pts, 16)
+        t_k.append(time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        numpy_normals(pts, 16)
+        t_r.append(time.perf_counter() - t0)
+    rows.append({"phase": "normals", "points": len(pts), "kernel_s": float(np.median(t_k)),
+                 "reference_s": float(np.median(t_r)), "ratio": float(np.median(np.array(t_k) / np.array(t_r))),
+                 "agreement": agreement})
     # bridge columns
     args = bridge_inputs(pts)
     slow = _atan2_fit_columns()

@@ -12,8 +12,10 @@ from __future__ import annotations
 import numpy as np
 from pykdtree.kdtree import KDTree
 
+from .kernels import planes as kp
+
 __all__ = ["plane_fits", "local_planes", "estimate_normals", "orient_normals", "orient_by_propagation",
-           "orientation_score"]
+           "orientation_decided", "orientation_score"]
 
 
 def plane_fits(points: np.ndarray, k: int, chunk: int = 200_000, bandwidth: float = 0.0, reweights: int = 3,
@@ -64,9 +66,12 @@ def plane_fits(points: np.ndarray, k: int, chunk: int = 200_000, bandwidth: floa
             yield s, e, *_bounded_planes(tree, pts, s, e, k, float(radius), bandwidth, reweights)
             continue
         _, idx = tree.query(pts[s:e], k=k)
-        nb = pts[idx.reshape(e - s, k).astype(np.int64)]
-        centroids, normals = _weighted_planes(nb, None)
+        idx = idx.reshape(e - s, k).astype(np.int64)
+        centroids = np.empty((e - s, 3))
+        normals = np.empty((e - s, 3))
+        kp.neighbourhood_planes(pts, idx, centroids, normals)
         if bandwidth > 0:
+            nb = pts[idx]
             anchor = pts[s:e]
             for _ in range(int(reweights)):
                 offset = np.einsum("nki,ni->nk", nb - anchor[:, None], normals)
@@ -116,15 +121,13 @@ def _bounded_planes(tree: KDTree, pts: np.ndarray, s: int, e: int, k: int, radiu
 
 def _weighted_planes(nb: np.ndarray, weights: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
     """Centroids (n, 3) and unit normals (n, 3) of neighbourhoods ``nb`` (n, k, 3), weights (n, k) or None."""
-    if weights is None:
-        centroids = nb.mean(axis=1)
-        d = nb - centroids[:, None]
-    else:
-        # the centre point itself has weight 1, so the sum never vanishes
-        centroids = np.einsum("nk,nki->ni", weights, nb) / weights.sum(axis=1)[:, None]
-        d = (nb - centroids[:, None]) * np.sqrt(weights)[:, :, None]
-    _, vecs = np.linalg.eigh(np.einsum("nki,nkj->nij", d, d))
-    return centroids, vecs[:, :, 0]
+    nb = np.ascontiguousarray(nb, dtype=np.float64)
+    # the centre point itself has a positive weight, so no row's sum vanishes
+    w = (np.ones(nb.shape[:2]) if weights is None else np.ascontiguousarray(weights, dtype=np.float64))
+    centroids = np.empty((len(nb), 3))
+    normals = np.empty((len(nb), 3))
+    kp.weighted_planes(nb, w, centroids, normals)
+    return centroids, normals
 
 
 def local_planes(points: np.ndarray, k: int = 16, chunk: int = 200_000) -> tuple[np.ndarray, np.ndarray]:
@@ -189,7 +192,51 @@ def orient_normals(normals: np.ndarray, points: np.ndarray, sensor: np.ndarray |
         ref = np.broadcast_to(np.asarray(up, dtype=np.float64), n.shape)
     flip = np.einsum("ij,ij->i", n.astype(np.float64), ref) < 0
     n[flip] *= -1
+    if sensor is None and away_from is None:
+        _orient_walls(n, points, up)
     return n
+
+
+#: Neighbours that vote on an undecided normal's side under the ``up`` rule.
+WALL_VOTERS = 16
+
+
+def _orient_walls(n: np.ndarray, points: np.ndarray, up: tuple[float, float, float], k: int = WALL_VOTERS) -> None:
+    """Orient, in place, the normals the ``up`` rule cannot decide (walls: more than 60 degrees from up).
+
+    The surface bounds the space above the decided (up-facing) points near a wall, so a wall faces the side where
+    those points lie *below* it (the ground at its foot) and away from the side where they lie *above* it (the
+    roof it carries). Each of a wall point's ``k`` nearest decided points ``q`` votes
+    ``((q - p) . n) ((p - q) . up) / |q - p|^2``; level neighbours (the ground right at the foot) say little, so a
+    second pass lets each wall point follow its wall neighbours' confident votes. Without this a wall kept the sign
+    its eigen solver returned, and the field's initial sign across a street could disagree with the ground's.
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    upv = np.asarray(up, dtype=np.float64)
+    upv = upv / np.linalg.norm(upv)
+    nn = n.astype(np.float64)
+    cos = nn @ upv / np.maximum(np.linalg.norm(nn, axis=1), 1e-300)
+    decided = np.abs(cos) >= 0.5
+    walls = np.flatnonzero(~decided)
+    if len(walls) == 0 or decided.sum() == 0:
+        return
+    ground = pts[decided]
+    kk = min(k, len(ground))
+    _, idx = KDTree(ground).query(pts[walls], k=kk)
+    d = ground[idx.reshape(len(walls), kk).astype(np.int64)] - pts[walls][:, None]  # (W, k, 3): q - p
+    across = np.einsum("wki,wi->wk", d, nn[walls])
+    below = -(d @ upv)
+    vote = (across * below / np.maximum(np.einsum("wki,wki->wk", d, d), 1e-300)).sum(axis=1)
+    n[walls[vote < 0]] *= -1
+    if len(walls) < 2:
+        return
+    # second pass: each wall point sums its wall neighbours' votes (each already oriented, weighted by |vote|)
+    kw = min(k, len(walls))
+    _, widx = KDTree(pts[walls]).query(pts[walls], k=kw)
+    widx = widx.reshape(len(walls), kw).astype(np.int64)
+    wn = n[walls].astype(np.float64)
+    agree = np.einsum("wki,wi->wk", wn[widx], wn) * np.abs(vote)[widx]
+    n[walls[agree.sum(axis=1) < 0]] *= -1
 
 
 #: Bridging pieces of the neighbour graph: query points per round, and the neighbour counts tried.
@@ -314,9 +361,40 @@ def _bridges(tree: KDTree, pts: np.ndarray, labels: np.ndarray) -> tuple[np.ndar
     return a[keep], b[keep]
 
 
-def orientation_score(gradients: np.ndarray, normals: np.ndarray) -> float:
-    """Mean sign agreement in [-1, 1] between field gradients at the points and their oriented normals."""
+def orientation_decided(normals: np.ndarray, points: np.ndarray, sensor: np.ndarray | None = None,
+                        up: tuple[float, float, float] = (0.0, 0.0, 1.0), away_from: np.ndarray | None = None,
+                        min_cos: float = 0.5) -> np.ndarray:
+    """Which normals :func:`orient_normals`' rule (same arguments) orients with confidence: those within
+    ``acos(min_cos)`` (60 degrees) of its reference direction, either way.
+
+    A vertical wall under the ``up`` rule, or a surface seen edge-on by its sensor, lies across the reference:
+    its orientation is a coin toss (the sign the eigen solver returned), and it must not outvote the points the
+    rule does decide.
+
+    Returns
+    -------
+    (N,) bool
+    """
+    n = np.asarray(normals, dtype=np.float64)
+    if sensor is not None:
+        ref = np.asarray(sensor, dtype=np.float64) - np.asarray(points, dtype=np.float64)
+    elif away_from is not None:
+        ref = np.asarray(points, dtype=np.float64) - np.asarray(away_from, dtype=np.float64)
+    else:
+        ref = np.broadcast_to(np.asarray(up, dtype=np.float64), n.shape)
+    ref = np.broadcast_to(ref, n.shape)
+    norms = np.linalg.norm(ref, axis=1) * np.linalg.norm(n, axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cos = np.abs(np.einsum("ij,ij->i", n, ref)) / norms
+    return np.nan_to_num(cos) >= min_cos
+
+
+def orientation_score(gradients: np.ndarray, normals: np.ndarray, where: np.ndarray | None = None) -> float:
+    """Mean sign agreement in [-1, 1] between field gradients at the points and their oriented normals (over the
+    points ``where`` is True, when given)."""
     dots = np.einsum("ij,ij->i", np.asarray(gradients, dtype=np.float64), np.asarray(normals, dtype=np.float64))
+    if where is not None:
+        dots = dots[np.asarray(where, bool)]
     valid = dots != 0
     if not valid.any():
         return 0.0

@@ -15,7 +15,7 @@ from .kernels import BRICK
 from .lattice import Lattice
 from .memory import peak_rss_mb, reset_peak_rss
 from .noise import denoise_block
-from .normals import estimate_normals, orient_normals, orientation_score
+from .normals import estimate_normals, orient_normals, orientation_decided, orientation_score
 from .initial_field import plane_distance_init
 from .partition import read_tile_points
 from .solver import solve, thin_per_cell
@@ -103,8 +103,12 @@ def solve_tile(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig, field
                 if centre is None:
                     raise ConfigError("orientation 'outward' needs the centre of the input")
                 away = np.asarray(centre, np.float64) - spec.block.low_corner
-            normals = orient_normals(normals, xyz, sensor32.astype(np.float64) if rule == "sensor" else None,
-                                     away_from=away)
+            ref = sensor32.astype(np.float64) if rule == "sensor" else None
+            normals = orient_normals(normals, xyz, ref, away_from=away)
+            # the field's sign is checked against the normals the rule decides (not walls under "up")
+            decided = orientation_decided(normals, xyz, ref, away_from=away)
+            if decided.sum() < max(20, 0.05 * len(xyz)):
+                decided = None  # too few to outvote: every normal counts, as before
             init = lambda band: plane_distance_init(band, xyz / band.lattice.cell_size, normals)  # noqa: E731
         lap("normals")
         fld = solve(xyz, local, solver, init=init, history_every=100)
@@ -112,7 +116,7 @@ def solve_tile(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig, field
         flipped = False
         if normals is not None:
             _, grads = fld.sample(xyz)
-            if orientation_score(grads, normals) < 0:
+            if orientation_score(grads, normals, decided) < 0:
                 fld.values *= -1
                 flipped = True
         if tiling.bridge > 0 and rule in ("up", "sensor"):

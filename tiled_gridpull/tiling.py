@@ -81,7 +81,9 @@ class TilingConfig:
         Which side is outside: facing the sensor (per-point sensor origins, e.g. KITTI), facing up (airborne
         LAS), facing away from the centre of the whole input (one closed, roughly star-shaped object cut into
         tiles), or the paper's sphere at each tile's own centre (kept to show why it fails: neighbouring tiles
-        can disagree). ``auto`` picks sensor when sensor origins are known, else up.
+        can disagree). ``auto`` picks sensor when sensor origins are known, else up. Under up, walls (normals
+        more than 60 degrees from up) face the side where the up-facing points near them lie below them and away
+        from where those lie above (:func:`tiled_gridpull.normals.orient_normals`).
     normal_neighbors : int
         Neighbours used to estimate point normals for the initial field.
     drop_outliers : bool

@@ -57,6 +57,7 @@ KERNELS: dict[str, tuple[tuple, float]] = {
     "mc.edge_points": ((_F, _TABLE, _c(_I64, 1), _c(_I64, 1), _F64, _F64), 0.9),
     "nn.nearest_from_candidates": ((_c(_F32, 2), _c(_I32, 2), _c(_F32, 2), _c(_I64, 1), _c(_F32, 2),
                                     _c(_I64, 1), _F), 1.1),
+    "planes.neighbourhood_planes": ((_c(_F64, 2), _c(_I64, 2), _c(_F64, 2), _c(_F64, 2)), 2.8),
     "sampling.draw_queries": ((_c(_F32, 2), _I64, _I64, _F32, _c(_I64, 1), _c(_F32, 2)), 0.6),
     "sampling.morton_codes": ((_c(_F32, 2),), 0.8),
     "step.tv_inverse_norms": ((_F, _c(_U8, 1), _c(_I32, 2), _F), 5.0),

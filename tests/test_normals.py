@@ -1,0 +1,76 @@
+"""Orienting normals: the up rule's walls, which the rule alone cannot decide, and the flip check's mask."""
+
+import numpy as np
+import pytest
+
+from tiled_gridpull.normals import orient_normals, orientation_decided, orientation_score
+
+
+def _building_on_ground(rng, spacing=0.15):
+    """Points and true outward normals of a 10 x 6 x 4 m box standing on ground that reaches 8 m beyond it
+    (no points inside: a ground-level scan sees no floor), and a 0.15 m kerb along y = -10."""
+    pts, nrm = [], []
+
+    def grid(a, b):
+        u, v = np.meshgrid(np.arange(a[0], a[1], spacing), np.arange(b[0], b[1], spacing), indexing="ij")
+        return u.ravel(), v.ravel()
+
+    x, y = grid((-13, 13), (-10, 11))
+    out = (np.abs(x) > 5) | (np.abs(y) > 3)
+    pts.append(np.c_[x[out], y[out], np.zeros(out.sum())])
+    nrm.append(np.tile([0, 0, 1.0], (out.sum(), 1)))
+    x, y = grid((-5, 5), (-3, 3))            # roof
+    pts.append(np.c_[x, y, np.full_like(x, 4.0)])
+    nrm.append(np.tile([0, 0, 1.0], (len(x), 1)))
+    for axis, side in ((0, -5), (0, 5), (1, -3), (1, 3)):   # walls
+        u, h = grid((-5, 5) if axis == 1 else (-3, 3), (spacing, 4))
+        p = np.zeros((len(u), 3))
+        p[:, axis] = side
+        p[:, 1 - axis] = u
+        p[:, 2] = h
+        n = np.zeros_like(p)
+        n[:, axis] = np.sign(side)
+        pts.append(p)
+        nrm.append(n)
+    x, y = grid((-13, 13), (-13, -10))       # a raised pavement behind a kerb face at y = -10
+    pts.append(np.c_[x, y, np.full_like(x, 0.15)])
+    nrm.append(np.tile([0, 0, 1.0], (len(x), 1)))
+    x, h = grid((-13, 13), (0.03, 0.15))
+    pts.append(np.c_[x, np.full_like(x, -10.0), h])
+    nrm.append(np.tile([0, 1.0, 0], (len(x), 1)))
+    pts, nrm = np.concatenate(pts), np.concatenate(nrm)
+    return pts + rng.normal(scale=0.005, size=pts.shape), nrm
+
+
+def test_up_rule_turns_walls_towards_their_ground_and_away_from_their_roof():
+    rng = np.random.default_rng(3)
+    pts, true = _building_on_ground(rng)
+    # an eigen solver's signs: arbitrary per point (LAPACK's happen to agree along a plane, a Jacobi solver's not)
+    tilt = true + rng.normal(scale=0.05, size=true.shape)
+    given = tilt / np.linalg.norm(tilt, axis=1, keepdims=True) * rng.choice([-1.0, 1.0], size=(len(true), 1))
+    n = orient_normals(given, pts)
+    agree = np.einsum("ij,ij->i", n, true) > 0
+    walls = np.abs(true[:, 2]) < 0.5
+    assert walls.sum() > 5000
+    assert agree[~walls].all()                     # the rule itself: everything else up
+    assert agree[walls].mean() > 0.995, agree[walls].mean()
+    kerb = walls & (np.abs(pts[:, 1] + 10) < 0.05)
+    assert agree[kerb].mean() > 0.99               # the road lies below the kerb face, the pavement above it
+
+
+def test_walls_of_a_tile_without_ground_keep_their_signs():
+    # nothing decided to vote with (a tile that holds only a facade): the rule leaves the walls as they came
+    rng = np.random.default_rng(4)
+    pts = np.c_[rng.uniform(0, 5, 500), np.zeros(500), rng.uniform(0, 4, 500)]
+    given = np.tile([0, 1.0, 0], (500, 1)) * rng.choice([-1.0, 1.0], size=(500, 1))
+    assert np.array_equal(orient_normals(given, pts), given.astype(np.float32))
+
+
+def test_flip_check_counts_only_the_normals_the_rule_decides():
+    pts = np.zeros((4, 3))
+    n = np.array([[0, 0, 1.0], [0.2, 0, 0.98], [1.0, 0, 0], [0, 1.0, 0.1]])
+    decided = orientation_decided(n, pts)
+    assert decided.tolist() == [True, True, False, False]
+    grads = np.array([[0, 0, 1.0], [0, 0, 1.0], [-1.0, 0, 0], [0, -1.0, 0]])
+    assert orientation_score(grads, n) == pytest.approx(0.0)
+    assert orientation_score(grads, n, decided) == pytest.approx(1.0)
