@@ -74,3 +74,16 @@ def test_flip_check_counts_only_the_normals_the_rule_decides():
     grads = np.array([[0, 0, 1.0], [0, 0, 1.0], [-1.0, 0, 0], [0, -1.0, 0]])
     assert orientation_score(grads, n) == pytest.approx(0.0)
     assert orientation_score(grads, n, decided) == pytest.approx(1.0)
+
+
+def test_a_nan_normal_among_the_walls_leaves_the_others_decided():
+    rng = np.random.default_rng(5)
+    pts, true = _building_on_ground(rng)
+    given = true * rng.choice([-1.0, 1.0], size=(len(true), 1))
+    walls = np.flatnonzero(np.abs(true[:, 2]) < 0.5)
+    given[walls[::4]] = np.nan                     # degenerate neighbourhoods
+    n = orient_normals(given, pts)
+    ok = np.isfinite(n).all(axis=1)
+    assert np.isnan(n[walls[::4]]).all()
+    agree = np.einsum("ij,ij->i", n[ok], true[ok]) > 0
+    assert agree.mean() > 0.995

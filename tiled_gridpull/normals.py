@@ -226,7 +226,8 @@ def _orient_walls(n: np.ndarray, points: np.ndarray, up: tuple[float, float, flo
     d = ground[idx.reshape(len(walls), kk).astype(np.int64)] - pts[walls][:, None]  # (W, k, 3): q - p
     across = np.einsum("wki,wi->wk", d, nn[walls])
     below = -(d @ upv)
-    vote = (across * below / np.maximum(np.einsum("wki,wki->wk", d, d), 1e-300)).sum(axis=1)
+    # a degenerate neighbourhood's normal (NaN) neither votes nor is moved
+    vote = np.nan_to_num((across * below / np.maximum(np.einsum("wki,wki->wk", d, d), 1e-300)).sum(axis=1))
     n[walls[vote < 0]] *= -1
     if len(walls) < 2:
         return
@@ -235,7 +236,7 @@ def _orient_walls(n: np.ndarray, points: np.ndarray, up: tuple[float, float, flo
     _, widx = KDTree(pts[walls]).query(pts[walls], k=kw)
     widx = widx.reshape(len(walls), kw).astype(np.int64)
     wn = n[walls].astype(np.float64)
-    agree = np.einsum("wki,wi->wk", wn[widx], wn) * np.abs(vote)[widx]
+    agree = np.nan_to_num(np.einsum("wki,wi->wk", wn[widx], wn)) * np.abs(vote)[widx]
     n[walls[agree.sum(axis=1) < 0]] *= -1
 
 

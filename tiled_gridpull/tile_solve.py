@@ -105,10 +105,11 @@ def solve_tile(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig, field
                 away = np.asarray(centre, np.float64) - spec.block.low_corner
             ref = sensor32.astype(np.float64) if rule == "sensor" else None
             normals = orient_normals(normals, xyz, ref, away_from=away)
-            # the field's sign is checked against the normals the rule decides (not walls under "up")
-            decided = orientation_decided(normals, xyz, ref, away_from=away)
-            if decided.sum() < max(20, 0.05 * len(xyz)):
-                decided = None  # too few to outvote: every normal counts, as before
+            # under "up" the field's sign is checked against the normals the rule decides (not the walls, which
+            # only a vote orients); a sensor orients even grazing ground reliably, so there every normal counts
+            decided = orientation_decided(normals, xyz, ref, away_from=away) if rule == "up" else None
+            if decided is not None and decided.sum() < max(20, 0.05 * len(xyz)):
+                decided = None  # too few to outvote: every normal counts
             init = lambda band: plane_distance_init(band, xyz / band.lattice.cell_size, normals)  # noqa: E731
         lap("normals")
         fld = solve(xyz, local, solver, init=init, history_every=100)
