@@ -184,17 +184,25 @@ def orient_normals(normals: np.ndarray, points: np.ndarray, sensor: np.ndarray |
     (N, 3) float32
     """
     n = np.array(normals, dtype=np.float32, copy=True)
-    if sensor is not None:
-        ref = np.asarray(sensor, dtype=np.float64) - np.asarray(points, dtype=np.float64)
-    elif away_from is not None:
-        ref = np.asarray(points, dtype=np.float64) - np.asarray(away_from, dtype=np.float64)
-    else:
-        ref = np.broadcast_to(np.asarray(up, dtype=np.float64), n.shape)
+    ref = _reference(n.shape, points, sensor, up, away_from)
     flip = np.einsum("ij,ij->i", n.astype(np.float64), ref) < 0
     n[flip] *= -1
     if sensor is None and away_from is None:
         _orient_walls(n, points, up)
     return n
+
+
+def _reference(shape: tuple, points: np.ndarray, sensor: np.ndarray | None, up, away_from: np.ndarray | None
+               ) -> np.ndarray:
+    """The direction each normal should face, (N, 3) float64 (not unit): towards its sensor, away from the
+    centre, or up (:func:`orient_normals`' rules, in that order of precedence)."""
+    if sensor is not None:
+        ref = np.asarray(sensor, dtype=np.float64) - np.asarray(points, dtype=np.float64)
+    elif away_from is not None:
+        ref = np.asarray(points, dtype=np.float64) - np.asarray(away_from, dtype=np.float64)
+    else:
+        ref = np.asarray(up, dtype=np.float64)
+    return np.broadcast_to(ref, shape)
 
 
 #: Neighbours that vote on an undecided normal's side under the ``up`` rule.
@@ -377,13 +385,7 @@ def orientation_decided(normals: np.ndarray, points: np.ndarray, sensor: np.ndar
     (N,) bool
     """
     n = np.asarray(normals, dtype=np.float64)
-    if sensor is not None:
-        ref = np.asarray(sensor, dtype=np.float64) - np.asarray(points, dtype=np.float64)
-    elif away_from is not None:
-        ref = np.asarray(points, dtype=np.float64) - np.asarray(away_from, dtype=np.float64)
-    else:
-        ref = np.broadcast_to(np.asarray(up, dtype=np.float64), n.shape)
-    ref = np.broadcast_to(ref, n.shape)
+    ref = _reference(n.shape, points, sensor, up, away_from)
     norms = np.linalg.norm(ref, axis=1) * np.linalg.norm(n, axis=1)
     with np.errstate(invalid="ignore", divide="ignore"):
         cos = np.abs(np.einsum("ij,ij->i", n, ref)) / norms
