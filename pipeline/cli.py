@@ -157,6 +157,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="street: offset added to every coordinate (e.g. UTM-like 500000 4000000 100)")
     sm.add_argument("--range-noise", type=float, default=0.0, metavar="M",
                     help="street: Gaussian noise of each return's range, in metres (a survey scanner: about 0.01-0.03)")
+    sm.add_argument("--beam-bias", type=float, default=0.0, metavar="DEG",
+                    help="street: standard deviation of each beam's fixed elevation error, in degrees (a calibrated "
+                         "HDL-64: about 0.1; each ring then sits a few cm off the ground, as on KITTI)")
     sm.add_argument("--frames", type=int, default=None, metavar="N",
                     help="street: N frames 1 m apart, as a 10 Hz scanner on a car driving 36 km/h (default: "
                          "max(4, points / 100,000), one sensor position's worth)")
@@ -529,6 +532,8 @@ def cmd_sample(args) -> int:
         raise ConfigError(f"--points must be at least 100, got {args.points}")
     if not (math.isfinite(args.range_noise) and args.range_noise >= 0):
         raise ConfigError(f"--range-noise must be a length >= 0 in metres, got {args.range_noise}")
+    if not (math.isfinite(args.beam_bias) and 0 <= args.beam_bias <= 5):
+        raise ConfigError(f"--beam-bias must be an angle between 0 and 5 degrees, got {args.beam_bias}")
     if args.frames is not None and not (1 <= args.frames <= 10_000):
         raise ConfigError(f"--frames must be between 1 and 10,000, got {args.frames}")
     if args.frames is not None and (args.kind != "street" or args.layout != "street"):
@@ -540,7 +545,7 @@ def cmd_sample(args) -> int:
         formats = ("laz",) + tuple(f for f in ("kitti", "copc", "ept") if getattr(args, f))
         info = make_street_sample(out, n_points=args.points, seed=args.seed, origin=tuple(args.origin),
                                   formats=formats, layout=args.layout, range_noise=args.range_noise,
-                                  frames=args.frames)
+                                  frames=args.frames, beam_bias_deg=args.beam_bias)
         log.info("wrote %s (%s layout, %d points, %d frames in %d passes) and ground truth %s", info["points"],
                  info["layout"], info["n_points"], info["n_frames"], info["n_passes"], info["gt_mesh"])
         return 0
@@ -548,6 +553,8 @@ def cmd_sample(args) -> int:
         raise ConfigError(f"--layout {args.layout} applies to 'sample street' only, not '{args.kind}'")
     if args.range_noise:
         raise ConfigError(f"--range-noise applies to 'sample street' only, not '{args.kind}'")
+    if args.beam_bias:
+        raise ConfigError(f"--beam-bias applies to 'sample street' only, not '{args.kind}'")
     from tiled_gridpull import synthetic
     from tiled_gridpull.io import write_mesh
     from tiled_gridpull.io.atomic import atomic_path

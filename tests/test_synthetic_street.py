@@ -7,6 +7,7 @@ import json
 import numpy as np
 import pytest
 
+from tiled_gridpull.mesh import Mesh
 from tiled_gridpull.metrics import point_to_mesh
 from tiled_gridpull.synthetic import (
     FACE_CLASSES,
@@ -562,3 +563,36 @@ def test_make_street_sample_as_a_drive(tmp_path):
     assert len(traj) == 12 and np.allclose(np.diff(traj[:, 1]), 1.0)  # 1 m along the street a frame
     with pytest.raises(ValueError, match="frames"):
         make_street_sample(tmp_path / "none", n_points=1000, frames=0)
+
+
+def test_beam_bias_lifts_each_ring_off_the_surface_its_own_way(street):
+    """A beam's fixed elevation error: the ray flies at the true angle and its point is reported along the
+    nominal one, so points leave the surface (they lie on it without the bias), by about range x angle on the
+    ground; the reported directions are the nominal ones. A bad value is refused, in the CLI in one line."""
+    scene, mesh, scan = street
+    biased = scan_street(scene, mesh, 3, frame_spacing_m=2.0, azimuth_steps=180, max_range=60.0, beam_bias_deg=0.1,
+                         seed=2)
+    c = np.asarray(scene.origin_array)
+    d0, _ = point_to_mesh(scan.xyz - c, Mesh(mesh.vertices - c, mesh.faces))
+    d1, _ = point_to_mesh(biased.xyz - c, Mesh(mesh.vertices - c, mesh.faces))
+    assert np.median(d0) < 1e-6
+    rng_m = np.linalg.norm(biased.xyz - biased.sensor, axis=1)
+    lo, hi = mesh.metadata["face_classes"]["terrain"]
+    ground = (biased.face >= lo) & (biased.face < hi) & (rng_m > 10)
+    assert ground.sum() > 500
+    # on the ground, seen at a grazing angle, a point moves off it by about range x the beam's error: the median
+    # of |N(0, 0.1 deg)| is 0.067 deg (walls, seen face on, barely move: the shift lies along them)
+    ratio = np.median(d1[ground] / rng_m[ground])
+    assert 0.5 * np.deg2rad(0.067) < ratio < 2 * np.deg2rad(0.067), np.rad2deg(ratio)
+    # the reported elevation angles (sensor frame, first pose is level) are the nominal beams' only
+    v = biased.xyz[biased.frame == 0] - biased.sensor[biased.frame == 0]
+    v = np.einsum("ij,nj->ni", biased.poses[0, :3, :3].T, v)
+    el = np.rad2deg(np.arcsin(v[:, 2] / np.linalg.norm(v, axis=1)))
+    nominal = np.linspace(2.0, -24.8, 64)
+    assert np.abs(el[:, None] - nominal[None]).min(axis=1).max() < 1e-6
+    with pytest.raises(ValueError, match="beam_bias_deg"):
+        scan_street(scene, mesh, 1, azimuth_steps=10, beam_bias_deg=-1.0)
+    from tiled_gridpull.pipeline.cli import main
+
+    assert main(["sample", "street", "/nonexistent/x", "--beam-bias", "nan"]) == 2
+    assert main(["sample", "sphere", "/nonexistent/x", "--beam-bias", "0.1"]) == 2

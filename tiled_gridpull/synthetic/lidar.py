@@ -142,17 +142,20 @@ def sensor_poses(scene: StreetScene, n_frames: int, frame_spacing_m: float | Non
     return _poses_from(scene, x, y, yaw)
 
 
-def hdl64_directions(beams: int = 64, azimuth_steps: int = 2000) -> np.ndarray:
+def hdl64_directions(beams: int = 64, azimuth_steps: int = 2000,
+                     elevation_offsets: np.ndarray | None = None) -> np.ndarray:
     """Unit ray directions in the sensor frame, in firing order (azimuth-major, then beam top to bottom).
 
-    Elevations are spread evenly over +2 .. -24.8 degrees; azimuth ``j`` is ``2 pi j / azimuth_steps``
-    counter-clockwise from +x (forward).
+    Elevations are spread evenly over +2 .. -24.8 degrees, each plus its ``elevation_offsets`` entry (radians,
+    one per beam) when given; azimuth ``j`` is ``2 pi j / azimuth_steps`` counter-clockwise from +x (forward).
 
     Returns
     -------
     (azimuth_steps * beams, 3) float64
     """
     el = np.deg2rad(np.linspace(ELEVATION_DEG[0], ELEVATION_DEG[1], int(beams)))
+    if elevation_offsets is not None:
+        el = el + np.asarray(elevation_offsets, np.float64)
     az = 2 * np.pi * np.arange(int(azimuth_steps)) / int(azimuth_steps)
     A, E = np.meshgrid(az, el, indexing="ij")
     return np.stack([np.cos(E) * np.cos(A), np.cos(E) * np.sin(A), np.sin(E)], -1).reshape(-1, 3)
@@ -534,7 +537,7 @@ class Scan:
 
 def scan_street(scene: StreetScene, mesh: Mesh, n_frames: int, *, frame_spacing_m: float | None = None,
                 beams: int = 64, azimuth_steps: int = 2000, max_range: float = 80.0, range_noise: float = 0.0,
-                seed: int = 0) -> Scan:
+                seed: int = 0, beam_bias_deg: float = 0.0) -> Scan:
     """Scan the street mesh with a spinning multi-beam LiDAR driving along the centre line(s).
 
     Parameters
@@ -558,7 +561,12 @@ def scan_street(scene: StreetScene, mesh: Mesh, n_frames: int, *, frame_spacing_
         Standard deviation (m) of a Gaussian added to each range along its ray (0: points exactly on the
         mesh).
     seed : int
-        Seed of the range noise only (the scene has its own).
+        Seed of the range noise and the beam bias (the scene has its own).
+    beam_bias_deg : float
+        Standard deviation (degrees) of a fixed elevation error per beam, as a multi-beam sensor's residual
+        calibration leaves it: each ray flies at its beam's true angle, and its point is reported along the
+        nominal one at the measured range, so each scan ring sits a little above or below the surface (0.1
+        degrees: about 3.5 cm at 20 m), consistently around the whole ring.
 
     Returns
     -------
@@ -572,6 +580,8 @@ def scan_street(scene: StreetScene, mesh: Mesh, n_frames: int, *, frame_spacing_
         raise ValueError("range_noise must be >= 0")
     if beams < 1 or azimuth_steps < 1:
         raise ValueError("beams and azimuth_steps must be >= 1")
+    if not (math.isfinite(beam_bias_deg) and beam_bias_deg >= 0):
+        raise ValueError("beam_bias_deg must be >= 0")
     origin = scene.origin_array
     poses = sensor_poses(scene, n_frames, frame_spacing_m)
     local = poses.copy()
@@ -579,9 +589,17 @@ def scan_street(scene: StreetScene, mesh: Mesh, n_frames: int, *, frame_spacing_
     # cast in local coordinates: float64 keeps ~1e-14 relative, i.e. ~1e-12 m, where UTM values would not
     caster = _RayCaster(mesh.vertices - origin, mesh.faces)
     dirs = hdl64_directions(beams, azimuth_steps)
+    nominal = dirs
+    if beam_bias_deg > 0:
+        bias = np.deg2rad(np.random.default_rng([int(seed), 0xB1A5]).normal(0.0, float(beam_bias_deg), int(beams)))
+        dirs = hdl64_directions(beams, azimuth_steps, elevation_offsets=bias)
     ray, xyz, t, face, refl = caster.cast(local, dirs, MIN_RANGE_M, float(max_range))
     frame = (ray // len(dirs)).astype(np.int32)
     sensor = local[frame, :3, 3]
+    if beam_bias_deg > 0 and len(t):
+        # the point goes where the sensor believes its ray went: the nominal direction, at the measured range
+        within = ray % len(dirs)
+        xyz[:] = sensor + t[:, None] * np.einsum("nij,nj->ni", local[frame, :3, :3], nominal[within])
     # in place from here on: at ~14 M points every (N, 3) float64 temporary is 336 MB
     if range_noise > 0 and len(t):
         rng = np.random.default_rng([int(seed), 0xA1DA])

@@ -46,7 +46,7 @@ def grid_frames_for_points(n_points: int, n_passes: int = 2 * GRID_STREETS) -> i
 def make_street_sample(out_dir: str | Path, n_points: int = 100_000, seed: int = 0,
                        origin: tuple[float, float, float] = (0.0, 0.0, 0.0), formats=("laz",), *,
                        range_noise: float = 0.0, crs_wkt: str | None = None, layout: str = "street",
-                       extent_m: float = 200.0, frames: int | None = None) -> dict:
+                       extent_m: float = 200.0, frames: int | None = None, beam_bias_deg: float = 0.0) -> dict:
     """Build, scan and write a street (or a grid of streets) sized for about ``n_points`` points.
 
     Single street: the scene gets ``max(4, ceil(n_points / 100 000))`` frames 1 m apart and 40 m of street
@@ -68,6 +68,9 @@ def make_street_sample(out_dir: str | Path, n_points: int = 100_000, seed: int =
         ``street_trajectory.csv`` (time, x, y, z of the sensor at every frame), and/or a ``kitti/`` sequence.
     range_noise : float
         Gaussian range noise (m).
+    beam_bias_deg : float
+        Standard deviation of each beam's fixed elevation error (degrees; :func:`scan_street`): the rings sit
+        a few centimetres off the ground, each its own way, as on a real multi-beam sensor.
     crs_wkt : str, optional
         Written into the LAS/LAZ header.
     layout : {"street", "grid"}
@@ -115,7 +118,8 @@ def make_street_sample(out_dir: str | Path, n_points: int = 100_000, seed: int =
     probe = scan_street(scene, mesh, n_frames, azimuth_steps=probe_steps)
     azimuth_steps = int(np.clip(round(probe_steps * int(n_points) / max(probe.n_points, 1)), 16, 4000))
     del probe  # freed before the full-resolution cast, which is what sets the peak memory
-    scan = scan_street(scene, mesh, n_frames, azimuth_steps=azimuth_steps, range_noise=range_noise, seed=seed)
+    scan = scan_street(scene, mesh, n_frames, azimuth_steps=azimuth_steps, range_noise=range_noise, seed=seed,
+                       beam_bias_deg=beam_bias_deg)
     result: dict = {"points": None}
     # a mapping car's record: GPS time per point (one per frame: the simulated sensor moves between sweeps, not
     # during one) and the trajectory beside the points, as mobile-mapping deliveries come
@@ -145,7 +149,7 @@ def make_street_sample(out_dir: str | Path, n_points: int = 100_000, seed: int =
     result["gt_mesh"] = write_mesh(mesh, out_dir / "street_gt.ply")
     result.update(n_points=scan.n_points, n_frames=scan.n_frames, azimuth_steps=azimuth_steps,
                   n_faces=mesh.n_faces, scene=scene.to_dict(), range_noise=float(range_noise),
-                  layout=scene.layout, n_passes=n_passes)
+                  beam_bias_deg=float(beam_bias_deg), layout=scene.layout, n_passes=n_passes)
     meta = {k: (str(v) if isinstance(v, Path) else v) for k, v in result.items()}
     meta["face_classes"] = mesh.metadata["face_classes"]
     meta["sensor_height_m"] = SENSOR_HEIGHT_M
