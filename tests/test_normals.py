@@ -87,3 +87,16 @@ def test_a_nan_normal_among_the_walls_leaves_the_others_decided():
     assert np.isnan(n[walls[::4]]).all()
     agree = np.einsum("ij,ij->i", n[ok], true[ok]) > 0
     assert agree.mean() > 0.995
+
+
+def test_the_wall_vote_is_the_same_whatever_its_chunk():
+    from tiled_gridpull.normals import _orient_walls
+
+    rng = np.random.default_rng(6)
+    pts, true = _building_on_ground(rng)
+    given = (true * rng.choice([-1.0, 1.0], size=(len(true), 1))).astype(np.float32)
+    whole, pieces = given.copy(), given.copy()
+    _orient_walls(whole, pts, (0.0, 0.0, 1.0))
+    _orient_walls(pieces, pts, (0.0, 0.0, 1.0), chunk=777)
+    assert (whole != given).any()
+    assert np.array_equal(whole, pieces)
