@@ -211,7 +211,7 @@ WALL_VOTERS = 16
 
 def _orient_walls(n: np.ndarray, points: np.ndarray, up: tuple[float, float, float], k: int = WALL_VOTERS,
                   chunk: int = 100_000) -> None:
-    """Orient, in place, the normals the ``up`` rule cannot decide (walls: more than 60 degrees from up).
+    """Orient, in place, the normals the ``up`` rule cannot decide (walls: :func:`orientation_decided`'s others).
 
     The surface bounds the space above the decided (up-facing) points near a wall, so a wall faces the side where
     those points lie *below* it (the ground at its foot) and away from the side where they lie *above* it (the
@@ -225,8 +225,7 @@ def _orient_walls(n: np.ndarray, points: np.ndarray, up: tuple[float, float, flo
     upv = np.asarray(up, dtype=np.float64)
     upv = upv / np.linalg.norm(upv)
     nn = n.astype(np.float64)
-    cos = nn @ upv / np.maximum(np.linalg.norm(nn, axis=1), 1e-300)
-    decided = np.abs(cos) >= 0.5
+    decided = orientation_decided(nn, pts, up=up)
     walls = np.flatnonzero(~decided)
     if len(walls) == 0 or decided.sum() == 0:
         return
