@@ -314,8 +314,8 @@ QUALITIES = ("draft", "standard", "fine")
 #: ``--config configs/scene.yaml --quality draft`` works); ``--set`` and the options win over it. Measured in
 #: BENCHMARKS.md ("Quality presets") and docs/solver.md ("Quality presets: time against accuracy").
 QUALITY_PRESETS: dict[str, dict[str, Any]] = {
-    "draft": {"coarse_iterations": 250, "lr_step": 125, "middle_iterations": 50, "iterations": 100,
-              "refine_lr_step": 25, "refine_m2": 5, "refine_queries_per_point": 4, "query_pool": 25,
+    "draft": {"coarse_iterations": 150, "lr_step": 75, "middle_iterations": 50, "iterations": 100,
+              "refine_lr_step": 25, "refine_m2": 5, "refine_queries_per_point": 4, "query_pool": 10,
               "points_per_cell": 8},
     "standard": {},
     "fine": {"queries_per_point": 0, "refine_queries_per_point": 0},
