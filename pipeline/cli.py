@@ -306,6 +306,10 @@ def resolve_settings(args, quality: str | None = None) -> tuple:
     if "attributes" in settings and "voxel_size" not in settings:
         # one-shape mode takes it as reconstruct's keyword (checked there), not as a tiling setting
         args.attributes = settings.pop("attributes")
+    if "drop_outliers" in settings and "voxel_size" not in settings:
+        args.drop_outliers = settings.pop("drop_outliers")  # likewise
+        if not isinstance(args.drop_outliers, bool):
+            raise ConfigError(f"drop_outliers must be true or false, got {args.drop_outliers!r}")
     tiling_keys = set(TilingConfig.__dataclass_fields__) - {"derived", "units", "halo"}  # recorded, not settings
     unknown = set(settings) - tiling_keys
     if unknown:
@@ -344,6 +348,10 @@ def cmd_reconstruct(args) -> int:
     if tiling is not None and getattr(args, "band_edges", None) is not None:
         raise ConfigError("--band-edges applies to one-shape mode (tiled mode removes every face farther than "
                           "trim_distance from the points)")
+    if tiling is not None and getattr(args, "frames", None) is not None:
+        files = [p for p in args.inputs if not Path(p).is_dir()]
+        if files:
+            raise ConfigError(f"--frames applies to KITTI sequence directories only, not {files[0]}")
     if tiling is not None:
         # the trajectory is read as much as the points are: never an output
         reads = [*args.inputs, *([args.trajectory] if getattr(args, "trajectory", None) else [])]
@@ -368,7 +376,12 @@ def cmd_reconstruct(args) -> int:
         raise InputError("one-shape mode reads one input; give --voxel-size to reconstruct several files as tiles")
     # cleaned by reconstruct, whose mode decides whether a flat patch is data (udf) or degenerate (sdf)
     cloud = read_points(args.inputs[0], clean=False)
-    log.info("read %s: %d points", args.inputs[0], len(cloud))
+    import numpy as np
+
+    # said here, before the progress bar: the cleaning's own warning would land on the bar's line
+    bad = len(cloud) - int(np.count_nonzero(np.isfinite(cloud.xyz).all(axis=1)))
+    log.info("read %s: %d points%s", args.inputs[0], len(cloud),
+             f" ({bad} with NaN or infinite coordinates, dropped)" if bad else "")
     from tiled_gridpull.kernels.warmup import KERNELS, TILED_ONLY, compile_kernels
     from tiled_gridpull.tiled_job import compile_ahead
 
@@ -378,10 +391,15 @@ def cmd_reconstruct(args) -> int:
     try:
         mesh = reconstruct(cloud, config=cfg, progress=bar.update if bar else None,
                            band_edges=getattr(args, "band_edges", None) or "trim",
-                           attributes=getattr(args, "attributes", None) or "all")
+                           attributes=getattr(args, "attributes", None) or "all",
+                           drop_outliers=bool(getattr(args, "drop_outliers", None)))
     finally:
         if bar:
             bar.close()
+    if mesh.n_faces == 0:
+        # nothing to write: an empty file would look like a finished mesh
+        raise InputError(f"{args.inputs[0]}: the solve found no surface in these points (an empty mesh; nothing "
+                         "written): check the cloud's extent and --resolution")
     from tiled_gridpull.io.remote import recorded
 
     mesh.metadata["inputs"] = [recorded(p) for p in args.inputs]
@@ -538,7 +556,11 @@ def cmd_sample(args) -> int:
         raise ConfigError(f"--frames must be between 1 and 10,000, got {args.frames}")
     if args.frames is not None and (args.kind != "street" or args.layout != "street"):
         raise ConfigError("--frames applies to 'sample street' with the street layout only")
+    if args.origin is not None and not all(math.isfinite(v) for v in args.origin):
+        raise ConfigError(f"--origin must be three finite coordinates, got {' '.join(map(str, args.origin))}")
     out = Path(args.out_dir)
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"{out}: exists and is not a directory (sample writes its files into a directory)")
     if args.kind == "street":
         from tiled_gridpull.synthetic.street_sample import make_street_sample
 
@@ -602,9 +624,15 @@ def cmd_evaluate(args) -> int:
 
     from tiled_gridpull.io import read_mesh
     from tiled_gridpull.mesh import Mesh
-    from tiled_gridpull.errors import ConfigError
+    from tiled_gridpull.errors import ConfigError, InputError
     from tiled_gridpull.metrics import evaluate, footprint_scores
 
+    if args.samples is not None and args.samples < 1:
+        raise ConfigError(f"--samples must be a positive count, got {args.samples}")
+    if not (np.isfinite(args.observed_radius) and args.observed_radius > 0):
+        raise ConfigError(f"--observed-radius must be a positive distance, got {args.observed_radius}")
+    if not all(np.isfinite(t) and t > 0 for t in args.thresholds):
+        raise ConfigError(f"--thresholds must be positive distances, got {' '.join(map(str, args.thresholds))}")
     if args.footprint is not None:
         if not args.observed:
             raise ConfigError("--footprint needs --observed CLOUD (the input points the footprint is measured from)")
@@ -626,8 +654,15 @@ def cmd_evaluate(args) -> int:
     if args.normalize:
         if observed is not None:
             observed = (observed - centre) / scale
-    res = evaluate(pred, gt, n_samples=args.samples, thresholds=tuple(args.thresholds), exact=not args.no_exact,
-                   observed=observed, observed_radius=args.observed_radius / (scale if args.normalize else 1.0))
+    try:
+        res = evaluate(pred, gt, n_samples=args.samples, thresholds=tuple(args.thresholds), exact=not args.no_exact,
+                       observed=observed, observed_radius=args.observed_radius / (scale if args.normalize else 1.0))
+    except ValueError as exc:
+        if "observed_radius" not in str(exc):
+            raise
+        raise InputError(f"--observed {args.observed}: no ground-truth sample lies within --observed-radius "
+                         f"{args.observed_radius:g} of its points (do the cloud and {args.gt} share coordinates?)") \
+            from None
     if args.footprint is not None:
         unit = scale if args.normalize else 1.0
         fp = footprint_scores(pred, gt, observed, radii=[r / unit for r in args.footprint],
@@ -685,6 +720,7 @@ def cmd_render(args) -> int:
     """Run ``render``."""
     from tiled_gridpull.errors import ConfigError
     from tiled_gridpull.io import read_mesh
+    from tiled_gridpull.io.outputs import check_output_file
 
     out = Path(args.output)
     if out.suffix.lower() != ".png":
@@ -696,6 +732,7 @@ def cmd_render(args) -> int:
         raise ConfigError("--point-size must be positive and --max-points at least 1")
     if args.clim is not None and not args.clim[0] < args.clim[1]:
         raise ConfigError(f"--clim {args.clim[0]:g} {args.clim[1]:g}: need LO < HI")
+    check_output_file(out)  # before the render, not after it
     mesh = read_mesh(args.mesh)
     cloud = gt = None
     if args.cloud:

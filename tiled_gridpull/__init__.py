@@ -28,6 +28,32 @@ import os as _os
 # set before that, which is here. Passive waiting costs nothing measurable here. An explicit user setting wins.
 _os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
+
+def _numba_cache_dir() -> str | None:
+    """Where numba caches the kernels when neither of its own places is writable, else None.
+
+    numba writes next to the source (``kernels/__pycache__``) or, where that is read-only (a system-wide or
+    container install), under the user's cache directory; with neither (a container run as another user,
+    ``HOME`` unset or read-only) every ``cache=True`` kernel raised "no locator available" at import, before
+    ``--help``. Then a directory under the system's temporary one serves (per user)."""
+    import tempfile
+
+    kernels = _os.path.join(_os.path.dirname(__file__), "kernels")
+    cache = _os.path.join(kernels, "__pycache__")
+    if _os.access(cache if _os.path.isdir(cache) else kernels, _os.W_OK):
+        return None
+    home = _os.path.expanduser("~")
+    if home != "~" and _os.path.isdir(home) and _os.access(home, _os.W_OK):
+        return None  # numba's user-wide cache under ~/.cache
+    uid = _os.getuid() if hasattr(_os, "getuid") else "user"
+    return _os.path.join(tempfile.gettempdir(), f"tiled-gridpull-numba-{uid}")
+
+
+if "NUMBA_CACHE_DIR" not in _os.environ:
+    _dir = _numba_cache_dir()
+    if _dir is not None:
+        _os.environ["NUMBA_CACHE_DIR"] = _dir
+
 from ._version import __version__  # noqa: E402
 from .config import SolverConfig  # noqa: E402
 from .errors import ConfigError, GridPullError, InputError  # noqa: E402

@@ -13,12 +13,16 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["body_box", "far_mask", "describe", "TAIL", "SAMPLE_STRIDE"]
+__all__ = ["body_box", "far_mask", "describe", "stray_points", "TAIL", "SAMPLE_STRIDE", "STRETCH_LIMIT"]
 
 #: Share of a sample's points left out of the body's box at each end of each axis.
 TAIL = 0.001
 #: The streaming scan keeps every SAMPLE_STRIDE-th point of each chunk for :func:`body_box`.
 SAMPLE_STRIDE = 16
+#: One lattice fitted to a whole cloud (one-shape mode) is refused when its far points stretch the cloud's
+#: longest side more than this many times the rest's: the rest would get under a quarter of the lattice's cells
+#: across, and a stray (0, 0, 0) in a survey leaves it none (an empty mesh).
+STRETCH_LIMIT = 4.0
 
 
 def body_box(sample: np.ndarray, pad: float = 0.0) -> np.ndarray:
@@ -55,3 +59,35 @@ def describe(n_far: int, total: int, box: np.ndarray, example: np.ndarray) -> st
     point = ", ".join(f"{v:.6g}" for v in np.asarray(example))
     body = " x ".join(f"{a:.6g}..{b:.6g}" for a, b in zip(box[0], box[1]))
     return f"{n_far:,} of {total:,} points lie far from the rest (outside {body}; e.g. ({point}))"
+
+
+def stray_points(xyz: np.ndarray, sample_size: int = 100_000) -> tuple[np.ndarray, np.ndarray] | None:
+    """The far points of a cloud, when they stretch its extent more than :data:`STRETCH_LIMIT` times.
+
+    Parameters
+    ----------
+    xyz : (N, 3) float64
+        The cloud (world units).
+    sample_size : int
+        :func:`body_box` is taken from about this many evenly spaced points.
+
+    Returns
+    -------
+    (far, box) or None
+        ``far`` (N,) bool and the body's ``box`` (2, 3) where the cloud's longest side exceeds
+        ``STRETCH_LIMIT`` times the longest side of the points that are not far; None otherwise (no far point,
+        every point far, or far points close enough not to matter).
+    """
+    xyz = np.asarray(xyz, dtype=np.float64)
+    if len(xyz) == 0:
+        return None
+    box = body_box(xyz[::max(1, len(xyz) // sample_size)])
+    far = far_mask(xyz, box)
+    if not far.any() or far.all():
+        return None
+    rest = xyz[~far]
+    whole = float(np.max(xyz.max(axis=0) - xyz.min(axis=0)))
+    body = float(np.max(rest.max(axis=0) - rest.min(axis=0)))
+    if whole <= STRETCH_LIMIT * body:
+        return None
+    return far, box

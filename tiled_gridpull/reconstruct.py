@@ -27,6 +27,7 @@ from .mesh import Mesh
 from .mesh_repair import boundary_loops, close_holes, remove_pinched_fans, remove_small_components
 from .nearest import distances_to_cloud, nearest_in_cloud
 from .noise import estimate_noise, project_to_local_planes, select_treatment
+from .outliers import STRETCH_LIMIT, body_box, describe, far_mask, stray_points
 from .solver import ProgressFn, solve
 from .stitch import trim_faces
 
@@ -159,10 +160,35 @@ def _noise_treatment(cfg: SolverConfig, xyz: np.ndarray):
     return cfg.replace(**NOISE_PRESETS[pick]), record, None
 
 
+def _without_stray_points(cloud: PointCloud, drop: bool) -> tuple[PointCloud, np.ndarray, np.ndarray | None, dict]:
+    """The cloud without the points far from the rest (``drop``), or refused where they would stretch one
+    lattice over them (:func:`~tiled_gridpull.outliers.stray_points`); its xyz, normals and report."""
+    what = cloud.source or "input"
+    if drop:
+        box = body_box(cloud.xyz[::max(1, len(cloud.xyz) // 100_000)])
+        far = far_mask(cloud.xyz, box)
+        if far.all():
+            raise InputError(f"{what}: drop_outliers would drop every point")
+        if far.any():
+            warnings.warn(f"drop_outliers: {describe(int(far.sum()), len(far), box, cloud.xyz[far][0])}: dropped",
+                          UserWarning, stacklevel=3)
+            report = dict(cloud.report, far_points_dropped=int(far.sum()))
+            cloud = cloud.take(np.flatnonzero(~far))
+            cloud.report = report
+    else:
+        stray = stray_points(cloud.xyz)
+        if stray is not None:
+            far, box = stray
+            raise InputError(f"{what}: {describe(int(far.sum()), len(far), box, cloud.xyz[far][0])}; one lattice "
+                             f"over every point would leave the rest under 1/{STRETCH_LIMIT:g} of its width: drop "
+                             "them with --drop-outliers (drop_outliers=True), or remove them")
+    return cloud, cloud.xyz, cloud.normals, dict(cloud.report)
+
+
 def reconstruct(points: Any, *, config: SolverConfig | None = None, normals: np.ndarray | None = None,
                 lattice: Lattice | None = None, progress: ProgressFn | None = None,
                 min_component_cells: float = 2.0, band_edges: str = "trim", attributes: str = "all",
-                **options: Any) -> Mesh:
+                drop_outliers: bool = False, **options: Any) -> Mesh:
     """Reconstruct a triangle mesh from a point cloud with GridPull.
 
     Parameters
@@ -207,6 +233,12 @@ def reconstruct(points: Any, *, config: SolverConfig | None = None, normals: np.
         dimensions) are interpolated onto the vertices (:mod:`~tiled_gridpull.attributes`): every one it has
         (default), the colour only, or none. They land in ``mesh.vertex_attributes``; the metadata's
         ``vertex_attributes`` records the rule and what was carried.
+    drop_outliers : bool
+        Points far from the rest (:mod:`~tiled_gridpull.outliers`: a stray ``(0, 0, 0)`` in a survey) are
+        dropped, with a warning. Without it, a cloud whose far points stretch it more than
+        :data:`~tiled_gridpull.outliers.STRETCH_LIMIT` times is refused (:class:`InputError` naming them): the
+        lattice fitted to every point would leave the rest a few cells wide, or none. Only when ``lattice`` is
+        not given.
 
     Returns
     -------
@@ -247,6 +279,9 @@ def reconstruct(points: Any, *, config: SolverConfig | None = None, normals: np.
     point_attrs, attr_xyz = select_attributes(cleaned.attributes, attributes), xyz
     if cfg.losses.normal_weight > 0 and nrm is None:
         raise InputError("normal_weight > 0 needs input normals, but the cloud has none")
+    if lattice is None:
+        cleaned, xyz, nrm, report = _without_stray_points(cleaned, drop_outliers)
+        point_attrs, attr_xyz = select_attributes(cleaned.attributes, attributes), xyz
     cfg, treatment, raw_noise = _noise_treatment(cfg, xyz)
     if cfg.noise.denoise_passes > 0:
         xyz = project_to_local_planes(xyz, cfg.noise.denoise_neighbors, cfg.noise.denoise_passes,

@@ -120,6 +120,22 @@ def _writable_dir(path: Path) -> Path | None:
     return None if os.access(d, os.W_OK | os.X_OK) else d
 
 
+def check_output_file(path: str | Path, what: str = "output") -> None:
+    """Refuse, before any work, a file output that cannot be written: a directory, a path through a file, or a
+    directory that cannot be written into (:class:`ConfigError`, one line naming ``path``)."""
+    path = Path(path)
+    if path.is_dir():
+        raise ConfigError(f"{what} {path} is a directory")
+    d = path.parent
+    while not d.exists() and d != d.parent:
+        d = d.parent
+    if not d.is_dir():
+        raise ConfigError(f"{what} {path}: {d} is a file, not a directory")
+    blocked = _writable_dir(path)
+    if blocked is not None:
+        raise ConfigError(f"{what} {path}: directory {blocked} is not writable")
+
+
 def check_outputs(inputs: Sequence[str | Path], mesh: str | Path, *, work_dir: str | Path | None = None,
                   tile_meshes: str | Path | None = None, overwrite: bool = False) -> None:
     """Refuse output paths that would lose data, before anything is read or solved.
@@ -153,11 +169,7 @@ def check_outputs(inputs: Sequence[str | Path], mesh: str | Path, *, work_dir: s
         for src, orig in zip(ins, inputs):
             if r == src:
                 raise ConfigError(f"{what} {path} is the input {orig}: refusing to overwrite an input")
-        if path.is_dir():
-            raise ConfigError(f"{what} {path} is a directory")
-        blocked = _writable_dir(path)
-        if blocked is not None:
-            raise ConfigError(f"{what} {path}: directory {blocked} is not writable")
+        check_output_file(path, what)
         if path.exists() and not overwrite and not written_by_us(path):
             raise ConfigError(f"{what} {path} exists and was not written by tiled-gridpull: pass --overwrite to "
                               "replace it, or choose another name")
