@@ -210,3 +210,30 @@ def test_wall_estimate_schedules_the_costliest_tiles_first():
     fixed = m.JOB_SETUP_S + 1000 * m.RATE_PARTITION_POINT_S + 400 * m.RATE_MERGE_BRICK_S
     assert job_wall_time(est, 1000, 2) == pytest.approx(fixed + 11.0)
     assert job_wall_time(est, 1000, 1) == pytest.approx(fixed + 13.5)
+
+
+def test_band_bound_of_a_sparse_tile_counts_as_the_dense_dilation_does():
+    """A few occupied bricks in a large brick grid (a fine cell over sparse points) are dilated without the dense
+    grid; the count is the dense dilation's, clipped at the grid's faces alike."""
+    from tiled_gridpull.memory import _dilate, band_bricks_bound
+
+    rng = np.random.default_rng(0)
+    solver = SolverConfig()
+    for _ in range(20):
+        block = tuple(int(v) for v in rng.integers(40, 330, 3))
+        bricks = [-(-(s - 1) // 8) for s in block]  # the finest level's bricks per axis
+        occupancy = np.zeros(bricks, bool)
+        for _ in range(int(rng.integers(1, 6))):
+            occupancy[tuple(int(rng.integers(0, b)) for b in bricks)] = True
+        got = band_bricks_bound(occupancy, block, solver)
+        # the dense path, level by level, as band_bricks_bound computed it before
+        levels = solver.levels_for(max(block) - 1)
+        want = []
+        for level in range(levels):
+            f = 2 ** (levels - 1 - level)
+            bshape = [-(-(-(-(s - 1) // f) + 1) // 8) for s in block]
+            idx = np.minimum(np.argwhere(occupancy) // f, np.asarray(bshape) - 1)
+            grid = np.zeros(bshape, bool)
+            grid[idx[:, 0], idx[:, 1], idx[:, 2]] = True
+            want.append(int(_dilate(grid, -(-(solver.level_settings(level, levels).m2 + 1) // 8)).sum()))
+        assert got == want
