@@ -180,3 +180,10 @@ def test_numba_cache_goes_to_a_temporary_directory_where_nothing_else_is_writabl
     assert got is not None and got.startswith(tempfile.gettempdir())
     monkeypatch.setattr(os, "access", real_access)
     assert tiled_gridpull._numba_cache_dir() is None  # this checkout's kernels directory is writable
+
+
+def test_a_directory_as_the_config_file_is_named_as_such(survey, tmp_path, capsys):
+    _, clean, _ = survey
+    code, _, err = run(["reconstruct", str(clean), "-o", str(tmp_path / "m.ply"), "--config", str(tmp_path)], capsys)
+    assert code == 2
+    _one_error_line(err, "a directory, not a YAML file")

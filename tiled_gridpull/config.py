@@ -769,7 +769,7 @@ def load_config_file(path: str | Path) -> dict[str, Any]:
 
     p = Path(path)
     if not p.is_file():
-        raise ConfigError(f"config file {p}: not found")
+        raise ConfigError(f"config file {p}: " + ("a directory, not a YAML file" if p.is_dir() else "not found"))
     try:
         data = yaml.load(p.read_text(), Loader=_unique_key_loader())
     except ConfigError as exc:
