@@ -27,6 +27,7 @@ import numpy as np
 from pykdtree.kdtree import KDTree
 
 from ._optional import require
+from .errors import InputError
 from .mesh import Mesh
 from .mesh_repair import boundary_loops
 from .nearest import distances_to_cloud
@@ -138,7 +139,7 @@ def evaluate(pred: Mesh, gt: Mesh, n_samples: int = 100_000, thresholds=DEFAULT_
     if observed is not None:
         g_pts, g_nrm = _near(g_pts, g_nrm, observed, observed_radius)
         if len(g_pts) == 0:
-            raise ValueError("no ground-truth sample lies within observed_radius of the input points")
+            raise InputError("no ground-truth sample lies within observed_radius of the input points")
     acc_d, acc_i = KDTree(g_pts).query(p_pts, k=1)
     comp_d, comp_i = KDTree(p_pts).query(g_pts, k=1)
     acc_d = acc_d.astype(np.float64)
