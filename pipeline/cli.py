@@ -303,13 +303,10 @@ def resolve_settings(args, quality: str | None = None) -> tuple:
         solver_settings.setdefault("normal_weight", NORMALS_WEIGHT)
     if getattr(args, "attributes", None) is not None:  # the option wins over a config file's key
         settings["attributes"] = args.attributes
-    if "attributes" in settings and "voxel_size" not in settings:
-        # one-shape mode takes it as reconstruct's keyword (checked there), not as a tiling setting
-        args.attributes = settings.pop("attributes")
-    if "drop_outliers" in settings and "voxel_size" not in settings:
-        args.drop_outliers = settings.pop("drop_outliers")  # likewise
-        if not isinstance(args.drop_outliers, bool):
-            raise ConfigError(f"drop_outliers must be true or false, got {args.drop_outliers!r}")
+    for key in ("attributes", "drop_outliers"):
+        if key in settings and "voxel_size" not in settings:
+            # one-shape mode takes it as reconstruct's keyword (checked there), not as a tiling setting
+            setattr(args, key, settings.pop(key))
     tiling_keys = set(TilingConfig.__dataclass_fields__) - {"derived", "units", "halo"}  # recorded, not settings
     unknown = set(settings) - tiling_keys
     if unknown:
@@ -392,7 +389,7 @@ def cmd_reconstruct(args) -> int:
         mesh = reconstruct(cloud, config=cfg, progress=bar.update if bar else None,
                            band_edges=getattr(args, "band_edges", None) or "trim",
                            attributes=getattr(args, "attributes", None) or "all",
-                           drop_outliers=bool(getattr(args, "drop_outliers", None)))
+                           drop_outliers=getattr(args, "drop_outliers", None) or False)
     finally:
         if bar:
             bar.close()
@@ -657,9 +654,8 @@ def cmd_evaluate(args) -> int:
     try:
         res = evaluate(pred, gt, n_samples=args.samples, thresholds=tuple(args.thresholds), exact=not args.no_exact,
                        observed=observed, observed_radius=args.observed_radius / (scale if args.normalize else 1.0))
-    except ValueError as exc:
-        if "observed_radius" not in str(exc):
-            raise
+    except InputError:
+        # the library's words name its keyword; these name the options
         raise InputError(f"--observed {args.observed}: no ground-truth sample lies within --observed-radius "
                          f"{args.observed_radius:g} of its points (do the cloud and {args.gt} share coordinates?)") \
             from None

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["body_box", "far_mask", "describe", "stray_points", "TAIL", "SAMPLE_STRIDE", "STRETCH_LIMIT"]
+__all__ = ["body_box", "far_mask", "far_points", "describe", "stray_points", "TAIL", "SAMPLE_STRIDE", "STRETCH_LIMIT"]
 
 #: Share of a sample's points left out of the body's box at each end of each axis.
 TAIL = 0.001
@@ -61,6 +61,13 @@ def describe(n_far: int, total: int, box: np.ndarray, example: np.ndarray) -> st
     return f"{n_far:,} of {total:,} points lie far from the rest (outside {body}; e.g. ({point}))"
 
 
+def far_points(xyz: np.ndarray, sample_size: int = 100_000) -> tuple[np.ndarray, np.ndarray]:
+    """``far`` (N,) bool, the points of ``xyz`` (N, 3) outside the body's ``box`` (2, 3), taken from about
+    ``sample_size`` evenly spaced points (:func:`body_box`, no padding)."""
+    box = body_box(xyz[::max(1, len(xyz) // sample_size)])
+    return far_mask(xyz, box), box
+
+
 def stray_points(xyz: np.ndarray, sample_size: int = 100_000) -> tuple[np.ndarray, np.ndarray] | None:
     """The far points of a cloud, when they stretch its extent more than :data:`STRETCH_LIMIT` times.
 
@@ -81,8 +88,7 @@ def stray_points(xyz: np.ndarray, sample_size: int = 100_000) -> tuple[np.ndarra
     xyz = np.asarray(xyz, dtype=np.float64)
     if len(xyz) == 0:
         return None
-    box = body_box(xyz[::max(1, len(xyz) // sample_size)])
-    far = far_mask(xyz, box)
+    far, box = far_points(xyz, sample_size)
     if not far.any() or far.all():
         return None
     rest = xyz[~far]

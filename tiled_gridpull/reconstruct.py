@@ -27,7 +27,7 @@ from .mesh import Mesh
 from .mesh_repair import boundary_loops, close_holes, remove_pinched_fans, remove_small_components
 from .nearest import distances_to_cloud, nearest_in_cloud
 from .noise import estimate_noise, project_to_local_planes, select_treatment
-from .outliers import STRETCH_LIMIT, body_box, describe, far_mask, stray_points
+from .outliers import STRETCH_LIMIT, describe, far_points, stray_points
 from .solver import ProgressFn, solve
 from .stitch import trim_faces
 
@@ -160,13 +160,12 @@ def _noise_treatment(cfg: SolverConfig, xyz: np.ndarray):
     return cfg.replace(**NOISE_PRESETS[pick]), record, None
 
 
-def _without_stray_points(cloud: PointCloud, drop: bool) -> tuple[PointCloud, np.ndarray, np.ndarray | None, dict]:
+def _without_stray_points(cloud: PointCloud, drop: bool) -> PointCloud:
     """The cloud without the points far from the rest (``drop``), or refused where they would stretch one
-    lattice over them (:func:`~tiled_gridpull.outliers.stray_points`); its xyz, normals and report."""
+    lattice over them (:func:`~tiled_gridpull.outliers.stray_points`)."""
     what = cloud.source or "input"
     if drop:
-        box = body_box(cloud.xyz[::max(1, len(cloud.xyz) // 100_000)])
-        far = far_mask(cloud.xyz, box)
+        far, box = far_points(cloud.xyz)
         if far.all():
             raise InputError(f"{what}: drop_outliers would drop every point")
         if far.any():
@@ -182,7 +181,7 @@ def _without_stray_points(cloud: PointCloud, drop: bool) -> tuple[PointCloud, np
             raise InputError(f"{what}: {describe(int(far.sum()), len(far), box, cloud.xyz[far][0])}; one lattice "
                              f"over every point would leave the rest under 1/{STRETCH_LIMIT:g} of its width: drop "
                              "them with --drop-outliers (drop_outliers=True), or remove them")
-    return cloud, cloud.xyz, cloud.normals, dict(cloud.report)
+    return cloud
 
 
 def reconstruct(points: Any, *, config: SolverConfig | None = None, normals: np.ndarray | None = None,
@@ -263,6 +262,8 @@ def reconstruct(points: Any, *, config: SolverConfig | None = None, normals: np.
     if min_component_cells < 0:
         raise ConfigError(f"min_component_cells must be >= 0, got {min_component_cells!r}")
     check_mode(attributes)
+    if not isinstance(drop_outliers, bool):
+        raise ConfigError(f"drop_outliers must be true or false, got {drop_outliers!r}")
     if band_edges not in BAND_EDGES:
         raise ConfigError(f"band_edges must be one of {', '.join(BAND_EDGES)}, got {band_edges!r}")
     if cfg.mode == "udf" and band_edges != "trim":
@@ -274,14 +275,13 @@ def reconstruct(points: Any, *, config: SolverConfig | None = None, normals: np.
         points = PointCloud(np.asarray(points, dtype=np.float64), attributes=colors, source="input")
     # an open flat patch is a surface for the unsigned mode (a sheet); the signed mode needs an inside
     cleaned = _prepare_cloud(points, own_normals if normals is None else normals, reject_planar=cfg.mode == "sdf")
+    if lattice is None:
+        cleaned = _without_stray_points(cleaned, drop_outliers)
     xyz, nrm, report = cleaned.xyz, cleaned.normals, dict(cleaned.report)
     # interpolated from the cleaned points where they were read (not where denoising moves them)
     point_attrs, attr_xyz = select_attributes(cleaned.attributes, attributes), xyz
     if cfg.losses.normal_weight > 0 and nrm is None:
         raise InputError("normal_weight > 0 needs input normals, but the cloud has none")
-    if lattice is None:
-        cleaned, xyz, nrm, report = _without_stray_points(cleaned, drop_outliers)
-        point_attrs, attr_xyz = select_attributes(cleaned.attributes, attributes), xyz
     cfg, treatment, raw_noise = _noise_treatment(cfg, xyz)
     if cfg.noise.denoise_passes > 0:
         xyz = project_to_local_planes(xyz, cfg.noise.denoise_neighbors, cfg.noise.denoise_passes,
