@@ -148,10 +148,8 @@ def band_bricks_bound(occupancy: np.ndarray, block_shape, solver: SolverConfig) 
         st = solver.level_settings(level, levels)
         coarse_shape = [-(-(int(s) - 1) // f) + 1 for s in block_shape]
         bshape = [-(-s // BRICK) for s in coarse_shape]
-        idx = occupied // f
+        idx = np.minimum(occupied // f, np.asarray(bshape) - 1)
         reach = -(-(st.m2 + 1) // BRICK)
-        if len(idx):
-            idx = np.unique(np.minimum(idx, np.asarray(bshape) - 1), axis=0)
         if len(idx) * (2 * reach + 1) ** 3 < int(np.prod(bshape)):
             out.append(_dilated_count(idx, bshape, reach))
             continue

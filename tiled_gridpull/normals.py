@@ -235,12 +235,13 @@ def _orient_walls(n: np.ndarray, points: np.ndarray, up: tuple[float, float, flo
     vote = np.empty(len(walls))
     for s in range(0, len(walls), chunk):
         w = walls[s:s + chunk]
-        _, idx = tree.query(pts[w], k=kk)
-        d = ground[idx.reshape(len(w), kk).astype(np.int64)] - pts[w][:, None]  # (W, k, 3): q - p
+        pw, nw = pts[w], nn[w]
+        _, idx = tree.query(pw, k=kk)
+        d = ground[idx.reshape(len(w), kk).astype(np.int64)] - pw[:, None]  # (W, k, 3): q - p
         # which side of the wall q lies on, from the normal's horizontal part: on a face tilted 60-80 degrees
         # (a steep roof, an embankment) ground straight below the face lies behind its plane and voted it
         # upside down (62-80 degree gable roofs came out 54-66 % right); across a vertical wall it is the normal
-        horizontal = nn[w] - np.outer(nn[w] @ upv, upv)
+        horizontal = nw - np.outer(nw @ upv, upv)
         across = np.einsum("wki,wi->wk", d, horizontal)
         below = -(d @ upv)
         # a degenerate neighbourhood's normal (NaN) neither votes nor is moved

@@ -112,11 +112,17 @@ def written_by_us(path: str | Path) -> bool:
     return head.startswith(marker)
 
 
-def _writable_dir(path: Path) -> Path | None:
-    """The nearest existing ancestor of ``path`` when it cannot be written into, else None."""
+def _existing_ancestor(path: Path) -> Path:
+    """The nearest ancestor of ``path`` that exists (the directory a write would have to create its way from)."""
     d = path.parent
     while not d.exists() and d != d.parent:
         d = d.parent
+    return d
+
+
+def _writable_dir(path: Path) -> Path | None:
+    """The nearest existing ancestor of ``path`` when it cannot be written into, else None."""
+    d = _existing_ancestor(path)
     return None if os.access(d, os.W_OK | os.X_OK) else d
 
 
@@ -126,9 +132,7 @@ def check_output_file(path: str | Path, what: str = "output") -> None:
     path = Path(path)
     if path.is_dir():
         raise ConfigError(f"{what} {path} is a directory")
-    d = path.parent
-    while not d.exists() and d != d.parent:
-        d = d.parent
+    d = _existing_ancestor(path)
     if not d.is_dir():
         raise ConfigError(f"{what} {path}: {d} is a file, not a directory")
     blocked = _writable_dir(path)
