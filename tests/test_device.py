@@ -225,11 +225,12 @@ def test_a_card_failure_between_levels_or_after_a_fork_is_one_line(monkeypatch, 
     P = (unit_sphere_points(200) * 5 + 8).astype(np.float32)
     band = build_band(P, Lattice((0.0, 0.0, 0.0), 1.0, (17, 17, 17)), 2, 3)
     coarse = Field(band, np.zeros((band.n_bricks, 512), np.float32), signed=True)
-    backend._last = (coarse, backend.cuda.to_device(coarse.values.reshape(-1)))
+    backend._last = {id(coarse): (coarse, backend.cuda.to_device(coarse.values.reshape(-1)))}
 
     def fail(*args, **kwargs):
         raise exc
 
+    real_device_array = backend.cuda.device_array
     monkeypatch.setattr(backend.cuda, "device_array", fail)
     with pytest.raises(errors.GridPullError) as e:
         backend.upsample(coarse, band)
@@ -241,6 +242,14 @@ def test_a_card_failure_between_levels_or_after_a_fork_is_one_line(monkeypatch, 
             solve(unit_sphere_points(300), Lattice.fit(unit_sphere_points(300), 20, 3), SolverConfig(**TINY),
                   device="cuda")
         assert "\n" not in str(e.value) and "forking" in str(e.value)
+        # and inside a batch of levels
+        from tiled_gridpull.solver import solve_batch
+
+        monkeypatch.setattr(backend.cuda, "device_array", real_device_array)  # the pools are found, the batch fails
+        monkeypatch.setattr(CudaBackend, "_iterate_batch", lambda self, runs: fail())
+        with pytest.raises(errors.GridPullError) as e:
+            solve_batch(_batch_problems(), SolverConfig(**BATCH), device="cuda")
+        assert "\n" not in str(e.value) and "forking" in str(e.value) and "batch of 2 bands" in str(e.value)
 
 
 def test_a_numba_cuda_that_fails_to_import_is_no_card(monkeypatch):
@@ -256,3 +265,52 @@ def test_a_numba_cuda_that_fails_to_import_is_no_card(monkeypatch):
     with pytest.raises(ConfigError) as e:
         device.resolve("cuda")
     assert "\n" not in str(e.value) and "numba-cuda" in str(e.value) and "row_stack" in str(e.value)
+
+
+def _batch_problems():
+    """Two small spheres on lattices of different placement and band size (tiles of one job share a block shape)."""
+    from tiled_gridpull.solver import SolveProblem
+
+    return [SolveProblem(unit_sphere_points(500, radius=0.15), Lattice((-2.0, -2.0, -2.0), 4.0 / 64, (65, 65, 65))),
+            SolveProblem(unit_sphere_points(300, seed=1, radius=0.12) + 0.3,
+                         Lattice((-1.7, -1.9, -2.1), 4.0 / 64, (65, 65, 65)))]
+
+
+BATCH = dict(resolution=64, levels=2, coarse_iterations=2, iterations=2, queries=80, m1=2, m2=2, refine_m2=2)
+
+
+@needs_cuda
+def test_a_batch_on_the_card_gives_each_tile_its_own_solve_bit_for_bit():
+    """Tiles solved together (bands concatenated, one launch per step for all) come out as each alone: the same
+    draws, each tile's own valid count, TV weight and lattice clamp, and the upsampling between levels from each
+    tile's part of the batch's field on the card. The coarse level runs the sqrt TV form, the finer the squared."""
+    from tiled_gridpull.solver import solve_batch
+
+    problems = _batch_problems()
+    cfg = SolverConfig(**BATCH)
+    assert cfg.level_settings(0, 2).tv_form != cfg.level_settings(1, 2).tv_form  # both forms run
+    alone = [solve(p.points, p.lattice, cfg, device="cuda", history_every=1) for p in problems]
+    together = solve_batch(problems, cfg, device="cuda", history_every=1)
+    assert alone[0].band.n_slots != alone[1].band.n_slots  # bands of different sizes share the launches
+    for a, b in zip(alone, together):
+        assert np.array_equal(a.values, b.values)
+        assert a.info["history"] == b.info["history"]  # each tile's own counts and sums
+        assert b.info["batch"] == 2 and [lv["batch"] for lv in b.info["levels"]] == [2, 2]
+        assert len(a.info["levels"]) == 2
+
+
+def test_a_batch_on_the_cpu_is_each_solve_alone_and_levels_must_agree():
+    from tiled_gridpull.solver import SolveProblem, solve_batch
+
+    problems = _batch_problems()
+    cfg = SolverConfig(**BATCH)
+    together = solve_batch(problems, cfg, device="cpu")
+    for p, b in zip(problems, together):
+        a = solve(p.points, p.lattice, cfg, device="cpu")
+        assert np.array_equal(a.values, b.values)
+        # the CPU's TV sum is a threaded float reduction: its last bit may differ from run to run
+        assert a.info["history"] == [pytest.approx(h, rel=1e-12) for h in b.info["history"]]
+    assert solve_batch([], cfg, device="cpu") == []
+    one_level = SolveProblem(problems[0].points, Lattice((-2.0, -2.0, -2.0), 4.0 / 32, (33, 33, 33)))
+    with pytest.raises(ValueError, match="same number of levels"):
+        solve_batch([problems[0], one_level], cfg, device="cpu")

@@ -13,7 +13,9 @@ converge at R=256 in 1600 iterations). World distances are ``value * cell_size``
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from dataclasses import field as dc_field
 
 import numpy as np
 from pykdtree.kdtree import KDTree
@@ -32,7 +34,8 @@ from .lattice import Lattice
 from .level import ADAM_BETA1, ADAM_BETA2, ADAM_EPS, LevelRun, pool_rows, upsample
 from .nearest import NearestPoints
 
-__all__ = ["solve", "sphere_init", "upsample", "ProgressFn", "InitFn", "CpuBackend", "backend_for"]
+__all__ = ["solve", "solve_batch", "SolveProblem", "sphere_init", "upsample", "ProgressFn", "InitFn", "CpuBackend",
+           "backend_for"]
 
 ProgressFn = Callable[[int, int, dict], None]
 InitFn = Callable[[Band], np.ndarray]
@@ -120,6 +123,17 @@ def _threads() -> int:
     return int(numba.get_num_threads())
 
 
+@dataclass(frozen=True, eq=False)
+class SolveProblem:
+    """One cloud to solve on one lattice: an item of :func:`solve_batch` (the arguments of :func:`solve`)."""
+
+    points: np.ndarray
+    lattice: Lattice
+    normals: np.ndarray | None = None
+    init: InitFn | None = None
+    progress: ProgressFn | None = None
+
+
 def solve(points: np.ndarray, lattice: Lattice, config: SolverConfig, *,
           normals: np.ndarray | None = None, init: InitFn | None = None,
           progress: ProgressFn | None = None, history_every: int = 50, device: str | None = None) -> Field:
@@ -147,70 +161,144 @@ def solve(points: np.ndarray, lattice: Lattice, config: SolverConfig, *,
     Field
         The optimized field on the finest band, ``info`` holding timings, band sizes and a loss history.
     """
+    return solve_batch([SolveProblem(points, lattice, normals, init, progress)], config, history_every=history_every,
+                       device=device)[0]
+
+
+def solve_batch(problems: Sequence[SolveProblem], config: SolverConfig, *, history_every: int = 50,
+                device: str | None = None) -> list[Field]:
+    """:func:`solve` for several clouds at once, level by level: each level of every problem runs in one batch on
+    the backend (on a card, one launch per step for all of them, their bands concatenated; on the CPU one after the
+    other). Each field is the one :func:`solve` gives for its problem alone: the same draws, per-problem query
+    counts and TV weights (bit for bit on either device; tests/test_device.py).
+
+    Parameters
+    ----------
+    problems : sequence of SolveProblem
+        Lattices with the same number of levels (tiles of one job: the same block shape).
+    config : SolverConfig
+    history_every : int
+    device : str, optional
+        ``cpu``, ``cuda`` or ``auto`` (default: ``config.device``).
+
+    Returns
+    -------
+    list of Field
+        One per problem, in order.
+
+    Raises
+    ------
+    InputError
+        A problem with fewer than ``MIN_POINTS`` points inside its lattice.
+    ValueError
+        Problems whose lattices need different numbers of levels.
+    """
     t0 = time.perf_counter()
     resolved = resolve_device(device or config.device)
     backend = backend_for(resolved)
-    idx = lattice.to_index(points)
-    inside = np.all((idx >= 0) & (idx <= np.asarray(lattice.shape) - 1), axis=1)
-    idx = idx[inside]
-    if len(idx) < MIN_POINTS:
-        raise InputError(f"too few points to solve: {len(idx)} inside the lattice (need at least {MIN_POINTS})")
-    N = None
-    if normals is not None and config.losses.normal_weight > 0:
-        N = np.ascontiguousarray(np.asarray(normals, dtype=np.float32)[inside])
-    udf = config.mode == "udf"
-    levels = config.levels_for(max(lattice.n_cells))
-    total = config.total_iterations(max(lattice.n_cells))
-    fld: Field | None = None
-    done = 0
-    per_level = []
-    history: list[dict] = []
+    states = [_Solving.start(p, config) for p in problems]
+    if not states:
+        return []
+    levels = states[0].levels
+    if any(s.levels != levels for s in states):
+        raise ValueError(f"a batch solves lattices with the same number of levels, got {[s.levels for s in states]}")
     for level in range(levels):
         factor = 2 ** (levels - 1 - level)
-        lat = lattice.coarsen(factor)
-        P = np.ascontiguousarray(idx / factor, dtype=np.float32)
+        runs = [s.level_run(level, factor, backend, history_every) for s in states]
+        results = (backend.iterate_batch([r.run for r in runs]) if len(runs) > 1
+                   else [backend.iterate(runs[0].run)])
+        for s, r, (d, timings) in zip(states, runs, results):
+            s.finish_level(r, d, timings, backend)
+    out = []
+    for s in states:
+        fld = s.fld
+        udf_info = None
+        if config.mode == "udf":
+            # P: the finest level's points, all of them
+            fld, udf_info = _sign_and_polish(fld, s.P, s.N, config, levels, s.problem.progress, history_every,
+                                             s.done, s.total, s.history, backend)
+            if config.schedule.udf_polish:
+                s.per_level.append({"level": levels, "polish": True,
+                                    **{k: v for k, v in fld.info.items() if k != "history"}})
+        fld.info = {
+            "points_used": int(len(s.idx)),
+            "band": fld.band.stats,
+            "levels": s.per_level,
+            "history": s.history,
+            "time_total_s": time.perf_counter() - t0,
+            "device": describe_device(resolved),
+        }
+        if len(states) > 1:
+            fld.info["batch"] = len(states)
+        if udf_info is not None:
+            fld.info["udf"] = udf_info
+        out.append(fld)
+    return out
+
+
+@dataclass(eq=False)
+class _Solving:
+    """A problem of :func:`solve_batch` between its levels."""
+
+    problem: SolveProblem
+    config: SolverConfig
+    idx: np.ndarray  # (N, 3) the points inside the lattice, index coordinates
+    N: np.ndarray | None  # their normals when the normal loss is on
+    levels: int
+    total: int
+    fld: Field | None = None
+    P: np.ndarray | None = None  # the last level's points
+    done: int = 0
+    per_level: list = dc_field(default_factory=list)
+    history: list = dc_field(default_factory=list)
+
+    @classmethod
+    def start(cls, problem: SolveProblem, config: SolverConfig) -> _Solving:
+        lattice = problem.lattice
+        idx = lattice.to_index(problem.points)
+        inside = np.all((idx >= 0) & (idx <= np.asarray(lattice.shape) - 1), axis=1)
+        idx = idx[inside]
+        if len(idx) < MIN_POINTS:
+            raise InputError(f"too few points to solve: {len(idx)} inside the lattice (need at least {MIN_POINTS})")
+        N = None
+        if problem.normals is not None and config.losses.normal_weight > 0:
+            N = np.ascontiguousarray(np.asarray(problem.normals, dtype=np.float32)[inside])
+        cells = max(lattice.n_cells)
+        return cls(problem, config, idx, N, config.levels_for(cells), config.total_iterations(cells))
+
+    def level_run(self, level: int, factor: int, backend, history_every: int) -> _LevelStart:
+        """This problem's level ``level`` (lattice coarsened ``factor`` times) prepared for the backend."""
+        config = self.config
+        lat = self.problem.lattice.coarsen(factor)
+        P = np.ascontiguousarray(self.idx / factor, dtype=np.float32)
         # an unsigned field has no direction to compare with a normal: UDF levels skip the normal loss
-        Nl = None if udf else N
+        Nl = None if config.mode == "udf" else self.N
         if factor > 1:
             P, keep = _thin(P, config.sampling.seed + level)
             Nl = Nl[keep] if Nl is not None else None
-        st = config.level_settings(level, levels, len(P))
+        st = config.level_settings(level, self.levels, len(P))
         tb = time.perf_counter()
         band = build_band(P, lat, config.sampling.m1, st.m2)
         t_band = time.perf_counter() - tb
-        if fld is not None:
-            values = backend.upsample(fld, band)
-        elif init is not None:
-            values = np.ascontiguousarray(init(band), dtype=np.float32).reshape(band.n_bricks, 512)
+        if self.fld is not None:
+            values = backend.upsample(self.fld, band)
+        elif self.problem.init is not None:
+            values = np.ascontiguousarray(self.problem.init(band), dtype=np.float32).reshape(band.n_bricks, 512)
         elif config.mode == "udf":
             values = nearest_point_init(band, P)
         else:
             values = sphere_init(band, config.init_radius)
-        fld = _optimize(P, Nl, band, values, config, st, progress, history_every, done, total, level, history,
-                        backend)
-        done += st.iterations
-        per_level.append({"level": level, "cell_size": lat.cell_size, "shape": list(lat.shape), "band": band.stats,
-                          "time_band_s": t_band, **{k: v for k, v in fld.info.items() if k != "history"}})
-    assert fld is not None
-    udf_info = None
-    if udf:
-        # P: the finest level's points, all of them
-        fld, udf_info = _sign_and_polish(fld, P, N, config, levels, progress, history_every, done, total,
-                                         history, backend)
-        if config.schedule.udf_polish:
-            per_level.append({"level": levels, "polish": True,
-                              **{k: v for k, v in fld.info.items() if k != "history"}})
-    fld.info = {
-        "points_used": int(len(idx)),
-        "band": fld.band.stats,
-        "levels": per_level,
-        "history": history,
-        "time_total_s": time.perf_counter() - t0,
-        "device": describe_device(resolved),
-    }
-    if udf_info is not None:
-        fld.info["udf"] = udf_info
-    return fld
+        self.P = P
+        start = _level_start(P, Nl, band, values, config, st, self.problem.progress, history_every, self.done,
+                             self.total, level, self.history, backend)
+        start.extra = {"level": level, "cell_size": lat.cell_size, "shape": list(lat.shape), "band": band.stats,
+                       "time_band_s": t_band}
+        return start
+
+    def finish_level(self, start: _LevelStart, d: np.ndarray, timings: dict, backend) -> None:
+        self.fld = _level_field(start, d, timings, backend)
+        self.done += start.run.st.iterations
+        self.per_level.append({**start.extra, **{k: v for k, v in self.fld.info.items() if k != "history"}})
 
 
 def _sign_and_polish(fld: Field, P: np.ndarray, N: np.ndarray | None, config: SolverConfig, levels: int,
@@ -294,6 +382,10 @@ class CpuBackend:
                 run.record(it, losses.sum(axis=0), n_valid, tv_sum if form == ks.TV_SQRT else tv_sq)
         return d_a, {"time_queries_s": t_query, "time_steps_s": t_step, "threads": _threads()}
 
+    def iterate_batch(self, runs: list[LevelRun]) -> list[tuple[np.ndarray, dict]]:
+        """:meth:`iterate` for each run, one after the other (the CPU's threads are busy with one already)."""
+        return [self.iterate(run) for run in runs]
+
 
 def backend_for(device: str):
     """The backend object of a resolved device (``"cpu"`` or ``"cuda"``, :func:`tiled_gridpull.device.resolve`)."""
@@ -311,11 +403,23 @@ def _nearest_info(nn: NearestPoints) -> dict:
             "nn_fast_share_predicted": nn.fast_share, "nn_lists_skipped": nn.lists_skipped}
 
 
-def _optimize(P: np.ndarray, N: np.ndarray | None, band: Band, values: np.ndarray, cfg: SolverConfig,
-              st: LevelSchedule, progress: ProgressFn | None, history_every: int, it0: int, total: int, level: int,
-              history: list, backend=None) -> Field:
-    """Run one level's schedule ``st`` on one band."""
-    backend = backend or CpuBackend()
+@dataclass(eq=False)
+class _LevelStart:
+    """A level prepared for the backend (:func:`_level_start`), and what its field's info needs afterwards."""
+
+    run: LevelRun
+    t0: float
+    t_pool: float
+    nn: NearestPoints | None
+    nn_info: dict | None
+    extra: dict = dc_field(default_factory=dict)
+
+
+def _level_start(P: np.ndarray, N: np.ndarray | None, band: Band, values: np.ndarray, cfg: SolverConfig,
+                 st: LevelSchedule, progress: ProgressFn | None, history_every: int, it0: int, total: int, level: int,
+                 history: list, backend) -> _LevelStart:
+    """One level's schedule ``st`` on one band, ready for the backend's iterations (its points in Morton order,
+    the query pool's nearest points found)."""
     t0 = time.perf_counter()
     # Morton order: stratified centres then come out spatially sorted
     order = np.argsort(ksamp.morton_codes(P), kind="stable")
@@ -325,6 +429,7 @@ def _optimize(P: np.ndarray, N: np.ndarray | None, band: Band, values: np.ndarra
     sigma = np.float32(st.sigma)
     pool = st.query_pool
     nq = st.queries
+    nn_info = None
     if pool and backend.finds_nearest:
         # the card draws the pool's queries and searches a point grid itself: no tree, nothing copied back
         nn = None
@@ -340,17 +445,33 @@ def _optimize(P: np.ndarray, N: np.ndarray | None, band: Band, values: np.ndarra
     run = LevelRun(P=P, normals=N if N is not None else np.zeros((0, 3), np.float32), band=band,
                    values=values, cfg=cfg, st=st, nn=nn, pool_nn=pool_nn, progress=progress,
                    history_every=history_every, it0=it0, total=total, level=level, history=history)
-    d, timings = backend.iterate(run)
+    return _LevelStart(run, t0, t_pool, nn, nn_info)
+
+
+def _level_field(start: _LevelStart, d: np.ndarray, timings: dict, backend) -> Field:
+    """The field a level's iterations ended with (``d``, the backend's ``(n_slots,)`` values), with its info."""
+    run = start.run
     info = {
-        "iterations": st.iterations,
-        "queries": nq,
-        "points": int(len(P)),
-        "time_solve_s": time.perf_counter() - t0,
-        "time_query_pool_s": t_pool,
+        "iterations": run.st.iterations,
+        "queries": run.st.queries,
+        "points": int(len(run.P)),
+        "time_solve_s": time.perf_counter() - start.t0,
+        "time_query_pool_s": start.t_pool,
         **timings,
-        **(_nearest_info(nn) if nn is not None else nn_info),
+        **(_nearest_info(start.nn) if start.nn is not None else start.nn_info),
         "device": backend.name,
     }
-    fld = Field(band, d.reshape(band.n_bricks, 512), signed=cfg.mode == "sdf", info=info)
+    band = run.band
+    fld = Field(band, d.reshape(band.n_bricks, 512), signed=run.cfg.mode == "sdf", info=info)
     backend.adopt(fld)
     return fld
+
+
+def _optimize(P: np.ndarray, N: np.ndarray | None, band: Band, values: np.ndarray, cfg: SolverConfig,
+              st: LevelSchedule, progress: ProgressFn | None, history_every: int, it0: int, total: int, level: int,
+              history: list, backend=None) -> Field:
+    """Run one level's schedule ``st`` on one band."""
+    backend = backend or CpuBackend()
+    start = _level_start(P, N, band, values, cfg, st, progress, history_every, it0, total, level, history, backend)
+    d, timings = backend.iterate(start.run)
+    return _level_field(start, d, timings, backend)

@@ -62,11 +62,14 @@ class CudaBackend:
         self.cuda = cuda
         self.simulator = cuda_card() == "CUDA simulator"
         self._normals = None
-        self._pending_init = None  # the next band's initial values on the card, from upsample()
-        self._keep = None
+        #: the next bands' initial values on the card, from upsample(), by id of the band
+        self._pending: dict[int, object] = {}
+        #: the last iterations' values on the card by id of their band, until adopt() names their fields
+        self._kept: dict[int, object] = {}
         #: one launch per level (grid sync), opt-in: see ONE_LAUNCH_ENV
         self.cooperative = os.environ.get(ONE_LAUNCH_ENV) == "1" and not CudaBackend._one_launch_failed
-        self._last: tuple[Field, object] | None = None  # the last level's field and its values on the card
+        #: the last level's fields (by id) and their values on the card: the next level upsamples from these
+        self._last: dict[int, tuple[Field, object]] = {}
 
     def _grid(self, n: int, block: int = BLOCK) -> tuple[int, int]:
         if self.simulator:
@@ -155,21 +158,21 @@ class CudaBackend:
     def upsample(self, coarse: Field, band: Band) -> np.ndarray:
         """The finer band's initial values (:func:`tiled_gridpull.solver.upsample`), from the coarse field on the card
         when it is the last one this backend produced; a driver failure is one line (see :meth:`iterate`)."""
-        if self._last is None or self._last[0] is not coarse:
+        last = self._last.get(id(coarse))
+        if last is None or last[0] is not coarse:
             return upsample(coarse, band)
         with _card_errors(f"upsampling to {band.n_slots:,} slots"):
-            return self._upsample(band)
+            return self._upsample(coarse, last[1], band)
 
-    def _upsample(self, band: Band) -> np.ndarray:
-        coarse = self._last[0]
+    def _upsample(self, coarse: Field, on_card, band: Band) -> np.ndarray:
         cb = coarse.band
         to = self.cuda.to_device
         out = self.cuda.device_array(band.n_slots, np.float32)
         nx, ny, nz = (int(v) for v in cb.lattice.shape)
         blocks, threads = self._grid(band.n_slots)
-        self.k.upsample[blocks, threads](self._last[1], to(cb.brick_table), nx, ny, nz,
+        self.k.upsample[blocks, threads](on_card, to(cb.brick_table), nx, ny, nz,
                                          to(np.ascontiguousarray(band.brick_coords, np.int32)), 2, 1e3, out)
-        self._pending_init = out
+        self._pending[id(band)] = out
         return out.copy_to_host().reshape(band.n_bricks, 512)
 
     def iterate(self, run: LevelRun) -> tuple[np.ndarray, dict]:
@@ -187,7 +190,8 @@ class CudaBackend:
         to = cuda.to_device
         self._normal_table()
         n_slots = band.n_slots
-        pending, self._pending_init = self._pending_init, None
+        pending = self._pending.pop(id(band), None)
+        self._last.clear()  # the coarser fields' values: every upsample from them is done
         d_a = pending if pending is not None and pending.shape[0] == n_slots else to(run.values.reshape(-1))
         d_b = cuda.device_array(n_slots, np.float32)
         m = to(np.zeros(n_slots, np.float32))
@@ -258,14 +262,142 @@ class CudaBackend:
                            float(tv_sums[it:it + 1].copy_to_host()[0]) / k.SUMS_SCALE)
         values = d_a.copy_to_host()  # synchronizes: the loop's time below is the card's
         t_loop = time.perf_counter() - t0 - t_setup
-        self._last = None
-        self._keep = d_a
+        self._kept = {id(band): d_a}
         return values, {"time_queries_s": 0.0, "time_steps_s": t_loop, "time_device_setup_s": t_setup,
                         "card": cuda_card()}
 
+    def iterate_batch(self, runs: list[LevelRun]) -> list[tuple[np.ndarray, dict]]:
+        """Run several levels' iterations together, their bands concatenated: one launch per step for all of them.
+
+        Each run's field comes out as :meth:`iterate` gives it alone (the same draws, its own valid counts, TV
+        weight and lattice; the fixed-point sums make it bit for bit). Runs that cannot share launches (different
+        schedules, no query pool, normals on some only) run one after the other.
+
+        Returns
+        -------
+        list of ((n_slots,) float32, dict)
+            Each run's optimized field (on the host) and timings; the batch's loop time is every run's.
+        """
+        if not _batchable(runs):
+            return [self.iterate(run) for run in runs]
+        what = f"a batch of {len(runs)} bands, {sum(r.band.n_slots for r in runs):,} slots"
+        with _card_errors(what):
+            return self._iterate_batch(runs)
+
+    def _iterate_batch(self, runs: list[LevelRun]) -> list[tuple[np.ndarray, dict]]:
+        cuda, k = self.cuda, self.k
+        t0 = time.perf_counter()
+        to = cuda.to_device
+        self._normal_table()
+        first = runs[0]
+        cfg, st = first.cfg, first.st
+        n_tiles = len(runs)
+        slot_start = np.cumsum([0] + [r.band.n_slots for r in runs])
+        brick_start = np.cumsum([0] + [r.band.n_bricks for r in runs])
+        point_start = np.cumsum([0] + [r.P.shape[0] for r in runs]).astype(np.int64)
+        normal_start = np.cumsum([0] + [r.normals.shape[0] for r in runs]).astype(np.int64)
+        query_start = np.cumsum([0] + [r.st.queries for r in runs]).astype(np.int64)
+        n_slots, n_queries = int(slot_start[-1]), int(query_start[-1])
+        # the first values: a band's upsampled start where it is still on the card, else the host's
+        d_a = cuda.device_array(n_slots, np.float32)
+        for b, run in enumerate(runs):
+            pending = self._pending.pop(id(run.band), None)
+            part = d_a[int(slot_start[b]):int(slot_start[b + 1])]
+            if pending is not None and pending.shape[0] == run.band.n_slots:
+                part.copy_to_device(pending)
+            else:
+                part.copy_to_device(np.ascontiguousarray(run.values.reshape(-1), np.float32))
+        self._last.clear()
+        d_b = cuda.device_array(n_slots, np.float32)
+        m = to(np.zeros(n_slots, np.float32))
+        v = to(np.zeros(n_slots, np.float32))
+        acc = to(np.zeros(n_slots, np.int64))
+        inv = to(np.zeros(n_slots if first.sqrt_tv else 1, np.float32))
+        flags = to(np.concatenate([r.band.flags.reshape(-1) for r in runs]))
+        # brick numbers become the batch's: tile b's bricks follow those of the tiles before it
+        table_shape = np.max([r.band.brick_table.shape for r in runs], axis=0)
+        tables = np.full((n_tiles, *table_shape), -1, np.int32)
+        neighbors = []
+        for b, run in enumerate(runs):
+            t = run.band.brick_table
+            tables[b, :t.shape[0], :t.shape[1], :t.shape[2]] = np.where(t >= 0, t + brick_start[b], -1)
+            nb = run.band.neighbors
+            neighbors.append(np.where(nb >= 0, nb + brick_start[b], -1).astype(nb.dtype))
+        tables = to(tables)
+        neighbors = to(np.concatenate(neighbors))
+        tile_of_brick = to(np.repeat(np.arange(n_tiles, dtype=np.int32), np.diff(brick_start)))
+        dims = to(np.array([r.band.lattice.shape for r in runs], np.int64))
+        points = to(np.concatenate([r.P for r in runs]).astype(np.float32))
+        normals = to(np.concatenate([np.asarray(r.normals, np.float32).reshape(-1, 3) for r in runs]))
+        use_normals = bool(cfg.losses.normal_weight > 0.0 and first.normals.shape[0] == first.P.shape[0])
+        steps = to(np.array([r.P.shape[0] / r.st.queries for r in runs], np.float64))
+        tv_scales = to(np.array([r.tv_scale for r in runs], np.float32))
+        q_tile = to(np.repeat(np.arange(n_tiles, dtype=np.int32), np.diff(query_start)))
+        q_start = to(query_start)
+        p_start, n_start = to(point_start), to(normal_start)
+        # the tiles' query pools side by side: row t holds every tile's queries of pool batch t
+        pool = cuda.device_array((st.query_pool, n_queries), np.int32)
+        for b, run in enumerate(runs):
+            src = run.pool_nn if hasattr(run.pool_nn, "copy_to_host") else to(np.ascontiguousarray(run.pool_nn))
+            cb, ct = self._grid(src.shape[0] * src.shape[1])
+            k.copy_columns[cb, ct](src, pool, int(query_start[b]))
+        iters = st.iterations
+        counts = to(np.zeros((n_tiles, iters), np.int32))
+        loss_sums = to(np.zeros((n_tiles, iters, 4), k.SUMS_DTYPE))
+        tv_sums = to(np.zeros((n_tiles, iters), k.SUMS_DTYPE))
+        sigma = np.float32(st.sigma)
+        form = 1 if first.sqrt_tv else 0
+        qb, qt = self._grid(n_queries)
+        sb, stt = self._grid(n_slots)
+        seed = cfg.sampling.seed
+        t_setup = time.perf_counter() - t0
+        for it in range(iters):
+            batch = first.batch(it)
+            want = first.records(it)
+            key = np.uint64(ksamp.iteration_key(seed, first.it0 + batch))
+            k.query_scatter_batch[qb, qt](d_a, flags, tables, dims, points, p_start, normals, n_start, use_normals,
+                                          pool[batch], q_tile, q_start, key, steps, sigma, self._normals, CELL_PULL,
+                                          float(first.beta), float(first.gamma), float(cfg.losses.normal_weight), acc,
+                                          counts, it, loss_sums, want)
+            _, lr_t = first.lr_t(it)
+            if form:
+                k.tv_norms_batch[sb, stt](d_a, flags, neighbors, inv, tile_of_brick, tv_sums, it, want)
+            k.tv_adam_batch[sb, stt](d_a, d_b, m, v, acc, counts, it, tile_of_brick, flags, neighbors, inv, form,
+                                     tv_scales, np.float32(lr_t), np.float32(ADAM_BETA1), np.float32(ADAM_BETA2),
+                                     np.float32(ADAM_EPS), first.udf, tv_sums, want)
+            d_a, d_b = d_b, d_a
+        values = d_a.copy_to_host()  # synchronizes: the loop's time below is the card's
+        t_loop = time.perf_counter() - t0 - t_setup
+        if first.history_every:  # read back once, as one launch per level does
+            c, ls, tv = counts.copy_to_host(), loss_sums.copy_to_host(), tv_sums.copy_to_host()
+            for b, run in enumerate(runs):
+                for it in range(iters):
+                    if run.records(it):
+                        run.record(it, ls[b, it] / k.SUMS_SCALE, int(c[b, it]), float(tv[b, it]) / k.SUMS_SCALE)
+        self._kept = {id(r.band): d_a[int(slot_start[b]):int(slot_start[b + 1])] for b, r in enumerate(runs)}
+        timings = {"time_queries_s": 0.0, "time_steps_s": t_loop, "time_device_setup_s": t_setup,
+                   "card": cuda_card(), "batch": n_tiles}
+        return [(values[slot_start[b]:slot_start[b + 1]].copy(), dict(timings)) for b in range(n_tiles)]
+
     def adopt(self, field: Field) -> None:
-        """Mark ``field`` (built from the last :meth:`iterate`) as the one whose values are still on the card."""
-        self._last = (field, self._keep)
+        """Mark ``field`` (built from the last :meth:`iterate` or :meth:`iterate_batch`) as one whose values are
+        still on the card."""
+        on_card = self._kept.pop(id(field.band), None)
+        if on_card is not None:
+            self._last[id(field)] = (field, on_card)
+
+
+def _batchable(runs: list[LevelRun]) -> bool:
+    """Whether ``runs`` can share launches: the same iterations, pool, learning rates, TV form and mode (one
+    config and level), each with a query pool, and the normal loss on for all or none."""
+    first = runs[0]
+    same = all(r.cfg == first.cfg and r.st.iterations == first.st.iterations
+               and r.st.query_pool == first.st.query_pool and r.st.lr == first.st.lr
+               and r.st.lr_step == first.st.lr_step and r.st.tv_form == first.st.tv_form
+               and r.st.sigma == first.st.sigma and r.st.gamma == first.st.gamma and r.it0 == first.it0
+               and r.level == first.level for r in runs)
+    with_normals = {bool(r.cfg.losses.normal_weight > 0.0 and r.normals.shape[0] == r.P.shape[0]) for r in runs}
+    return same and len(with_normals) == 1 and all(r.pool_nn is not None and r.st.query_pool for r in runs)
 
 
 #: what numba-cuda's driver raises (``CudaAPIError`` is a ``CudaDriverError``; the simulator has its own classes of

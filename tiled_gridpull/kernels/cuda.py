@@ -336,6 +336,85 @@ def solve_level(d_a, d_b, m, v, acc, inv, flags, table, neighbors, nx, ny, nz, p
 
 
 @cuda.jit(cache=True)
+def query_scatter_batch(values, flags, tables, dims, points, p_start, normals, n_start, use_normals, nearest, q_tile,
+                        q_start, key, steps, sigma, normal_table, pull_bit, beta, gamma, lam, acc, counts, t, loss_sums,
+                        want_losses):
+    """:func:`query_scatter` for a batch of tiles whose bands are concatenated: each query is its own tile's, drawn,
+    evaluated and scattered exactly as that tile's launch alone would (its points, brick table, lattice and count).
+
+    Parameters
+    ----------
+    values, flags : (S,) float32, uint8
+        The tiles' slots one after the other.
+    tables : (T, BX, BY, BZ) int32
+        Tile ``b``'s brick table (global brick numbers), padded with -1 to the largest tile's.
+    dims : (T, 3) int64
+        Each tile's lattice vertex counts.
+    points : (sum N, 3) float32
+        The tiles' points one after the other, rows ``p_start[b]:p_start[b + 1]`` tile ``b``'s.
+    normals : (sum N, 3) float32 or (0, 3)
+        Their normals, rows ``n_start[b]:n_start[b + 1]`` (empty ranges when unused).
+    nearest : (sum Nq,) int32
+        Nearest point of each query (this iteration's pool batch), a row of its tile's points.
+    q_tile : (sum Nq,) int32
+        Each query's tile.
+    q_start : (T + 1,) int64
+        Tile ``b``'s queries are ``q_start[b]:q_start[b + 1]``.
+    steps : (T,) float64
+        ``N_b / Nq_b``.
+    counts : (T, iterations) int32, in/out
+    loss_sums : (T, iterations, 4) int64, in/out
+    Other parameters as :func:`query_scatter`.
+    """
+    start, stride = cuda.grid(1), cuda.gridsize(1)
+    slots = cuda.local.array(16, np.int64)
+    grads = cuda.local.array(16, np.float32)
+    losses = cuda.local.array(4, np.float32)
+    for n in range(start, nearest.shape[0], stride):
+        b = q_tile[n]
+        q0 = q_start[b]
+        clip = _clip_for(q_start[b + 1] - q0)  # the tile's own launch's clip: its sums are the same
+        _query_item(n - q0, values, flags, tables[b], dims[b, 0], dims[b, 1], dims[b, 2],
+                    points[p_start[b]:p_start[b + 1]], normals[n_start[b]:n_start[b + 1]], use_normals, nearest[n],
+                    key, steps[b], sigma, normal_table, pull_bit, beta, gamma, lam, acc, counts[b], t, loss_sums[b],
+                    want_losses, slots, grads, losses, clip)
+
+
+@cuda.jit(cache=True)
+def tv_norms_batch(d, flags, neighbors, inv, tile_of_brick, sums, t, want_sum):
+    """:func:`tv_norms` over a batch's concatenated bands (``neighbors`` in global brick numbers: no stencil crosses
+    into another tile); tile ``b``'s TV sum goes to ``sums[b, t]``."""
+    start, stride = cuda.grid(1), cuda.gridsize(1)
+    for s in range(start, d.shape[0], stride):
+        _norm_item(s, d, flags, neighbors, inv, sums[tile_of_brick[s >> 9]], t, want_sum)
+
+
+@cuda.jit(cache=True)
+def tv_adam_batch(d_in, d_out, m, v, acc, counts, t, tile_of_brick, flags, neighbors, inv, form, tv_scales, lr_t,
+                  beta1, beta2, eps, clamp_nonneg, sums, want_sum):
+    """:func:`tv_adam` over a batch's concatenated bands: each slot's query gradient is divided by its own tile's
+    valid count ``counts[b, t]`` and its TV weighted by ``tv_scales[b]``, as the tile's launch alone would."""
+    start, stride = cuda.grid(1), cuda.gridsize(1)
+    for s in range(start, d_in.shape[0], stride):
+        b = tile_of_brick[s >> 9]
+        n_valid = counts[b, t]
+        scale = np.float32(_INV_FIXED / n_valid) if n_valid > 0 else np.float32(0.0)
+        _adam_item(s, d_in, d_out, m, v, acc, scale, flags, neighbors, inv, form, tv_scales[b], lr_t, beta1, beta2,
+                   eps, clamp_nonneg, sums[b], t, want_sum)
+
+
+@cuda.jit(cache=True)
+def copy_columns(src, dst, c0):
+    """``dst[:, c0:c0 + src.shape[1]] = src`` (a tile's query pool into the batch's)."""
+    start, stride = cuda.grid(1), cuda.gridsize(1)
+    rows, cols = src.shape[0], src.shape[1]
+    for n in range(start, rows * cols, stride):
+        r = n // cols
+        c = n - r * cols
+        dst[r, c0 + c] = src[r, c]
+
+
+@cuda.jit(cache=True)
 def upsample(coarse, table, nx, ny, nz, brick_coords, factor, fill, out):
     """Initial values of a finer band from the coarser field on the card (:func:`tiled_gridpull.solver.upsample`).
 
