@@ -3,7 +3,7 @@
 Usage (on a machine with a CUDA card and numba-cuda; every stage appends JSON lines to ``--out``)::
 
     python -m benchmarks.gpu all --out gpu.jsonl [--budget 500] [--work /tmp/gpu]
-    python -m benchmarks.gpu agree|step|shape|wide|street --out gpu.jsonl
+    python -m benchmarks.gpu agree|step|batch|shape|wide|street --out gpu.jsonl
 
 Stages:
 
@@ -13,6 +13,8 @@ Stages:
   byte (determinism);
 * ``step``: the kernels alone on a synthetic band of dense bricks (64 tiles' worth, ~200M slots, and one tile's
   3.2M): ms per iteration, ns per slot, bandwidth against the copy's; the query kernel on 16M queries;
+* ``batch``: the grid of streets' densest ``--batch-tiles`` tiles solved one by one and then as one batch
+  (:func:`tiled_gridpull.solver.solve_batch`), wall and kernel times each way, fields compared bit for bit;
 * ``shape``: a 100k-point torus at R = 256, one-shape mode, both devices;
 * ``wide``: the 1M-point grid of streets (configs/scene.yaml, 0.1 m), tiled on a local Dask cluster, both devices;
 * ``street``: the 14M-point street, CUDA only unless the budget leaves room for the CPU.
@@ -355,9 +357,66 @@ def stage_scene(out: Path, work: Path, name: str, n_points: int, layout: str, de
         shutil.copy(mesh.with_suffix(".json"), out.parent / f"{name}_{dev}{'_one' if one else ''}_{i}_sidecar.json")
 
 
+class _Stop(Exception):
+    pass
+
+
+def stage_batch(out: Path, work: Path, n_tiles: int, small: bool = False) -> None:
+    """The grid of streets' ``n_tiles`` densest tiles solved on the card one by one and then as one batch
+    (:func:`tiled_gridpull.solver.solve_batch`: their bands concatenated, one launch per step for all): the wall and
+    the kernels' time each way, and whether every tile's field came out the same bit for bit. The tiles are read and
+    set up (normals) once, outside the timings; ``small``: a tiny street in the simulator (a smoke test)."""
+    from tiled_gridpull import tiled_job
+    from tiled_gridpull.pipeline import cli
+    from tiled_gridpull.solver import solve_batch
+    from tiled_gridpull.tile_solve import prepare_tile
+
+    name, n_points, layout = ("batch_small", 4000, "street") if small else ("wide", 1_000_000, "grid")
+    d = work / name
+    if not (d / "street.laz").exists():
+        subprocess.run([*CLI, "sample", "street", str(d), "--points", str(n_points), "--layout", layout,
+                        "--origin", "500000", "4000000", "100", "-q"], check=True)
+    tiny = ["bridge=0", "levels=1", "iterations=2", "queries=60", "m1=2", "m2=2"]
+    extra = (["--voxel-size", "0.5", "--tile-size", "12", "--overlap", "2"] + [x for t in tiny for x in ("--set", t)]
+             if small else [])
+    args = cli.build_parser().parse_args(["reconstruct", str(d / "street.laz"), "-o", str(d / "probe.ply"),
+                                          "--config", str(REPO / "configs" / "scene.yaml"), *extra])
+    solver, tiling = cli.resolve_settings(args)[:2]
+
+    class Probe(tiled_job.SerialExecutor):
+        def run(self, specs, tiling, solver, paths, centre, key_ref):
+            densest = sorted(specs, key=lambda s: -s.block_points)[:n_tiles]
+            ready = [p for p in (prepare_tile(s, tiling, solver, centre) for s in densest) if p.status is None]
+            problems = [p.problem() for p in ready]
+            solve_batch(problems[:1], solver, device="cuda", history_every=0)  # kernels compiled, card warm
+            t = time.perf_counter()
+            alone = [solve_batch([pr], solver, device="cuda", history_every=0)[0] for pr in problems]
+            t_alone = time.perf_counter() - t
+            t = time.perf_counter()
+            together = solve_batch(problems, solver, device="cuda", history_every=0)
+            t_batch = time.perf_counter() - t
+            steps = [sum(lv["time_steps_s"] for lv in f.info["levels"]) for f in alone]
+            out_line(out, {"stage": "batch", "scene": name, "tiles": len(ready),
+                           "slots": int(sum(f.band.n_slots for f in alone)),
+                           "alone_wall_s": t_alone, "alone_steps_s": sum(steps),
+                           "batch_wall_s": t_batch,
+                           "batch_steps_s": sum(lv["time_steps_s"] for lv in together[0].info["levels"]),
+                           "speedup_wall": t_alone / t_batch,
+                           "same_fields": all(np.array_equal(a.values, b.values) for a, b in zip(alone, together))})
+            raise _Stop
+
+    shutil.rmtree(d / "probe.job", ignore_errors=True)
+    try:
+        tiled_job.run_tiled_job([str(d / "street.laz")], None, tiling, solver, d / "probe.job", Probe(),
+                                progress=False)
+    except _Stop:
+        pass
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("stages", nargs="+", choices=("env", "agree", "step", "shape", "wide", "street", "warm", "all"))
+    ap.add_argument("stages", nargs="+", choices=("env", "agree", "step", "batch", "shape", "wide", "street", "warm",
+                                                  "all"))
     ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "gpu.jsonl")
     ap.add_argument("--work", type=Path, default=Path("/tmp/tiled_gridpull_gpu"))
     ap.add_argument("--budget", type=float, default=1e9, help="skip stages that start after this many seconds")
@@ -366,8 +425,9 @@ def main(argv=None) -> int:
     ap.add_argument("--repeat", type=int, default=1, help="CUDA runs of each scene (timing medians)")
     ap.add_argument("--one-launch", action="store_true", help="each scene once more with one launch per level")
     ap.add_argument("--small", action="store_true", help="tiny sizes: a smoke test of the script (the simulator)")
+    ap.add_argument("--batch-tiles", type=int, default=16, help="tiles of the batch stage (the densest)")
     a = ap.parse_args(argv)
-    stages = ["env", "agree", "step", "shape", "wide", "street"] if "all" in a.stages else a.stages
+    stages = ["env", "agree", "step", "batch", "shape", "wide", "street"] if "all" in a.stages else a.stages
     a.work.mkdir(parents=True, exist_ok=True)
     copy = None
     devices = tuple(a.scene_devices.split(","))
@@ -383,6 +443,8 @@ def main(argv=None) -> int:
                 stage_agree(a.out, a.small)
             elif st == "step":
                 stage_step(a.out, copy, a.small)
+            elif st == "batch":
+                stage_batch(a.out, a.work, a.batch_tiles, a.small)
             elif st == "shape":
                 stage_shape(a.out, a.work, devices)
             elif st == "warm":

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -18,12 +19,12 @@ from .noise import denoise_block
 from .normals import estimate_normals, orient_normals, orientation_decided, orientation_score
 from .initial_field import plane_distance_init
 from .partition import read_tile_points
-from .solver import solve, thin_per_cell
+from .solver import SolveProblem, solve_batch, thin_per_cell
 from .tile_field import save_tile_field
 from .tile_plan import TileSpec
 from .tiling import TilingConfig
 
-__all__ = ["solve_tile", "orientation_rule"]
+__all__ = ["solve_tile", "solve_tiles", "prepare_tile", "PreparedTile", "orientation_rule"]
 
 def orientation_rule(tiling: TilingConfig, has_sensor: bool) -> str:
     """The orientation rule a tile applies: ``tiling.orientation`` with ``auto`` resolved (sensor when the tile
@@ -51,19 +52,109 @@ def solve_tile(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig, field
     initial orientation could in principle be lost; every tile applies the same rule, so tiles agree).
     ``centre`` (world) is the input's bounding-box centre, used by the ``outward`` rule.
     """
+    return solve_tiles([spec], tiling, solver, [field_path], centre)[0]
+
+
+def solve_tiles(specs: list[TileSpec], tiling: TilingConfig, solver: SolverConfig,
+                field_paths: list[str | Path], centre: tuple[float, float, float] | None = None) -> list[dict]:
+    """:func:`solve_tile` for several tiles, their solves batched (:func:`tiled_gridpull.solver.solve_batch`: on a
+    card one launch per step for all of them; on the CPU one after the other). Each tile's field and summary are
+    those it gets alone, its ``phases_s["solve"]`` the batch's time.
+
+    Returns
+    -------
+    list of dict
+        The tiles' summaries, in order.
+    """
+    prepared = [prepare_tile(spec, tiling, solver, centre) for spec in specs]
+    ready = [(p, path) for p, path in zip(prepared, field_paths) if p.status is None]
+    if ready:
+        start = time.perf_counter()
+        for p, _ in ready:
+            p.mark = start  # a batch's solve is each of its tiles' solve
+        batch = len(ready)
+        try:
+            fields = solve_batch([p.problem() for p, _ in ready], solver, history_every=100)
+        except GridPullError as exc:
+            if len(ready) == 1:
+                _fail(ready[0][0], exc)
+                fields = [None]
+            else:  # one tile's data reason (too few points in its lattice) must not fail the others: each alone
+                fields = [_solve_alone(p, solver) for p, _ in ready]
+                batch = 1
+        for (p, path), fld in zip(ready, fields):
+            if fld is not None:
+                p.lap("solve")
+                if batch > 1:
+                    p.summary["batch"] = batch
+                _finish(p, fld, tiling, path)
+            p.close()
+    return [p.summary for p in prepared]
+
+
+def _solve_alone(p: PreparedTile, solver: SolverConfig):
+    """``p``'s field solved on its own, or None with ``p`` failed for the reason its solve gave."""
+    try:
+        return solve_batch([p.problem()], solver, history_every=100)[0]
+    except GridPullError as exc:
+        _fail(p, exc)
+        return None
+
+
+@dataclass(eq=False)
+class PreparedTile:
+    """A tile read and set up for its solve (:func:`prepare_tile`), and its summary so far.
+
+    ``status`` is None while the tile awaits its solve (:meth:`problem`), ``"skipped"`` or ``"failed"`` (with the
+    summary closed) once it needs none."""
+
+    spec: TileSpec
+    summary: dict
+    t0: float
+    mark: float
+    status: str | None = None  # "skipped" or "failed" once the tile needs no solve
+    xyz: np.ndarray | None = None  # (N, 3) float64, metres from the block's low corner
+    sensor32: np.ndarray | None = None  # (N, 3) each point's sensor origin, where known
+    local: Lattice | None = None
+    rule: str = ""
+    normals: np.ndarray | None = None
+    decided: np.ndarray | None = None
+
+    def lap(self, name: str) -> None:
+        """Add the time since the last lap to phase ``name`` (where a tile's time goes besides the solve's levels;
+        on a card the solve is the small part)."""
+        now = time.perf_counter()
+        phases = self.summary["phases_s"]
+        phases[name] = phases.get(name, 0.0) + now - self.mark
+        self.mark = now
+
+    def problem(self) -> SolveProblem:
+        xyz, normals = self.xyz, self.normals
+        init = None
+        if normals is not None:
+            init = lambda band: plane_distance_init(band, xyz / band.lattice.cell_size, normals)  # noqa: E731
+        return SolveProblem(xyz, self.local, init=init)
+
+    def close(self) -> None:
+        """The summary's closing figures."""
+        self.summary["time_s"] = time.perf_counter() - self.t0
+        self.summary["peak_rss_mb"] = peak_rss_mb()
+
+
+def _fail(p: PreparedTile, exc: BaseException) -> None:
+    p.status = "failed"
+    p.summary.update(status="failed", reason=str(exc))
+
+
+def prepare_tile(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig,
+                 centre: tuple[float, float, float] | None = None) -> PreparedTile:
+    """Read a tile's points and set up its solve: duplicates dropped, denoised, thinned, normals estimated and
+    oriented. A tile with too few points comes back ``skipped``, one that fails for a data reason ``failed``
+    (both with their summaries closed)."""
     t0 = time.perf_counter()
     reset_peak_rss()
-    summary: dict = {"tile": spec.name, "index": list(spec.index), "points": spec.block_points}
-    # where a tile's time goes besides the solve's levels (seconds): on a card the solve is the small part
-    phases: dict = {}
-    summary["phases_s"] = phases
-    mark = [time.perf_counter()]
-
-    def lap(name: str) -> None:
-        now = time.perf_counter()
-        phases[name] = phases.get(name, 0.0) + now - mark[0]
-        mark[0] = now
-
+    summary: dict = {"tile": spec.name, "index": list(spec.index), "points": spec.block_points, "phases_s": {}}
+    p = PreparedTile(spec, summary, t0, time.perf_counter())
     try:
         stored, sensor32 = read_tile_points(spec)
         xyz = stored.astype(np.float64)
@@ -74,16 +165,17 @@ def solve_tile(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig, field
             summary["duplicates_dropped"] = int(len(xyz) - len(keep))
             xyz = xyz[keep]
             sensor32 = sensor32[keep] if sensor32 is not None else None
-        lap("read")
+        p.lap("read")
         if solver.noise.denoise_passes > 0:
             xyz, keep = _denoise(xyz, spec, tiling, solver, summary)
             sensor32 = sensor32[keep] if sensor32 is not None else None
         summary["points_used"] = int(len(xyz))
         if len(xyz) < tiling.min_points:
+            p.status = "skipped"
             summary.update(status="skipped", reason=f"{len(xyz)} points (< min_points {tiling.min_points})")
             summary["time_s"] = time.perf_counter() - t0
             summary["peak_rss_mb"] = peak_rss_mb()
-            return summary
+            return p
         if solver.sampling.points_per_cell > 0:
             # at most k points per finest cell: the set-up and the solve follow the surface, not the density
             _, keep = thin_per_cell(xyz / spec.block.cell_size, solver.sampling.seed, solver.sampling.points_per_cell)
@@ -91,47 +183,55 @@ def solve_tile(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig, field
                 summary["points_thinned"] = int(len(xyz) - len(keep))
                 xyz = xyz[keep]
                 sensor32 = sensor32[keep] if sensor32 is not None else None
-        lap("prepare")
-        local = Lattice((0.0, 0.0, 0.0), spec.block.cell_size, spec.block.shape)
-        rule = orientation_rule(tiling, sensor32 is not None)
-        init = None
-        normals = None
-        if rule != "sphere":
+        p.lap("prepare")
+        p.xyz, p.sensor32 = xyz, sensor32
+        p.local = Lattice((0.0, 0.0, 0.0), spec.block.cell_size, spec.block.shape)
+        p.rule = orientation_rule(tiling, sensor32 is not None)
+        if p.rule != "sphere":
             normals = estimate_normals(xyz, tiling.normal_neighbors)
             away = None
-            if rule == "outward":
+            if p.rule == "outward":
                 if centre is None:
                     raise ConfigError("orientation 'outward' needs the centre of the input")
                 away = np.asarray(centre, np.float64) - spec.block.low_corner
-            ref = sensor32.astype(np.float64) if rule == "sensor" else None
-            normals = orient_normals(normals, xyz, ref, away_from=away)
+            ref = sensor32.astype(np.float64) if p.rule == "sensor" else None
+            p.normals = orient_normals(normals, xyz, ref, away_from=away)
             # under "up" the field's sign is checked against the normals the rule decides (not the walls, which
             # only a vote orients); a sensor orients even grazing ground reliably, so there every normal counts
-            decided = orientation_decided(normals, xyz, ref, away_from=away) if rule == "up" else None
+            decided = orientation_decided(p.normals, xyz, ref, away_from=away) if p.rule == "up" else None
             if decided is not None and decided.sum() < max(20, 0.05 * len(xyz)):
                 decided = None  # too few to outvote: every normal counts
-            init = lambda band: plane_distance_init(band, xyz / band.lattice.cell_size, normals)  # noqa: E731
-        lap("normals")
-        fld = solve(xyz, local, solver, init=init, history_every=100)
-        lap("solve")
+            p.decided = decided
+        p.lap("normals")
+    except GridPullError as exc:
+        _fail(p, exc)
+        p.close()
+    return p
+
+
+def _finish(p: PreparedTile, fld, tiling: TilingConfig, field_path: str | Path) -> None:
+    """After a tile's solve: its sign checked against the oriented normals (flipped where they disagree), the
+    ground's sampling gaps bridged, the field written; the summary filled in."""
+    spec, summary, xyz = p.spec, p.summary, p.xyz
+    try:
         flipped = False
-        if normals is not None:
+        if p.normals is not None:
             _, grads = fld.sample(xyz)
-            if orientation_score(grads, normals, decided) < 0:
+            if orientation_score(grads, p.normals, p.decided) < 0:
                 fld.values *= -1
                 flipped = True
-        if tiling.bridge > 0 and rule in ("up", "sensor"):
+        if tiling.bridge > 0 and p.rule in ("up", "sensor"):
             # ground is bridged where outside is up; a closed object cut into tiles ("outward") has no ground
             # with sensor origins the ground in a shadow stays open (nothing lies beyond it as the sensor sees it)
-            fld, bridged = bridge_field(fld, xyz, BridgeRule(radius=tiling.bridge), sensor32)
+            fld, bridged = bridge_field(fld, xyz, BridgeRule(radius=tiling.bridge), p.sensor32)
             summary.update(bridged)
-        lap("orient_and_bridge")
+        p.lap("orient_and_bridge")
         off_bricks = np.asarray(spec.block.offset, np.int64) // BRICK
         field_sha = save_tile_field(field_path, fld.band.brick_coords.astype(np.int64) + off_bricks, fld.values,
                                     fld.band.flags)
-        lap("save")
+        p.lap("save")
         hist = fld.info.get("history", [])
-        summary.update(status="solved", flipped=flipped, orientation=rule, field_sha256=field_sha,
+        summary.update(status="solved", flipped=flipped, orientation=p.rule, field_sha256=field_sha,
                        band_params=int(fld.band.n_params), bricks=int(fld.band.n_bricks),
                        level_bricks=[lv["band"]["bricks"] for lv in fld.info.get("levels", [])],
                        final_pull=hist[-1]["pull"] if hist else None,
@@ -141,10 +241,7 @@ def solve_tile(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig, field
                        field_path=str(field_path), device=fld.info.get("device"),
                        solve_levels=[{k: lv.get(k) for k in LEVEL_TIMINGS} for lv in fld.info.get("levels", [])])
     except GridPullError as exc:
-        summary.update(status="failed", reason=str(exc))
-    summary["time_s"] = time.perf_counter() - t0
-    summary["peak_rss_mb"] = peak_rss_mb()
-    return summary
+        _fail(p, exc)
 
 
 #: per-level figures a tile's summary keeps (where a solve spends its time, on either device)

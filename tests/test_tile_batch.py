@@ -1,0 +1,91 @@
+"""Tiles solved as one batch (:func:`tiled_gridpull.tile_solve.solve_tiles`) come out as each tile solved alone:
+the same fields written, byte for byte, and the same summaries but for timings; a tile that cannot be solved fails
+alone. On a card (numba's simulator here) the batch shares its launches."""
+
+import numpy as np
+import pytest
+
+from tiled_gridpull.config import SolverConfig
+from tiled_gridpull.jobdir import JobPaths
+from tiled_gridpull.prepare import prepare_job
+from tiled_gridpull.tile_solve import prepare_tile, solve_tile, solve_tiles
+from tiled_gridpull.tiling import TilingConfig
+
+TILING = TilingConfig(voxel_size=0.2, tile_size=6.4, overlap=1.6)
+SOLVER = SolverConfig(m2=6, refine_m2=6, iterations=30, coarse_iterations=30, queries=3000, device="cpu")
+#: what differs between two runs of one tile: where the time went, the memory, the batch's size
+TIMINGS = {"phases_s", "time_s", "peak_rss_mb", "batch", "solve_levels", "field_path"}
+
+
+@pytest.fixture
+def specs(tmp_path):
+    rng = np.random.default_rng(3)
+    xy = rng.uniform(0, 12.0, size=(4000, 2))
+    pts = np.column_stack([xy, 0.3 * np.sin(xy[:, 0])]) + [500000.0, 4000000.0, 20.0]
+    np.save(tmp_path / "g.npy", pts)
+    _, specs, _ = prepare_job([str(tmp_path / "g.npy")], TILING, JobPaths(tmp_path / "job"))
+    assert len(specs) >= 3
+    return specs
+
+
+def _same(a: dict, b: dict) -> None:
+    assert {k: v for k, v in a.items() if k not in TIMINGS} == {k: v for k, v in b.items() if k not in TIMINGS}
+
+
+def test_a_batch_of_tiles_writes_each_tiles_own_field(tmp_path, specs):
+    alone = [solve_tile(s, TILING, SOLVER, tmp_path / f"alone_{s.name}.npz") for s in specs[:3]]
+    paths = [tmp_path / f"batch_{s.name}.npz" for s in specs[:3]]
+    together = solve_tiles(specs[:3], TILING, SOLVER, paths)
+    assert [t["status"] for t in together] == ["solved"] * 3
+    for a, b, path in zip(alone, together, paths):
+        _same(a, b)
+        assert b["batch"] == 3 and "batch" not in a
+        assert b["field_path"] == str(path) and b["field_sha256"] == a["field_sha256"]
+        assert set(b["phases_s"]) == set(a["phases_s"])
+
+
+def test_a_tile_with_too_few_points_is_skipped_and_the_others_solved(tmp_path, specs):
+    few = TilingConfig(voxel_size=0.2, tile_size=6.4, overlap=1.6,
+                       min_points=sorted(s.block_points for s in specs)[1])  # the sparsest tile falls short
+    out = solve_tiles(specs, few, SOLVER, [tmp_path / f"{s.name}.npz" for s in specs])
+    skipped = [o for o in out if o["status"] == "skipped"]
+    assert len(skipped) >= 1 and all("min_points" in o["reason"] for o in skipped)
+    assert all(o["status"] == "solved" for o in out if o not in skipped)
+    assert all(o.get("batch") == len(out) - len(skipped) for o in out if o not in skipped)
+
+
+def test_a_tile_whose_solve_fails_fails_alone(tmp_path, specs, monkeypatch):
+    """A batch that raises for a data reason is solved tile by tile: only the tile at fault fails."""
+    from tiled_gridpull import tile_solve
+    from tiled_gridpull.errors import InputError
+
+    real = tile_solve.solve_batch
+    bad = specs[1].name
+
+    def picky(problems, *args, **kwargs):
+        if any(p.points is bad_points[0] for p in problems):
+            raise InputError("too few points to solve: 3 inside the lattice (need at least 10)")
+        return real(problems, *args, **kwargs)
+
+    bad_points = [None]
+    real_problem = tile_solve.PreparedTile.problem
+
+    def problem(self):
+        pr = real_problem(self)
+        if self.spec.name == bad:
+            bad_points[0] = pr.points
+        return pr
+
+    monkeypatch.setattr(tile_solve, "solve_batch", picky)
+    monkeypatch.setattr(tile_solve.PreparedTile, "problem", problem)
+    out = solve_tiles(specs[:3], TILING, SOLVER, [tmp_path / f"{s.name}.npz" for s in specs[:3]])
+    assert [o["status"] for o in out] == ["solved", "failed", "solved"]
+    assert "too few points" in out[1]["reason"] and "time_s" in out[1]
+    assert "batch" not in out[0]  # each was solved alone
+
+
+def test_prepare_tile_names_what_its_solve_needs(specs):
+    p = prepare_tile(specs[0], TILING, SOLVER)
+    assert p.status is None and p.rule == "up" and p.normals.shape == p.xyz.shape
+    pr = p.problem()
+    assert pr.points is p.xyz and pr.lattice == p.local and pr.init is not None
