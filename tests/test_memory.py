@@ -237,3 +237,28 @@ def test_band_bound_of_a_sparse_tile_counts_as_the_dense_dilation_does():
             grid[idx[:, 0], idx[:, 1], idx[:, 2]] = True
             want.append(int(_dilate(grid, -(-(solver.level_settings(level, levels).m2 + 1) // 8)).sum()))
         assert got == want
+
+
+def test_estimates_bound_each_tiles_band_once_and_as_tile_memory_alone(tmp_path, monkeypatch):
+    """A dry run estimates every tile (and every preset): each tile's band bound, the costly part, is computed once
+    per estimate and handed to tile_memory, whose figures are those it computes itself."""
+    from tiled_gridpull import memory
+    from tiled_gridpull.jobdir import JobPaths
+    from tiled_gridpull.partition import read_occupancy
+    from tiled_gridpull.prepare import prepare_job
+
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(0, 12.0, size=(3000, 2))
+    np.save(tmp_path / "g.npy", np.column_stack([xy, 0.3 * np.sin(xy[:, 0])]))
+    tiling = TilingConfig(voxel_size=0.2, tile_size=6.4, overlap=1.6)
+    _, specs, _ = prepare_job([str(tmp_path / "g.npy")], tiling, JobPaths(tmp_path / "job"))
+    assert len(specs) >= 3
+    solver = SolverConfig()
+    alone = [memory.tile_memory(s, read_occupancy(s), solver, tiling) for s in specs]
+    calls = []
+    real = memory.band_bricks_bound
+    monkeypatch.setattr(memory, "band_bricks_bound", lambda *a: calls.append(1) or real(*a))
+    est = estimate_tiles(specs, solver, tiling)
+    assert len(calls) == len(specs)
+    assert [e["bricks"] for e in est] == [a["bricks"] for a in alone]
+    assert [e["solve"] for e in est] == [a["solve"] for a in alone]

@@ -179,7 +179,7 @@ def _knn_bound(n_points: int, solver: SolverConfig) -> int:
 
 
 def tile_memory(spec: TileSpec, occupancy: np.ndarray, solver: SolverConfig, tiling: TilingConfig,
-                neighbor_bricks: list[int] | None = None) -> dict:
+                neighbor_bricks: list[int] | None = None, bricks: list[int] | None = None) -> dict:
     """Estimated peak resident memory (bytes) of a worker solving and meshing one tile.
 
     Parameters
@@ -189,6 +189,8 @@ def tile_memory(spec: TileSpec, occupancy: np.ndarray, solver: SolverConfig, til
         Occupied bricks of the block (:func:`tiled_gridpull.partition.read_occupancy`).
     neighbor_bricks : list of int, optional
         Finest-level band bound of each neighbour (for the mesh step).
+    bricks : list of int, optional
+        The tile's own :func:`band_bricks_bound`, when the caller has it already (it is the costly part).
 
     Returns
     -------
@@ -196,7 +198,8 @@ def tile_memory(spec: TileSpec, occupancy: np.ndarray, solver: SolverConfig, til
         ``solve``, ``mesh`` and ``peak`` (bytes), ``bricks`` (per level bound), ``points``.
     """
     n = int(spec.n_points)
-    bricks = band_bricks_bound(occupancy, spec.block.shape, solver)
+    if bricks is None:
+        bricks = band_bricks_bound(occupancy, spec.block.shape, solver)
     base = BASE_MB * MB
     points = n * (POINT_BYTES + (POINT_BYTES_SENSOR if spec.has_sensor else 0))
     k = _knn_bound(n, solver)
@@ -293,7 +296,7 @@ def estimate_tiles(specs: list[TileSpec], solver: SolverConfig, tiling: TilingCo
         i, j, k = s.index
         nb = [bricks[(i + di, j + dj, k + dk)][1][-1] for di in (-1, 0, 1) for dj in (-1, 0, 1)
               for dk in (-1, 0, 1) if (di, dj, dk) != (0, 0, 0) and (i + di, j + dj, k + dk) in bricks]
-        est = tile_memory(s, occ, solver, tiling, nb)
+        est = tile_memory(s, occ, solver, tiling, nb, bricks=b)
         est["tile"] = s.name
         est["time_s"] = tile_time(s, est["bricks"], solver)
         est["mesh_time_s"] = mesh_time(est["bricks"][-1])
