@@ -314,3 +314,23 @@ def test_a_batch_on_the_cpu_is_each_solve_alone_and_levels_must_agree():
     one_level = SolveProblem(problems[0].points, Lattice((-2.0, -2.0, -2.0), 4.0 / 32, (33, 33, 33)))
     with pytest.raises(ValueError, match="same number of levels"):
         solve_batch([problems[0], one_level], cfg, device="cpu")
+
+
+@needs_cuda
+def test_a_batch_that_cannot_share_launches_still_upsamples_each_tile_on_the_card(monkeypatch):
+    """Without a query pool the tiles' levels run one after the other; each next level still starts from its own
+    tile's field on the card (not the host's upsampling, which rounds differently), so each field is its own."""
+    from tiled_gridpull import solver_cuda
+    from tiled_gridpull.solver import solve_batch
+
+    problems = _batch_problems()
+    cfg = SolverConfig(**{**BATCH, "query_pool": 0})
+    alone = [solve(p.points, p.lattice, cfg, device="cuda") for p in problems]
+    host = []
+    real = solver_cuda.upsample
+    monkeypatch.setattr(solver_cuda, "upsample", lambda *a, **k: host.append(1) or real(*a, **k))
+    together = solve_batch(problems, cfg, device="cuda")
+    assert host == []
+    for a, b in zip(alone, together):
+        assert np.array_equal(a.values, b.values)
+        assert [lv.get("batch") for lv in b.info["levels"]] == [None, None]  # not batched: one after the other

@@ -89,3 +89,8 @@ def test_prepare_tile_names_what_its_solve_needs(specs):
     assert p.status is None and p.rule == "up" and p.normals.shape == p.xyz.shape
     pr = p.problem()
     assert pr.points is p.xyz and pr.lattice == p.local and pr.init is not None
+
+
+def test_solve_tiles_needs_a_field_path_per_tile(tmp_path, specs):
+    with pytest.raises(ValueError, match="3 tiles need as many field paths, got 2"):
+        solve_tiles(specs[:3], TILING, SOLVER, [tmp_path / "a.npz", tmp_path / "b.npz"])

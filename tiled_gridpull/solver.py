@@ -203,12 +203,7 @@ def solve_batch(problems: Sequence[SolveProblem], config: SolverConfig, *, histo
     if any(s.levels != levels for s in states):
         raise ValueError(f"a batch solves lattices with the same number of levels, got {[s.levels for s in states]}")
     for level in range(levels):
-        factor = 2 ** (levels - 1 - level)
-        runs = [s.level_run(level, factor, backend, history_every) for s in states]
-        results = (backend.iterate_batch([r.run for r in runs]) if len(runs) > 1
-                   else [backend.iterate(runs[0].run)])
-        for s, r, (d, timings) in zip(states, runs, results):
-            s.finish_level(r, d, timings, backend)
+        _run_level(states, level, levels, backend, history_every)
     out = []
     for s in states:
         fld = s.fld
@@ -234,6 +229,16 @@ def solve_batch(problems: Sequence[SolveProblem], config: SolverConfig, *, histo
             fld.info["udf"] = udf_info
         out.append(fld)
     return out
+
+
+def _run_level(states: list[_Solving], level: int, levels: int, backend, history_every: int) -> None:
+    """Level ``level`` of every problem, in one batch on the backend. A function of its own so that the level's
+    runs (points, query pools, nearest-point structures, on a card their device arrays) go when it returns."""
+    factor = 2 ** (levels - 1 - level)
+    runs = [s.level_run(level, factor, backend, history_every) for s in states]
+    results = backend.iterate_batch([r.run for r in runs]) if len(runs) > 1 else [backend.iterate(runs[0].run)]
+    for s, r, (d, timings) in zip(states, runs, results):
+        s.finish_level(r, d, timings, backend)
 
 
 @dataclass(eq=False)

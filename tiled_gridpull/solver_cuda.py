@@ -262,7 +262,7 @@ class CudaBackend:
                            float(tv_sums[it:it + 1].copy_to_host()[0]) / k.SUMS_SCALE)
         values = d_a.copy_to_host()  # synchronizes: the loop's time below is the card's
         t_loop = time.perf_counter() - t0 - t_setup
-        self._kept = {id(band): d_a}
+        self._kept[id(band)] = d_a  # adopt() takes it (one entry per band of a batch run one after the other)
         return values, {"time_queries_s": 0.0, "time_steps_s": t_loop, "time_device_setup_s": t_setup,
                         "card": cuda_card()}
 
@@ -341,6 +341,7 @@ class CudaBackend:
             src = run.pool_nn if hasattr(run.pool_nn, "copy_to_host") else to(np.ascontiguousarray(run.pool_nn))
             cb, ct = self._grid(src.shape[0] * src.shape[1])
             k.copy_columns[cb, ct](src, pool, int(query_start[b]))
+            run.pool_nn = None  # copied: the tile's own pool need not stay on the card through the level
         iters = st.iterations
         counts = to(np.zeros((n_tiles, iters), np.int32))
         loss_sums = to(np.zeros((n_tiles, iters, 4), k.SUMS_DTYPE))
@@ -374,7 +375,7 @@ class CudaBackend:
                 for it in range(iters):
                     if run.records(it):
                         run.record(it, ls[b, it] / k.SUMS_SCALE, int(c[b, it]), float(tv[b, it]) / k.SUMS_SCALE)
-        self._kept = {id(r.band): d_a[int(slot_start[b]):int(slot_start[b + 1])] for b, r in enumerate(runs)}
+        self._kept.update({id(r.band): d_a[int(slot_start[b]):int(slot_start[b + 1])] for b, r in enumerate(runs)})
         timings = {"time_queries_s": 0.0, "time_steps_s": t_loop, "time_device_setup_s": t_setup,
                    "card": cuda_card(), "batch": n_tiles}
         return [(values[slot_start[b]:slot_start[b + 1]].copy(), dict(timings)) for b in range(n_tiles)]

@@ -59,36 +59,48 @@ def solve_tiles(specs: list[TileSpec], tiling: TilingConfig, solver: SolverConfi
                 field_paths: list[str | Path], centre: tuple[float, float, float] | None = None) -> list[dict]:
     """:func:`solve_tile` for several tiles, their solves batched (:func:`tiled_gridpull.solver.solve_batch`: on a
     card one launch per step for all of them; on the CPU one after the other). Each tile's field and summary are
-    those it gets alone, its ``phases_s["solve"]`` the batch's time.
+    those it gets alone but for its figures of time and memory: ``phases_s["solve"]`` is the batch's solve,
+    ``time_s`` runs from the tile's read to its own end (the other tiles' reads and finishes before it included)
+    and ``peak_rss_mb`` is the batch's.
 
     Returns
     -------
     list of dict
         The tiles' summaries, in order.
     """
+    if len(field_paths) != len(specs):
+        raise ValueError(f"{len(specs)} tiles need as many field paths, got {len(field_paths)}")
+    reset_peak_rss()  # each summary's peak is the batch's
     prepared = [prepare_tile(spec, tiling, solver, centre) for spec in specs]
-    ready = [(p, path) for p, path in zip(prepared, field_paths) if p.status is None]
-    if ready:
-        start = time.perf_counter()
-        for p, _ in ready:
-            p.mark = start  # a batch's solve is each of its tiles' solve
-        batch = len(ready)
-        try:
-            fields = solve_batch([p.problem() for p, _ in ready], solver, history_every=100)
-        except GridPullError as exc:
-            if len(ready) == 1:
-                _fail(ready[0][0], exc)
-                fields = [None]
-            else:  # one tile's data reason (too few points in its lattice) must not fail the others: each alone
-                fields = [_solve_alone(p, solver) for p, _ in ready]
-                batch = 1
-        for (p, path), fld in zip(ready, fields):
-            if fld is not None:
-                p.lap("solve")
-                if batch > 1:
-                    p.summary["batch"] = batch
-                _finish(p, fld, tiling, path)
-            p.close()
+    ready = [(p, path) for p, path in zip(prepared, field_paths, strict=True) if p.status is None]
+    if not ready:
+        return [p.summary for p in prepared]
+    start = time.perf_counter()
+    for p, _ in ready:
+        p.mark = start  # a batch's solve is each of its tiles' solve
+    fields: list = []
+    batch = len(ready)
+    try:
+        fields = solve_batch([p.problem() for p, _ in ready], solver, history_every=100)
+    except GridPullError as exc:
+        reason = str(exc)  # not the exception: its traceback holds the failed batch's arrays (on a card, memory)
+    if not fields:
+        # outside the except block, for the same reason: the retries run with the failed batch gone
+        if batch == 1:
+            _fail(ready[0][0], reason)
+            fields = [None]
+        else:  # one tile's data reason (too few points in its lattice) must not fail the others: each alone
+            fields = [_solve_alone(p, solver) for p, _ in ready]
+            batch = 1
+    for (p, _), fld in zip(ready, fields):
+        if fld is not None:
+            p.lap("solve")  # before any tile's finish: each tile's solve is the batch's time, not its neighbours'
+            if batch > 1:
+                p.summary["batch"] = batch
+    for (p, path), fld in zip(ready, fields):
+        if fld is not None:
+            _finish(p, fld, tiling, path)
+        p.close()
     return [p.summary for p in prepared]
 
 
@@ -141,7 +153,7 @@ class PreparedTile:
         self.summary["peak_rss_mb"] = peak_rss_mb()
 
 
-def _fail(p: PreparedTile, exc: BaseException) -> None:
+def _fail(p: PreparedTile, exc: BaseException | str) -> None:
     p.status = "failed"
     p.summary.update(status="failed", reason=str(exc))
 
@@ -152,7 +164,6 @@ def prepare_tile(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig,
     oriented. A tile with too few points comes back ``skipped``, one that fails for a data reason ``failed``
     (both with their summaries closed)."""
     t0 = time.perf_counter()
-    reset_peak_rss()
     summary: dict = {"tile": spec.name, "index": list(spec.index), "points": spec.block_points, "phases_s": {}}
     p = PreparedTile(spec, summary, t0, time.perf_counter())
     try:
