@@ -45,6 +45,16 @@ def unit_sphere_points(n: int, seed: int = 0, radius: float = 0.5) -> np.ndarray
     return radius * p / np.linalg.norm(p, axis=1, keepdims=True)
 
 
+@pytest.fixture
+def ground(tmp_path):
+    """A wavy 12 m ground patch of 4,000 points at UTM-like coordinates, saved as ``g.npy``: a few 0.2 m tiles."""
+    rng = np.random.default_rng(3)
+    xy = rng.uniform(0, 12.0, size=(4000, 2))
+    pts = np.column_stack([xy, 0.3 * np.sin(xy[:, 0])]) + [500000.0, 4000000.0, 20.0]
+    np.save(tmp_path / "g.npy", pts)
+    return tmp_path / "g.npy"
+
+
 def terrain(extent: float, density: float, seed: int = 0) -> np.ndarray:
     """A wavy ground patch ``extent`` metres square, ``density`` points per square metre (UTM-like offset)."""
     rng = np.random.default_rng(seed)

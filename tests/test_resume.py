@@ -25,15 +25,6 @@ TILING = TilingConfig(voxel_size=0.2, tile_size=6.4, overlap=1.6)
 SOLVER = SolverConfig(m2=6, refine_m2=6, iterations=30, coarse_iterations=30, queries=3000)
 
 
-@pytest.fixture
-def ground(tmp_path):
-    rng = np.random.default_rng(3)
-    xy = rng.uniform(0, 12.0, size=(4000, 2))
-    pts = np.column_stack([xy, 0.3 * np.sin(xy[:, 0])]) + [500000.0, 4000000.0, 20.0]
-    np.save(tmp_path / "g.npy", pts)
-    return tmp_path / "g.npy"
-
-
 def _names(specs):
     return [(s.name, s.n_points, s.points_sha256) for s in specs]
 

@@ -2,7 +2,6 @@
 the same fields written, byte for byte, and the same summaries but for timings; a tile that cannot be solved fails
 alone. On a card (numba's simulator here) the batch shares its launches."""
 
-import numpy as np
 import pytest
 
 from tiled_gridpull.config import SolverConfig
@@ -18,12 +17,8 @@ TIMINGS = {"phases_s", "time_s", "peak_rss_mb", "batch", "solve_levels", "field_
 
 
 @pytest.fixture
-def specs(tmp_path):
-    rng = np.random.default_rng(3)
-    xy = rng.uniform(0, 12.0, size=(4000, 2))
-    pts = np.column_stack([xy, 0.3 * np.sin(xy[:, 0])]) + [500000.0, 4000000.0, 20.0]
-    np.save(tmp_path / "g.npy", pts)
-    _, specs, _ = prepare_job([str(tmp_path / "g.npy")], TILING, JobPaths(tmp_path / "job"))
+def specs(tmp_path, ground):
+    _, specs, _ = prepare_job([str(ground)], TILING, JobPaths(tmp_path / "job"))
     assert len(specs) >= 3
     return specs
 
