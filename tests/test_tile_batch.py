@@ -1,6 +1,6 @@
 """Tiles solved as one batch (:func:`tiled_gridpull.tile_solve.solve_tiles`) come out as each tile solved alone:
 the same fields written, byte for byte, and the same summaries but for timings; a tile that cannot be solved fails
-alone. On a card (numba's simulator here) the batch shares its launches."""
+alone. (That a card's batch shares its launches and gives each tile its own field is tests/test_device.py's.)"""
 
 import pytest
 
