@@ -324,7 +324,7 @@ def test_a_batch_that_cannot_share_launches_still_upsamples_each_tile_on_the_car
     from tiled_gridpull.solver import solve_batch
 
     problems = _batch_problems()
-    cfg = SolverConfig(**{**BATCH, "query_pool": 0})
+    cfg = SolverConfig(**{**BATCH, "query_pool": 0, "coarse_iterations": 1, "iterations": 1})
     alone = [solve(p.points, p.lattice, cfg, device="cuda") for p in problems]
     host = []
     real = solver_cuda.upsample
