@@ -141,6 +141,8 @@ class PreparedTile:
         self.mark = now
 
     def problem(self) -> SolveProblem:
+        """The tile's solve: its points on its local lattice, started from the planes of its oriented normals where
+        it has them (else from the solver's sphere)."""
         xyz, normals = self.xyz, self.normals
         init = None
         if normals is not None:
