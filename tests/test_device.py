@@ -334,3 +334,26 @@ def test_a_batch_that_cannot_share_launches_still_upsamples_each_tile_on_the_car
     for a, b in zip(alone, together):
         assert np.array_equal(a.values, b.values)
         assert [lv.get("batch") for lv in b.info["levels"]] == [None, None]  # not batched: one after the other
+
+
+@needs_cuda
+def test_runs_share_launches_only_with_one_schedule_a_pool_each_and_the_same_normal_loss():
+    """Tiles' levels batch when they differ only in their queries per iteration (which follow their points)."""
+    import dataclasses
+    from types import SimpleNamespace
+
+    from tiled_gridpull.solver_cuda import _batchable
+
+    cfg = SolverConfig(**BATCH)
+    st = cfg.level_settings(0, 2, 500)
+
+    def run(**kw):
+        base = dict(cfg=cfg, level=0, it0=0, st=st, uses_normals=False, pool_nn=np.zeros((1, 1), np.int32))
+        return SimpleNamespace(**{**base, **kw})
+
+    assert _batchable([run(), run(st=dataclasses.replace(st, queries=st.queries + 7))])
+    assert not _batchable([run(), run(st=dataclasses.replace(st, lr=st.lr / 2))])
+    assert not _batchable([run(), run(level=1)])
+    assert not _batchable([run(), run(uses_normals=True)])
+    assert not _batchable([run(), run(pool_nn=None)])
+    assert not _batchable([run(), run(cfg=cfg.replace(alpha=cfg.losses.alpha * 2))])

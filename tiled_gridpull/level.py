@@ -124,6 +124,11 @@ class LevelRun:
         return self.cfg.losses.udf_beta if self.udf else self.cfg.losses.beta
 
     @property
+    def uses_normals(self) -> bool:
+        """Whether the normal loss runs: weighted, and every point with its normal."""
+        return bool(self.cfg.losses.normal_weight > 0.0 and self.normals.shape[0] == self.P.shape[0])
+
+    @property
     def sqrt_tv(self) -> bool:
         return self.st.tv_form == "sqrt"
 

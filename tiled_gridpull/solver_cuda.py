@@ -14,6 +14,7 @@ CPU's within float32 rounding per step (tests/test_cuda_kernels.py, tests/test_d
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import os
 import time
@@ -203,7 +204,7 @@ class CudaBackend:
         neighbors = to(band.neighbors)
         points = to(run.P)
         normals = to(np.ascontiguousarray(run.normals, np.float32).reshape(-1, 3))
-        use_normals = bool(cfg.losses.normal_weight > 0.0 and run.normals.shape[0] == run.P.shape[0])
+        use_normals = run.uses_normals
         iters = st.iterations
         counts = to(np.zeros(iters, np.int32))
         loss_sums = to(np.zeros((iters, 4), k.SUMS_DTYPE))  # fixed point (k.SUMS_SCALE): repeats bit for bit
@@ -329,7 +330,7 @@ class CudaBackend:
         dims = to(np.array([r.band.lattice.shape for r in runs], np.int64))
         points = to(np.concatenate([r.P for r in runs]).astype(np.float32))
         normals = to(np.concatenate([np.asarray(r.normals, np.float32).reshape(-1, 3) for r in runs]))
-        use_normals = bool(cfg.losses.normal_weight > 0.0 and first.normals.shape[0] == first.P.shape[0])
+        use_normals = first.uses_normals
         steps = to(np.array([r.P.shape[0] / r.st.queries for r in runs], np.float64))
         tv_scales = to(np.array([r.tv_scale for r in runs], np.float32))
         q_tile = to(np.repeat(np.arange(n_tiles, dtype=np.int32), np.diff(query_start)))
@@ -389,16 +390,13 @@ class CudaBackend:
 
 
 def _batchable(runs: list[LevelRun]) -> bool:
-    """Whether ``runs`` can share launches: the same iterations, pool, learning rates, TV form and mode (one
-    config and level), each with a query pool, and the normal loss on for all or none."""
+    """Whether ``runs`` can share launches: one config, level and schedule (the queries per iteration aside, which
+    follow each tile's points), each with a query pool, and the normal loss on for all or none."""
     first = runs[0]
-    same = all(r.cfg == first.cfg and r.st.iterations == first.st.iterations
-               and r.st.query_pool == first.st.query_pool and r.st.lr == first.st.lr
-               and r.st.lr_step == first.st.lr_step and r.st.tv_form == first.st.tv_form
-               and r.st.sigma == first.st.sigma and r.st.gamma == first.st.gamma and r.it0 == first.it0
-               and r.level == first.level for r in runs)
-    with_normals = {bool(r.cfg.losses.normal_weight > 0.0 and r.normals.shape[0] == r.P.shape[0]) for r in runs}
-    return same and len(with_normals) == 1 and all(r.pool_nn is not None and r.st.query_pool for r in runs)
+    same = all(r.cfg == first.cfg and r.level == first.level and r.it0 == first.it0
+               and dataclasses.replace(r.st, queries=first.st.queries) == first.st
+               and r.uses_normals == first.uses_normals for r in runs)
+    return same and all(r.pool_nn is not None and r.st.query_pool for r in runs)
 
 
 #: what numba-cuda's driver raises (``CudaAPIError`` is a ``CudaDriverError``; the simulator has its own classes of

@@ -186,8 +186,7 @@ def prepare_tile(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig,
         if len(xyz) < tiling.min_points:
             p.status = "skipped"
             summary.update(status="skipped", reason=f"{len(xyz)} points (< min_points {tiling.min_points})")
-            summary["time_s"] = time.perf_counter() - t0
-            summary["peak_rss_mb"] = peak_rss_mb()
+            p.close()
             return p
         if solver.sampling.points_per_cell > 0:
             # at most k points per finest cell: the set-up and the solve follow the surface, not the density
