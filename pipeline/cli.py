@@ -111,6 +111,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="overlap solved around each tile core, in the data's units (default: 32 cells)")
     t.add_argument("--workers", type=int, help="worker processes of the local Dask cluster (default: one per core)")
     t.add_argument("--scheduler", metavar="ADDR", help="run on an existing Dask scheduler, e.g. tcp://host:8786")
+    t.add_argument("--batch-tiles", type=int, metavar="N",
+                   help="on a card: most tiles solved together, one launch per step for all of them, on a worker "
+                        "that holds the card (the local cluster starts one; on a scheduler, start one per card "
+                        "with `dask worker --resources GPU=1`); 1 solves each tile in a task of its own "
+                        "(default: 16)")
     t.add_argument("--work-dir", help="job directory for intermediate files (default: OUTPUT with .job suffix)")
     t.add_argument("--frames", metavar="START:STOP", help="KITTI sequences: frame range, e.g. 3000:4000")
     t.add_argument("--trajectory", metavar="FILE",
@@ -362,7 +367,7 @@ def cmd_reconstruct(args) -> int:
     for opt, flag in (("tiles3d", "--3d-tiles"), ("tiles3d_crs", "--3d-tiles-crs")):
         if getattr(args, opt, None) is not None:
             raise ConfigError(f"{flag} applies to tiled mode: give --voxel-size too")
-    for opt in ("workers", "scheduler", "work_dir", "frames", "max_memory", "trajectory"):
+    for opt in ("workers", "scheduler", "work_dir", "frames", "max_memory", "trajectory", "batch_tiles"):
         if getattr(args, opt, None) is not None:
             raise ConfigError(f"--{opt.replace('_', '-')} applies to tiled mode: give --voxel-size too")
     if getattr(args, "band_edges", None) is not None and cfg.mode != "sdf":
@@ -457,6 +462,9 @@ def _reconstruct_tiled(args, out: Path, solver, tiling) -> int:
     if args.workers is not None and not 1 <= args.workers <= MAX_WORKERS:
         shown = args.workers if abs(args.workers) < 1 << 62 else f"an integer of {args.workers.bit_length()} bits"
         raise ConfigError(f"--workers must be between 1 and {MAX_WORKERS}, got {shown}")
+    if args.batch_tiles is not None and not 1 <= args.batch_tiles <= MAX_BATCH_TILES:
+        shown = args.batch_tiles if abs(args.batch_tiles) < 1 << 62 else "a huge integer"
+        raise ConfigError(f"--batch-tiles must be between 1 and {MAX_BATCH_TILES}, got {shown}")
     if out.suffix.lower() != ".ply":
         raise ConfigError(f"output {out}: tiled mode writes PLY")
     frames = _parse_frames(args.frames)
@@ -505,7 +513,8 @@ def _reconstruct_tiled(args, out: Path, solver, tiling) -> int:
         return 0
     opts = JobOptions(workers=args.workers, scheduler=args.scheduler, fail_fast=args.fail_fast,
                       tile_meshes=args.tile_meshes, tiles3d=args.tiles3d, tiles3d_crs=args.tiles3d_crs,
-                      float32=args.float32, progress=not args.quiet, max_memory=max_memory)
+                      float32=args.float32, progress=not args.quiet, max_memory=max_memory,
+                      **({"batch_tiles": args.batch_tiles} if args.batch_tiles is not None else {}))
     mesh = run_job(args.inputs, out, tiling, solver, work, opts, frames=frames, trajectory=args.trajectory)
     topo = mesh.topology
     tiles = mesh.metadata["tiles"]
@@ -771,6 +780,9 @@ COMMANDS = {"reconstruct": cmd_reconstruct, "evaluate": cmd_evaluate, "sample": 
 
 #: Most worker processes a local cluster may start (each holds a Python process and a tile's arrays).
 MAX_WORKERS = 1024
+
+#: Most tiles one batch on a card may hold (a batch's bands share the card's memory).
+MAX_BATCH_TILES = 4096
 
 #: OSError numbers that name a storage problem of the machine (exit 3, one line), not a bug.
 _STORAGE_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM, errno.EIO,

@@ -8,6 +8,8 @@ cluster. This is the one module that imports ``distributed``.
   process, and numba/OpenMP threads per worker = cores / workers (numba's default threading layer aborts when
   parallel kernels run from several threads of one process). ``scheduler=ADDRESS`` runs the very same graph
   on an existing cluster.
+* On a card (``device`` cuda, or auto with one), the local cluster gets one more worker holding it (resource
+  ``GPU=1``): tiles are prepared on the other workers and solved in batches there (:class:`Batching`).
 * Failed tasks are retried (a worker that dies costs only its tiles in flight); a tile that fails for a data
   reason is reported by name and the rest of the mesh is still produced.
 * Resume (every result keyed on what produced it), fail-fast, the memory budget, the report and the mesh's
@@ -33,16 +35,21 @@ from tiled_gridpull.errors import ClusterError, ConfigError
 from tiled_gridpull.jobdir import JobPaths, neighbors_of
 from tiled_gridpull.mesh import Mesh
 from tiled_gridpull.tile_plan import TileSpec
-from tiled_gridpull.tiled_job import TileEvent, mesh_step, run_tiled_job, solve_step, task_arguments
+from tiled_gridpull.tiled_job import (TileEvent, batch_arguments, mesh_step, prepare_step, run_tiled_job,
+                                      solve_prepared_step, solve_step, task_arguments)
 from tiled_gridpull.tiling import TilingConfig
 
 log = logging.getLogger("tiled_gridpull")
 
-__all__ = ["JobOptions", "DaskExecutor", "run_job", "run_tiles", "make_client", "compile_on_workers"]
+__all__ = ["JobOptions", "DaskExecutor", "Batching", "run_job", "run_tiles", "make_client", "compile_on_workers"]
 
 #: Tasks in flight at once: enough to keep any cluster busy (a task is a whole tile, seconds to minutes of work)
 #: and to cover a slab of tiles, so mesh tasks follow their solves closely.
 DEFAULT_WINDOW = 4000
+
+#: Tiles a card solves at once by default: launches are shared while each step stays a fraction of a second
+#: (a 3.2M-slot tile's step takes 0.29 ms alone; 64 of them, 206M slots, 18 ms: issue 37's H200 prototype).
+DEFAULT_BATCH_TILES = 16
 
 #: Seconds without any worker (while tasks wait) before a job stops instead of waiting for ever.
 NO_WORKER_TIMEOUT_S = 120.0
@@ -78,6 +85,10 @@ class JobOptions:
         Directory to also write the mesh into as an OGC 3D Tiles 1.1 tileset.
     tiles3d_crs : str, optional
         The tileset's CRS when the inputs declare none (or instead of theirs), e.g. ``EPSG:32632``.
+    batch_tiles : int
+        On a card, most tiles solved together (one launch per step for all of them, on the card's worker;
+        CPU workers read and set up the next batch meanwhile). 1 solves every tile in a task of its own on any
+        worker, as on CPUs. Unused on CPUs.
     no_worker_timeout : float
         Seconds the job waits without any worker (an external scheduler none joined, or a cluster whose workers
         were all killed) before it stops with a clear message.
@@ -96,6 +107,7 @@ class JobOptions:
     no_worker_timeout: float = NO_WORKER_TIMEOUT_S
     tiles3d: str | None = None
     tiles3d_crs: str | None = None
+    batch_tiles: int = DEFAULT_BATCH_TILES
 
 
 def _threads_for(workers: int) -> int:
@@ -194,8 +206,10 @@ def _scheduler_handshake(address: str, timeout: float) -> str | None:
     return None
 
 
-def make_client(options: JobOptions, n_tiles: int):
-    """A Dask client: connected to ``options.scheduler``, or to a new LocalCluster sized to the machine."""
+def make_client(options: JobOptions, n_tiles: int, card: bool = False):
+    """A Dask client: connected to ``options.scheduler``, or to a new LocalCluster sized to the machine; with
+    ``card``, the LocalCluster has one more worker, which holds the card (worker resource ``GPU=1``) and solves
+    the batches of tiles (:class:`Batching`)."""
     from distributed import Client, LocalCluster
 
     # The scheduler of a LocalCluster lives in this process and its workers write to our stderr: their
@@ -226,7 +240,20 @@ def make_client(options: JobOptions, n_tiles: int):
     with dask.config.set({"distributed.scheduler.worker-saturation": 1.0}):
         cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0",
                                silence_logs=quiet, env=env)
-    return Client(cluster), cluster
+        if card:
+            add_card_worker(cluster)
+    client = Client(cluster)
+    if card:
+        client.wait_for_workers(workers + 1, timeout=60)
+    return client, cluster
+
+
+def add_card_worker(cluster) -> None:
+    """Add to a LocalCluster a worker like its others but for the card it holds (worker resource ``GPU=1``), so
+    that the batches of solves go to it and to it alone; the others prepare and mesh tiles."""
+    _, spec = next(iter(cluster.new_worker_spec().items()))
+    cluster.worker_spec["card"] = {**spec, "options": {**spec["options"], "resources": dict(GPU_RESOURCE)}}
+    cluster.scale(len(cluster.worker_spec))
 
 
 def _set_dask_log_level(level: int) -> None:
@@ -329,6 +356,31 @@ def solve_task(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig, field
     return out
 
 
+def prepare_task(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig, field_path: str, centre,
+                 summary_path: str, prepared_path: str) -> dict:
+    """Dask task (any worker): a tile read and set up for its batch on the card, or its recorded result
+    (:func:`tiled_gridpull.tiled_job.prepare_step`)."""
+    _configure_worker_threads()
+    out = prepare_step(spec, tiling, solver, field_path, centre, summary_path, prepared_path)
+    if out.get("status") != "prepared" and not out.get("reused"):
+        out["worker"] = _worker_address()
+    return out
+
+
+def batch_solve_task(specs: list[TileSpec], tiling: TilingConfig, solver: SolverConfig, field_paths: list[str],
+                     centre, summary_paths: list[str], prepared_paths: list[str]) -> list[dict]:
+    """Dask task (the card's worker): prepared tiles solved as one batch
+    (:func:`tiled_gridpull.tiled_job.solve_prepared_step`)."""
+    _configure_worker_threads()
+    for spec in specs:
+        _test_hooks(spec.name)
+    outs = solve_prepared_step(specs, tiling, solver, field_paths, centre, summary_paths, prepared_paths)
+    worker = _worker_address()
+    for out in outs:
+        out["worker"] = worker
+    return outs
+
+
 def _test_hooks(tile: str) -> None:
     """Test hooks, unset in normal use. ``TILED_GRIDPULL_TEST_CRASH=TILE``: every attempt at solving that tile
     kills its worker process (a tile that keeps running its worker out of memory).
@@ -370,7 +422,7 @@ def run_job(inputs: list[str], output: str | Path, tiling: TilingConfig, solver:
             options: JobOptions = JobOptions(), *, frames=None, trajectory: str | Path | None = None) -> Mesh:
     """Tiled reconstruction on Dask (:func:`tiled_gridpull.tiled_job.run_tiled_job` with a :class:`DaskExecutor`);
     writes ``output`` and its sidecar, returns the welded mesh."""
-    return run_tiled_job(inputs, output, tiling, solver, work_dir, DaskExecutor(options), frames=frames,
+    return run_tiled_job(inputs, output, tiling, solver, work_dir, DaskExecutor(options, solver.device), frames=frames,
                          trajectory=trajectory,
                          float32=options.float32, tile_meshes=options.tile_meshes, fail_fast=options.fail_fast,
                          max_memory=options.max_memory, progress=options.progress, tiles3d=options.tiles3d,
@@ -387,8 +439,9 @@ class DaskExecutor:
         ``workers``, ``scheduler``, ``retries``, ``window`` and ``no_worker_timeout`` are read here.
     """
 
-    def __init__(self, options: JobOptions = JobOptions()):
+    def __init__(self, options: JobOptions = JobOptions(), device: str = "cpu"):
         self.options = options
+        self.device = device
         self.engine = {"scheduler": options.scheduler or "LocalCluster", "workers": options.workers}
         self._client = self._cluster = None
 
@@ -400,7 +453,12 @@ class DaskExecutor:
         """The job's client, started on first use (the indexed inputs' reads or the tiles) and kept until
         :meth:`close`."""
         if self._client is None:
-            self._client, self._cluster = make_client(self.options, n_tasks)
+            card = False
+            if self.options.batch_tiles > 1 and not self.options.scheduler and self.device != "cpu":
+                from tiled_gridpull.device import resolve
+
+                card = resolve(self.device) == "cuda"  # the CLI refused ``cuda`` without a card already
+            self._client, self._cluster = make_client(self.options, n_tasks, card=card)
             if self._client.dashboard_link:
                 log.info("Dask dashboard: %s", self._client.dashboard_link)
             if self.options.scheduler:
@@ -495,10 +553,15 @@ class DaskExecutor:
             client = self._connect(len(specs), paths.root)
             try:
                 solve_args, mesh_args = task_arguments(specs, tiling, solver, paths, centre, key_ref)
+                batching = None
+                if options.batch_tiles > 1 and solver.device != "cpu" and _cards(client):
+                    prepare_args, batch_args = batch_arguments(tiling, solver, paths, centre)
+                    batching = Batching(options.batch_tiles, prepare_task, prepare_args, batch_solve_task, batch_args)
+                    self.engine["batch_tiles"] = options.batch_tiles
                 try:
                     yield from run_tiles(client, specs, solve_task, solve_args, mesh_task, mesh_args,
                                          options.retries, window=options.window, stop=interrupted,
-                                         no_worker_timeout=options.no_worker_timeout)
+                                         no_worker_timeout=options.no_worker_timeout, batching=batching)
                 except Exception as exc:
                     lost = self._lost_cluster(exc)
                     if lost is None:
@@ -545,9 +608,38 @@ def _deferred_interrupt():
         raise KeyboardInterrupt
 
 
+#: The worker resource a batch of solves needs: one card (a worker started with ``--resources GPU=1``).
+GPU_RESOURCE = {"GPU": 1}
+
+
+@dataclass(frozen=True)
+class Batching:
+    """Solves in batches on a card (:func:`run_tiles`): each tile's ``prepare_fn(spec, *prepare_args(spec))``
+    on any worker reads and sets it up (its summary's status ``"prepared"`` when it awaits its solve, else its
+    final solve summary), then ``batch_fn(specs, *batch_args(specs))`` solves up to ``size`` prepared tiles at
+    once on a worker that holds ``resources`` (one per card: ``dask worker --resources GPU=1``) and returns their
+    summaries."""
+
+    size: int
+    prepare_fn: Callable
+    prepare_args: Callable
+    batch_fn: Callable
+    batch_args: Callable
+    resources: dict = field(default_factory=lambda: dict(GPU_RESOURCE))
+
+    def __post_init__(self):
+        if self.size < 1:
+            raise ValueError(f"a batch holds at least 1 tile, got {self.size}")
+
+
+#: Tiles a batched job keeps prepared ahead of the card, in batches: the CPU workers read and set up the next
+#: batches while the card solves one, without filling the job directory with every tile of a window.
+BATCHES_AHEAD = 3
+
+
 def run_tiles(client, specs: list[TileSpec], solve_fn, solve_args, mesh_fn, mesh_args, retries: int = 2,
               window: int = DEFAULT_WINDOW, stop: threading.Event | None = None,
-              no_worker_timeout: float = NO_WORKER_TIMEOUT_S):
+              no_worker_timeout: float = NO_WORKER_TIMEOUT_S, batching: Batching | None = None):
     """Run the job's graph on ``client``, yielding ``(kind, tile index, summary)`` as tasks finish.
 
     The graph: one solve task per tile, then one mesh task per tile that needs the solve summaries of the tile
@@ -566,6 +658,16 @@ def run_tiles(client, specs: list[TileSpec], solve_fn, solve_args, mesh_fn, mesh
     batches (one graph update per round, not per task), a no-op graph of 5,000 tiles went from 4.4 to 3.4 ms per
     tile (BENCHMARKS.md).
 
+    With ``batching`` (a job on a card) a tile's solve is two tasks: its preparation, then its part of a batch
+    on the card's worker. Preparations and meshes go to the other workers while there are any (the card's
+    worker takes them only when they are all gone), so that the card waits for none. One batch is out at a
+    time, with up to ``batching.size`` of the tiles prepared so far: the first batches are small, later ones
+    fill while the card works. Besides keeping the card's worker to one batch, this keeps a batch that kills
+    its worker from taking batches queued behind it down too (Dask counts a death against every task the
+    worker held); such a batch is split, each of its tiles tried alone, so only the tile at fault fails. At most
+    :data:`BATCHES_AHEAD` batches' worth of tiles are between their preparation and the end of their batch
+    (each holds a file in the job directory).
+
     Parameters
     ----------
     window : int
@@ -575,7 +677,9 @@ def run_tiles(client, specs: list[TileSpec], solve_fn, solve_args, mesh_fn, mesh
     no_worker_timeout : float
         Seconds the cluster may have no worker while tasks wait before the job stops with
         :class:`~tiled_gridpull.errors.ClusterError` (0: wait for ever). Without it a cluster that lost every
-        worker left the driver waiting for ever.
+        worker left the driver waiting for ever. Likewise batches with no worker holding their resources.
+    batching : Batching, optional
+        Solve in batches on a card (``solve_fn`` and ``solve_args`` then go unused).
     """
     from collections import deque
 
@@ -594,25 +698,55 @@ def run_tiles(client, specs: list[TileSpec], solve_fn, solve_args, mesh_fn, mesh
     readers = [len(d) for d in needs]
     summaries: list = [None] * len(specs)
     ready: deque[int] = deque()  # tiles whose mesh task can be submitted
-    kinds: dict[str, tuple[str, int]] = {}
+    kinds: dict[str, tuple[str, list[int]]] = {}
     pending = as_completed(with_results=True)  # results come with the futures, not one request each
     watch = _WorkerWatch(client, no_worker_timeout)
-    n, next_solve, in_flight = len(specs), 0, 0
+    n, next_solve, in_flight = len(specs), 0, 0  # in flight: tiles in their solve, and mesh tasks
+    # prepare tasks out; tiles prepared and awaiting a batch (those of a batch that killed its worker: alone);
+    # the batch out, if any, and its tiles
+    preparing, staged, alone, batches, batched = 0, deque(), deque(), 0, 0
+    others = None  # with batching: the workers without a card, where preparations and meshes go
     # tile order across windows keeps a window's meshes close to its solves; costliest first within one (both
     # sorts are stable: equal costs keep tile order)
     solve_order = sorted(range(n), key=lambda i: (specs[i].occupied_bricks, specs[i].n_points), reverse=True)
     solve_order.sort(key=lambda i: i // window)
+    if batching is not None:
+        solve_fn, solve_args = batching.prepare_fn, batching.prepare_args
+        others = [a for a, w in _workers(client).items() if not _holds(w, batching.resources)] or None
 
     def submit(kind: str, fn, rows: list[tuple], items: list[int]) -> None:
         keys = [f"{kind}-{specs[i].name}" for i in items]
+        # loose: a worker that joins later, or the card's when the others are gone, still takes them
+        where = {"workers": others, "allow_other_workers": True} if others else {}
         if len(rows) == 1:
-            futs = [client.submit(fn, *rows[0], key=keys[0], retries=retries, pure=False)]
+            futs = [client.submit(fn, *rows[0], key=keys[0], retries=retries, pure=False, **where)]
         else:
-            futs = client.map(fn, *zip(*rows), key=keys, retries=retries, pure=False)
+            futs = client.map(fn, *zip(*rows), key=keys, retries=retries, pure=False, **where)
         for i, fut in zip(items, futs):
-            kinds[fut.key] = (kind, i)
+            kinds[fut.key] = (kind, [i])
         pending.update(futs)
 
+    def submit_batch(items: list[int]) -> None:
+        nonlocal batches, batched
+        group = [specs[i] for i in items]
+        # a tile is in one batch at a time; "alone" marks the retry of a batch that killed its worker
+        key = f"batch-{group[0].name}-{len(items)}" + ("-alone" if len(items) == 1 and items[0] in split else "")
+        fut = client.submit(batching.batch_fn, group, *batching.batch_args(group), key=key, retries=retries,
+                            pure=False, resources=batching.resources)
+        kinds[fut.key] = ("batch", items)
+        pending.add(fut)
+        batches += 1
+        batched += len(items)
+
+    def solved(i: int, result: dict) -> Iterator[TileEvent]:
+        summaries[i] = result
+        for j in needs[i]:
+            waiting[j] -= 1
+            if waiting[j] == 0:
+                ready.append(j)
+        yield "solve", specs[i].index, result
+
+    split: set[int] = set()  # tiles of a batch that killed its worker
     try:
         while next_solve < n or ready or in_flight:
             room = window - in_flight
@@ -627,32 +761,59 @@ def run_tiles(client, specs: list[TileSpec], solve_fn, solve_args, mesh_fn, mesh
                             summaries[j] = None
                 room -= len(take)
                 in_flight += len(take)
+            if batching is not None:  # no more tiles prepared ahead (files in the job directory) than that
+                room = min(room, BATCHES_AHEAD * batching.size - preparing - len(staged) - len(alone) - batched)
             if room > 0 and next_solve < n:
                 take = solve_order[next_solve:min(n, next_solve + room)]
                 submit("solve", solve_fn, [(specs[i], *solve_args(specs[i])) for i in take], take)
                 next_solve += len(take)
                 in_flight += len(take)
-            watch.wait_for(pending, stop)
+                preparing += len(take) if batching is not None else 0
+            if batching is not None and batches == 0 and (alone or staged):
+                if alone:
+                    submit_batch([alone.popleft()])
+                else:
+                    submit_batch([staged.popleft() for _ in range(min(batching.size, len(staged)))])
+            watch.wait_for(pending, stop, needs=batching.resources if batches else None)
             for fut, result in pending.next_batch(block=False):
-                kind, i = kinds.pop(fut.key)
+                kind, items = kinds.pop(fut.key)
                 if fut.status == "error":
                     if not _killed_worker(result[1]):
                         raise result[1].with_traceback(result[2])
+                    if kind == "batch" and len(items) > 1:  # which tile killed it? each alone will tell
+                        batches -= 1
+                        batched -= len(items)
+                        split.update(items)
+                        alone.extend(items)
+                        continue
                     # the task took its worker down every time it ran (out of memory, a crash in native code):
                     # a failed tile, reported by name; the rest of the job goes on
-                    result = {"tile": specs[i].name, "index": list(specs[i].index), "points": specs[i].block_points,
-                              "status": "failed", "faces": 0,
-                              "reason": f"its {kind} killed the worker process on every attempt (out of memory?)"}
+                    what = "solve" if kind == "batch" else kind
+                    result = [{"tile": specs[i].name, "index": list(specs[i].index), "points": specs[i].block_points,
+                               "status": "failed", "faces": 0,
+                               "reason": f"its {what} killed the worker process on every attempt (out of memory?)"}
+                              for i in items]
+                    result = result if kind == "batch" else result[0]
                 if isinstance(result, BaseException):  # cancelled (e.g. the cluster went away)
                     raise result
+                if kind == "batch":
+                    batches -= 1
+                    batched -= len(items)
+                    in_flight -= len(items)
+                    for i, res in zip(items, result, strict=True):
+                        yield from solved(i, res)
+                    continue
+                i = items[0]
+                if kind == "solve" and batching is not None:
+                    preparing -= 1
+                    if result.get("status") == "prepared":
+                        staged.append(i)  # still in flight: its batch comes
+                        continue
                 in_flight -= 1
                 if kind == "solve":
-                    summaries[i] = result
-                    for j in needs[i]:
-                        waiting[j] -= 1
-                        if waiting[j] == 0:
-                            ready.append(j)
-                yield kind, specs[i].index, result
+                    yield from solved(i, result)
+                else:
+                    yield kind, specs[i].index, result
             if stop is not None and stop.is_set():
                 raise KeyboardInterrupt
     except BaseException:
@@ -695,38 +856,65 @@ def check_workers_see(client, root: Path, timeout: float) -> None:
 
 
 class _WorkerWatch:
-    """Raises ClusterError once the cluster has had no worker for ``timeout`` seconds (checked every 2 s)."""
+    """Raises ClusterError once the cluster has had no worker for ``timeout`` seconds (checked every 2 s), or,
+    while tasks that need resources wait, no worker holding them."""
 
     def __init__(self, client, timeout: float):
         self.client, self.timeout = client, timeout
-        self.last_seen = self.next_check = time.monotonic()
+        self.last_seen = self.next_check = self.last_holder = time.monotonic()
 
-    def wait_for(self, pending, stop: threading.Event | None = None) -> None:
+    def wait_for(self, pending, stop: threading.Event | None = None, needs: dict | None = None) -> None:
         """Block until the ``as_completed`` queue ``pending`` holds a finished future, checking every 0.1 s for
-        ``stop`` (then KeyboardInterrupt) and for a cluster without workers (:meth:`check`)."""
+        ``stop`` (then KeyboardInterrupt) and for a cluster without workers (or without one holding the
+        resources ``needs``: :meth:`check`)."""
+        if needs is None:
+            self.last_holder = time.monotonic()
         while not pending.has_ready():
             if stop is not None and stop.is_set():
                 raise KeyboardInterrupt
-            self.check()
+            self.check(needs)
             with pending.thread_condition:  # notified as each task finishes
                 pending.thread_condition.wait(timeout=0.1)
 
-    def check(self) -> None:
+    def check(self, needs: dict | None = None) -> None:
         if self.timeout <= 0:  # 0: wait for ever
             return
         now = time.monotonic()
         if now < self.next_check:
             return
         self.next_check = now + 2.0
-        try:
-            workers = self.client.scheduler_info(n_workers=-1).get("workers")
-        except TypeError:  # older distributed: no n_workers argument
-            workers = self.client.scheduler_info().get("workers")
+        workers = _workers(self.client)
         if workers:
             self.last_seen = now
         elif now - self.last_seen > self.timeout:
             raise ClusterError(f"the Dask cluster has had no worker for {self.timeout:g} s (workers killed, or "
                                "none started): the job stops; rerun to resume from the tiles already done")
+        if needs is None or any(_holds(w, needs) for w in (workers or {}).values()):
+            self.last_holder = now
+        elif now - self.last_holder > self.timeout:
+            what = ", ".join(f"{k}={v:g}" for k, v in needs.items())
+            raise ClusterError(f"no Dask worker has held the resources {what} for {self.timeout:g} s, and the "
+                               f"batches of solves on a card need one (start a worker per card with "
+                               f"`dask worker --resources {what.replace(', ', ',')}`); the job stops; rerun to "
+                               "resume from the tiles already done")
+
+
+def _workers(client) -> dict:
+    """The workers of ``client``'s cluster: address -> the scheduler's facts (``resources``, ...)."""
+    try:
+        return client.scheduler_info(n_workers=-1).get("workers") or {}
+    except TypeError:  # older distributed: no n_workers argument
+        return client.scheduler_info().get("workers") or {}
+
+
+def _cards(client) -> bool:
+    """Whether a worker of ``client``'s cluster holds a card (the resource the batches need)."""
+    return any(_holds(w, GPU_RESOURCE) for w in _workers(client).values())
+
+
+def _holds(worker: dict, needs: dict) -> bool:
+    have = worker.get("resources") or {}
+    return all(have.get(k, 0) >= v for k, v in needs.items())
 
 
 def _killed_worker(exc: BaseException) -> bool:

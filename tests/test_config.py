@@ -38,6 +38,8 @@ TILED = ["--voxel-size", "0.1"]
     ([*TILED, "--set", "min_points=0"], "min_points must be a positive integer"),
     ([*TILED, "--set", "orientation=left"], "orientation must be one of"),
     ([*TILED, "--workers", "0"], "--workers must be between 1 and 1024"),
+    ([*TILED, "--batch-tiles", "0"], "--batch-tiles must be between 1 and 4096"),
+    (["--batch-tiles", "4"], "--batch-tiles applies to tiled mode"),
     ([*TILED, "--max-memory", "lots"], "--max-memory expects a size"),
     ([*TILED, "--max-memory", "0MB"], "--max-memory must be at least"),
     ([*TILED, "--frames", "9:3"], "--frames"),

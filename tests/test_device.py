@@ -357,3 +357,40 @@ def test_runs_share_launches_only_with_one_schedule_a_pool_each_and_the_same_nor
     assert not _batchable([run(), run(uses_normals=True)])
     assert not _batchable([run(), run(pool_nn=None)])
     assert not _batchable([run(), run(cfg=cfg.replace(alpha=cfg.losses.alpha * 2))])
+
+
+@needs_cuda
+@pytest.mark.slow
+def test_a_tiled_job_on_the_card_solves_its_tiles_in_batches_and_meshes_as_the_cpu(tmp_path):
+    """``reconstruct --voxel-size ... --device cuda`` on the local cluster: a worker holds the card and solves the
+    tiles in batches (the others prepare and mesh them), and the mesh is the CPU's within a quarter cell."""
+    from tiled_gridpull.io import read_mesh
+    from tiled_gridpull.nearest import distances_to_cloud
+    from tiled_gridpull.tiled_job import reconstruct_scene
+    from tiled_gridpull.tiling import TilingConfig
+
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(0, 1, size=(800, 2)) * [6.0, 1.0]  # a strip of ground three tiles long
+    src = tmp_path / "strip.npy"
+    np.save(src, np.column_stack([xy, 0.2 * np.sin(xy[:, 0])]) + [500000.0, 4000000.0, 50.0])
+    schedule = dict(levels=1, iterations=4, queries=300, m1=2, m2=2)
+    out = tmp_path / "card.ply"
+    subprocess.run([sys.executable, "-m", "tiled_gridpull", "reconstruct", str(src), "-o", str(out), "--voxel-size",
+                    "0.15", "--tile-size", "2.4", "--overlap", "1.2", "--device", "cuda", "--workers", "1", "-q",
+                    *[a for k, v in schedule.items() for a in ("--set", f"{k}={v}")]], check=True)
+    side = json.loads(out.with_suffix(".json").read_text())
+    tiles = side["tile_summaries"]
+    assert side["engine"]["batch_tiles"] == 16 and len(tiles) == 3
+    assert all(t["status"] == "solved" and t["device"]["device"] == "cuda" for t in tiles)
+    # the card was idle when the first tile was ready: it went alone; the others share the next launches (they
+    # are ready long before the simulated card is done)
+    assert max(t.get("batch", 1) for t in tiles) == 2
+    assert len({t["worker"] for t in tiles}) == 1  # the card's worker
+    assert not list((tmp_path / "card.job" / "prepared").iterdir())  # each prepared tile removed once solved
+    cpu = reconstruct_scene([str(src)], tmp_path / "cpu.ply", TilingConfig(voxel_size=0.15, tile_size=2.4, overlap=1.2),
+                            SolverConfig(**schedule, device="cpu"), tmp_path / "cpu.job")
+    card = read_mesh(out)
+    assert card.n_faces > 100 and cpu.n_faces > 100
+    mean = 0.5 * (distances_to_cloud(cpu.vertices, card.vertices).mean()
+                  + distances_to_cloud(card.vertices, cpu.vertices).mean())
+    assert mean < 0.25 * 0.15

@@ -89,3 +89,52 @@ def test_prepare_tile_names_what_its_solve_needs(specs):
 def test_solve_tiles_needs_a_field_path_per_tile(tmp_path, specs):
     with pytest.raises(ValueError, match="3 tiles need as many field paths, got 2"):
         solve_tiles(specs[:3], TILING, SOLVER, [tmp_path / "a.npz", tmp_path / "b.npz"])
+
+
+def test_a_tile_prepared_in_one_process_and_solved_in_another_is_the_tile_solved_alone(tmp_path, specs):
+    """On a card a job prepares its tiles on CPU workers (:func:`prepare_tile_resumable` writes them to the job
+    directory) and solves them in batches on the card's worker (:func:`solve_prepared_resumable`): the fields and
+    records are those of each tile solved alone, the prepared files go once solved, and a rerun reuses the
+    records without preparing anything."""
+    from tiled_gridpull.resume import prepare_tile_resumable, solve_prepared_resumable, solve_tile_resumable
+
+    paths = JobPaths(tmp_path / "job")
+    alone = [solve_tile_resumable(s, TILING, SOLVER, tmp_path / f"alone_{s.name}.npz",
+                                  tmp_path / f"alone_{s.name}.json") for s in specs[:3]]
+    fields = [str(paths.field(s)) for s in specs[:3]]
+    records = [str(paths.summary("solve", s)) for s in specs[:3]]
+    prepared = [str(paths.prepared(s)) for s in specs[:3]]
+    firsts = [prepare_tile_resumable(s, TILING, SOLVER, f, r, p) for s, f, r, p in zip(specs, fields, records, prepared)]
+    assert [f["status"] for f in firsts] == ["prepared"] * 3
+    assert all(paths.prepared(s).is_file() for s in specs[:3]) and not any(paths.field(s).exists() for s in specs[:3])
+    out = solve_prepared_resumable(specs[:3], TILING, SOLVER, fields, records, prepared)
+    for a, b in zip(alone, out):
+        _same({**a, "key": None, "output": None}, {**b, "key": None, "output": None})
+        assert b["batch"] == 3 and b["field_sha256"] == a["field_sha256"] and b["key"] == a["key"]
+        # the time of the preparation is the tile's, and so is the solve's
+        assert set(b["phases_s"]) == set(a["phases_s"]) and b["time_s"] >= sum(b["phases_s"].values()) - 1e-6
+    assert not any(paths.prepared(s).exists() for s in specs[:3])
+    again = [prepare_tile_resumable(s, TILING, SOLVER, f, r, p) for s, f, r, p in zip(specs, fields, records, prepared)]
+    assert all(a["reused"] and a["status"] == "solved" for a in again)
+    assert not any(paths.prepared(s).exists() for s in specs[:3])
+
+
+def test_a_batch_whose_prepared_file_is_gone_or_another_tiles_prepares_it_again(tmp_path, specs):
+    """A batch run again after its worker died may find its tiles' files gone (or, damaged, naming another
+    tile): it prepares those tiles itself rather than failing them or solving the wrong points."""
+    from tiled_gridpull.resume import prepare_tile_resumable, solve_prepared_resumable
+
+    paths = JobPaths(tmp_path / "job")
+    args = [(str(paths.field(s)), str(paths.summary("solve", s)), str(paths.prepared(s))) for s in specs[:2]]
+    for s, (f, r, p) in zip(specs, args):
+        prepare_tile_resumable(s, TILING, SOLVER, f, r, p)
+    paths.prepared(specs[0]).unlink()
+    paths.prepared(specs[1]).write_bytes(b"not an npz")
+    out = solve_prepared_resumable(specs[:2], TILING, SOLVER, *([a[k] for a in args] for k in range(3)))
+    alone = [solve_tile(s, TILING, SOLVER, tmp_path / f"alone_{s.name}.npz") for s in specs[:2]]
+    assert [o["field_sha256"] for o in out] == [a["field_sha256"] for a in alone]
+    # a file of another tile is refused by name
+    p = prepare_tile(specs[0], TILING, SOLVER)
+    p.save(tmp_path / "p.npz")
+    with pytest.raises(ValueError, match=f"holds tile '{specs[0].name}', not '{specs[1].name}'"):
+        type(p).load(tmp_path / "p.npz", specs[1])

@@ -10,6 +10,8 @@ A job directory holds everything a run produces, so a finished or interrupted jo
   (one record of them per point, in the spill file's order: :func:`tiled_gridpull.partition.attribute_record`);
 * ``fields/<tile>.npz``: solved tile fields (:mod:`tiled_gridpull.tile_field`);
 * ``pieces/<tile>.npz``: tile meshes (:mod:`tiled_gridpull.stitch`);
+* ``prepared/<tile>.npz``: on a card, a tile read and set up on a CPU worker, until its batch's solve
+  (:meth:`tiled_gridpull.tile_solve.PreparedTile.save`) removes it;
 * ``summaries/<step>_<tile>.json``: one JSON per finished tile step, with the key of what produced it;
 * ``report.json`` and ``tiles.png`` once the job finished (:mod:`tiled_gridpull.report`);
 * ``.lock``: held while a job runs (:func:`job_lock`).
@@ -69,7 +71,7 @@ JOB_FILES = ("manifest.json", REPORT_NAME, LAYOUT_NAME)
 #: The file :func:`job_lock` holds.
 LOCK_NAME = ".lock"
 #: The folders a job writes into, and the one a job makes inside one of them (the partition's segments).
-JOB_FOLDERS = ("points", "fields", "pieces", "summaries", "points/.segments")
+JOB_FOLDERS = ("points", "fields", "pieces", "summaries", "prepared", "points/.segments")
 
 
 class JobPaths:
@@ -90,6 +92,9 @@ class JobPaths:
 
     def piece(self, spec: TileSpec) -> Path:
         return self.root / "pieces" / f"{spec.name}.npz"
+
+    def prepared(self, spec: TileSpec) -> Path:
+        return self.root / "prepared" / f"{spec.name}.npz"
 
     def summary(self, step: str, spec: TileSpec) -> Path:
         return self.root / "summaries" / f"{step}_{spec.name}.json"

@@ -50,11 +50,11 @@ from .jobdir import JobPaths, spill_record
 from .partition import attribute_record
 from .stitch import mesh_tile
 from .tile_plan import TileSpec, plan_tiles
-from .tile_solve import orientation_rule, solve_tile
+from .tile_solve import PreparedTile, orientation_rule, prepare_tile, solve_prepared, solve_tile
 from .tiling import TilingConfig
 
 __all__ = ["partition_key", "load_partition", "solve_key", "mesh_key", "solve_tile_resumable",
-           "mesh_tile_resumable", "input_fingerprint"]
+           "prepare_tile_resumable", "solve_prepared_resumable", "mesh_tile_resumable", "input_fingerprint"]
 
 SPILL_FORMAT = 3  # bump when the spill/occupancy layout or the order of a tile's points changes
 
@@ -291,6 +291,52 @@ def solve_tile_resumable(spec: TileSpec, tiling: TilingConfig, solver: SolverCon
     out = solve_tile(spec, tiling, solver, field_path, centre=centre)
     if why:
         out["redone"] = why
+    return _close_solve(out, key, summary_path, field_path)
+
+
+def prepare_tile_resumable(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig, field_path: str | Path,
+                           summary_path: str | Path, prepared_path: str | Path, centre=None) -> dict:
+    """The first half of :func:`solve_tile_resumable` for a tile solved in a batch (on a card): its recorded
+    summary when it can be reused; else the tile read and set up (:func:`tiled_gridpull.tile_solve.prepare_tile`)
+    and written to ``prepared_path`` for :func:`solve_prepared_resumable`, with a summary of status
+    ``"prepared"``; a tile that needs no solve (skipped, failed) gets its final summary here."""
+    key = solve_key(spec, tiling, solver, centre)
+    prev, why = _reusable(Path(summary_path), key, ("solved", "skipped"), field_path)
+    if prev is not None:
+        return prev
+    p = prepare_tile(spec, tiling, solver, centre)
+    if why:
+        p.summary["redone"] = why
+    if p.status is not None:
+        return _close_solve(p.summary, key, summary_path, field_path)
+    p.save(prepared_path)
+    return {"tile": spec.name, "index": list(spec.index), "points": spec.block_points, "status": "prepared"}
+
+
+def solve_prepared_resumable(specs: list[TileSpec], tiling: TilingConfig, solver: SolverConfig,
+                             field_paths: list, summary_paths: list, prepared_paths: list, centre=None) -> list[dict]:
+    """The second half: the tiles :func:`prepare_tile_resumable` prepared, solved as one batch
+    (:func:`tiled_gridpull.tile_solve.solve_prepared`) and recorded as :func:`solve_tile_resumable` records them;
+    their prepared files are removed. A tile whose prepared file is gone or damaged (a batch run again after a
+    worker died) is prepared again here."""
+    prepared = []
+    for spec, path in zip(specs, prepared_paths, strict=True):
+        try:
+            prepared.append(PreparedTile.load(path, spec))
+        except (OSError, ValueError, KeyError):
+            prepared.append(prepare_tile(spec, tiling, solver, centre))
+    outs = solve_prepared(prepared, tiling, solver, field_paths)
+    for spec, out, summary_path, field_path in zip(specs, outs, summary_paths, field_paths, strict=True):
+        _close_solve(out, solve_key(spec, tiling, solver, centre), summary_path, field_path)
+    for path in prepared_paths:
+        with contextlib.suppress(OSError):
+            os.unlink(path)
+    return outs
+
+
+def _close_solve(out: dict, key: str, summary_path: str | Path, field_path: str | Path) -> dict:
+    """A tile solve's summary recorded for reuse (solved with its field, or skipped), or its old record removed
+    (failed: a rerun tries again)."""
     if out["status"] in ("solved", "skipped"):
         _record(out, summary_path, key, field_path if out["status"] == "solved" else None)
     else:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -12,6 +13,7 @@ from .bridge import BridgeRule, bridge_field
 from .cloud import duplicate_mask
 from .config import SolverConfig
 from .errors import ConfigError, GridPullError
+from .io.atomic import atomic_path
 from .kernels import BRICK
 from .lattice import Lattice
 from .memory import peak_rss_mb, reset_peak_rss
@@ -24,7 +26,7 @@ from .tile_field import save_tile_field
 from .tile_plan import TileSpec
 from .tiling import TilingConfig
 
-__all__ = ["solve_tile", "solve_tiles", "prepare_tile", "PreparedTile", "orientation_rule"]
+__all__ = ["solve_tile", "solve_tiles", "solve_prepared", "prepare_tile", "PreparedTile", "orientation_rule"]
 
 def orientation_rule(tiling: TilingConfig, has_sensor: bool) -> str:
     """The orientation rule a tile applies: ``tiling.orientation`` with ``auto`` resolved (sensor when the tile
@@ -71,7 +73,22 @@ def solve_tiles(specs: list[TileSpec], tiling: TilingConfig, solver: SolverConfi
     if len(field_paths) != len(specs):
         raise ValueError(f"{len(specs)} tiles need as many field paths, got {len(field_paths)}")
     reset_peak_rss()  # each summary's peak is the batch's
-    prepared = [prepare_tile(spec, tiling, solver, centre) for spec in specs]
+    return solve_prepared([prepare_tile(spec, tiling, solver, centre) for spec in specs], tiling, solver,
+                          field_paths)
+
+
+def solve_prepared(prepared: list[PreparedTile], tiling: TilingConfig, solver: SolverConfig,
+                   field_paths: list[str | Path]) -> list[dict]:
+    """The second half of :func:`solve_tiles`: tiles already read and set up (:func:`prepare_tile`, here or on
+    another machine: :meth:`PreparedTile.save`) solved as one batch, then each checked, bridged and written.
+
+    Returns
+    -------
+    list of dict
+        The tiles' summaries, in order (a tile ``prepare_tile`` skipped or failed keeps its summary).
+    """
+    if len(field_paths) != len(prepared):
+        raise ValueError(f"{len(prepared)} tiles need as many field paths, got {len(field_paths)}")
     ready = [(p, path) for p, path in zip(prepared, field_paths, strict=True) if p.status is None]
     if not ready:
         return [p.summary for p in prepared]
@@ -129,8 +146,9 @@ class PreparedTile:
     sensor32: np.ndarray | None = None  # (N, 3) each point's sensor origin, where known
     local: Lattice | None = None
     rule: str = ""
-    normals: np.ndarray | None = None
-    decided: np.ndarray | None = None
+    normals: np.ndarray | None = None  # (N, 3) oriented unit normals, where the rule orients them
+    decided: np.ndarray | None = None  # (N,) bool: the normals the orientation check counts (None: all)
+    peak_before_mb: float = 0.0  # peak memory of the process that prepared the tile, when it was another
 
     def lap(self, name: str) -> None:
         """Add the time since the last lap to phase ``name`` (where a tile's time goes besides the solve's levels;
@@ -152,7 +170,52 @@ class PreparedTile:
     def close(self) -> None:
         """The summary's closing figures."""
         self.summary["time_s"] = time.perf_counter() - self.t0
-        self.summary["peak_rss_mb"] = peak_rss_mb()
+        self.summary["peak_rss_mb"] = max(peak_rss_mb(), self.peak_before_mb)
+
+    def save(self, path: str | Path) -> None:
+        """Write a tile awaiting its solve (``status`` None) to ``path`` (``.npz``, atomically), for
+        :meth:`load` in another process: a job on a card prepares its tiles on CPU workers and solves them in
+        batches on the card's worker."""
+        if self.status is not None:
+            raise ValueError(f"tile {self.spec.name} is {self.status}: only a tile awaiting its solve is saved")
+        now = time.perf_counter()
+        state = {"summary": self.summary, "rule": self.rule, "elapsed_s": now - self.t0,
+                 "peak_rss_mb": max(peak_rss_mb(), self.peak_before_mb)}
+        arrays = {name: getattr(self, name) for name in _PREPARED_ARRAYS if getattr(self, name) is not None}
+        with atomic_path(path) as tmp:
+            with open(tmp, "wb") as fh:
+                np.savez(fh, state=np.frombuffer(json.dumps(state).encode(), np.uint8), **arrays)
+
+    @classmethod
+    def load(cls, path: str | Path, spec: TileSpec) -> PreparedTile:
+        """A tile :meth:`save` wrote for ``spec``. Its ``time_s`` goes on from the time its preparation took
+        (the wait for the batch is not the tile's), its ``peak_rss_mb`` is the larger of both processes'.
+
+        Raises
+        ------
+        OSError, ValueError, KeyError
+            ``path`` missing, damaged or written for another tile.
+        """
+        with np.load(path) as z:
+            state = json.loads(z["state"].tobytes().decode())
+            arrays = {name: z[name] for name in _PREPARED_ARRAYS if name in z.files}
+        if state["summary"].get("tile") != spec.name:
+            raise ValueError(f"{path} holds tile {state['summary'].get('tile')!r}, not {spec.name!r}")
+        now = time.perf_counter()
+        p = cls(spec, state["summary"], now - float(state["elapsed_s"]), now, rule=state["rule"],
+                peak_before_mb=float(state["peak_rss_mb"]), **arrays)
+        p.local = _local_lattice(spec)
+        return p
+
+
+#: the arrays of a :class:`PreparedTile` that :meth:`PreparedTile.save` writes (those it has)
+_PREPARED_ARRAYS = ("xyz", "sensor32", "normals", "decided")
+
+
+def _local_lattice(spec: TileSpec) -> Lattice:
+    """The lattice a tile is solved on: its block's, in metres from the block's low corner (float32 stays exact
+    there, whatever the georeferenced coordinates)."""
+    return Lattice((0.0, 0.0, 0.0), spec.block.cell_size, spec.block.shape)
 
 
 def _fail(p: PreparedTile, exc: BaseException | str) -> None:
@@ -197,7 +260,7 @@ def prepare_tile(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig,
                 sensor32 = sensor32[keep] if sensor32 is not None else None
         p.lap("prepare")
         p.xyz, p.sensor32 = xyz, sensor32
-        p.local = Lattice((0.0, 0.0, 0.0), spec.block.cell_size, spec.block.shape)
+        p.local = _local_lattice(spec)
         p.rule = orientation_rule(tiling, sensor32 is not None)
         if p.rule != "sphere":
             normals = estimate_normals(xyz, tiling.normal_neighbors)

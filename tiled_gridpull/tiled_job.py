@@ -35,7 +35,7 @@ from .memory import check_memory, peak_rss_mb
 from .mesh import Mesh
 from .prepare import check_registered, check_remote, prepare_job, resolve_units, scan_noise_treatment
 from .report import write_report
-from .resume import mesh_tile_resumable, solve_tile_resumable
+from .resume import mesh_tile_resumable, prepare_tile_resumable, solve_prepared_resumable, solve_tile_resumable
 from .stitch import load_piece, mesh_tile, weld_pieces
 from .tile_plan import TilePlan, TileSpec
 from .tile_solve import solve_tile
@@ -43,9 +43,10 @@ from .tiling import TilingConfig, check_compatible, with_halo
 
 log = logging.getLogger("tiled_gridpull")
 
-__all__ = ["run_tiled_job", "reconstruct_scene", "TileExecutor", "SerialExecutor", "solve_step", "mesh_step",
-           "task_arguments", "collect_summaries", "finish_job", "job_metadata", "plan_centre", "key_reference",
-           "check_some_tile_solvable", "check_some_tile_solved", "compile_ahead"]
+__all__ = ["run_tiled_job", "reconstruct_scene", "TileExecutor", "SerialExecutor", "solve_step", "prepare_step",
+           "solve_prepared_step", "mesh_step", "task_arguments", "batch_arguments", "collect_summaries", "finish_job",
+           "job_metadata", "plan_centre", "key_reference", "check_some_tile_solvable", "check_some_tile_solved",
+           "compile_ahead"]
 
 #: One finished tile step from an executor: ``(kind, tile index, summary)``, ``kind`` "solve" or "mesh".
 TileEvent = tuple[str, tuple[int, int, int], dict]
@@ -92,6 +93,21 @@ def solve_step(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig, field
     return solve_tile_resumable(spec, tiling, solver, field_path, summary_path, centre, before_solve=before_solve)
 
 
+def prepare_step(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig, field_path: str, centre,
+                 summary_path: str, prepared_path: str) -> dict:
+    """The first half of :func:`solve_step` for tiles solved in batches on a card: the tile's recorded summary,
+    or the tile read and set up into ``prepared_path`` (status ``"prepared"``), or its summary when it needs no
+    solve (:func:`tiled_gridpull.resume.prepare_tile_resumable`)."""
+    return prepare_tile_resumable(spec, tiling, solver, field_path, summary_path, prepared_path, centre)
+
+
+def solve_prepared_step(specs: list[TileSpec], tiling: TilingConfig, solver: SolverConfig, field_paths: list[str],
+                        centre, summary_paths: list[str], prepared_paths: list[str]) -> list[dict]:
+    """The second half: prepared tiles solved as one batch (one launch per step for all of them on a card),
+    then each finished, written and recorded (:func:`tiled_gridpull.resume.solve_prepared_resumable`)."""
+    return solve_prepared_resumable(specs, tiling, solver, field_paths, summary_paths, prepared_paths, centre)
+
+
 def mesh_step(spec: TileSpec, own: dict, neighbor_specs: list, neighbor_summaries: list, tiling: TilingConfig,
               key_ref, field_paths: dict, piece_path: str, summary_path: str | None = None) -> dict:
     """Blend a solved tile with its solved neighbours and mesh its core (or reuse its recorded piece when
@@ -128,6 +144,20 @@ def task_arguments(specs: list[TileSpec], tiling: TilingConfig, solver: SolverCo
         return tiling, key_ref, fields, str(paths.piece(s)), str(paths.summary("mesh", s))
 
     return solve_args, mesh_args
+
+
+def batch_arguments(tiling: TilingConfig, solver: SolverConfig, paths: JobPaths, centre):
+    """The arguments after the spec of a tile's :func:`prepare_step`, and after the specs of a batch of tiles,
+    of :func:`solve_prepared_step`: ``(prepare_args, batch_args)``, functions of a spec and of a list of specs."""
+
+    def prepare_args(s: TileSpec) -> tuple:
+        return tiling, solver, str(paths.field(s)), centre, str(paths.summary("solve", s)), str(paths.prepared(s))
+
+    def batch_args(group: list[TileSpec]) -> tuple:
+        return (tiling, solver, [str(paths.field(s)) for s in group], centre,
+                [str(paths.summary("solve", s)) for s in group], [str(paths.prepared(s)) for s in group])
+
+    return prepare_args, batch_args
 
 
 class SerialExecutor:

@@ -1,0 +1,140 @@
+"""Tiled jobs on a card: tiles prepared on any worker, solved in batches on the worker that holds the card
+(:class:`tiled_gridpull.pipeline.job.Batching`), meshed once they and their neighbours are solved. The graph is
+checked here with stand-in steps; the steps themselves in tests/test_tile_batch.py; a whole job on the simulated
+card in tests/test_device.py."""
+
+import os
+
+import pytest
+
+from test_pipeline_job import _grid_specs, _mesh_echo
+
+SKIPPED = {(0, 1, 1), (2, 2, 0)}  # tiles whose preparation finds them too sparse: they need no batch
+
+
+def _prepare_echo(spec):
+    from distributed import get_worker
+
+    status = "skipped" if spec.index in SKIPPED else "prepared"
+    return {"tile": spec.name, "status": status, "card": get_worker().state.total_resources.get("GPU", 0)}
+
+
+def _batch_echo(specs):
+    from distributed import get_worker
+
+    card = get_worker().state.total_resources.get("GPU", 0)
+    return [{"tile": s.name, "status": "solved", "batch": len(specs), "card": card} for s in specs]
+
+
+def _mesh_where(spec, own, nbs, nb_summaries):
+    from distributed import get_worker
+
+    return {**_mesh_echo(spec, own, nbs, nb_summaries), "card": get_worker().state.total_resources.get("GPU", 0)}
+
+
+class _Staging:
+    """A client that tracks the tiles between their preparation's submission and their batch's return."""
+
+    def __init__(self, client):
+        self.client, self.out, self.most = client, 0, 0
+
+    def submit(self, fn, *args, key, **kwargs):
+        if key.startswith("solve-"):
+            self.out += 1
+            self.most = max(self.most, self.out)
+        return self.client.submit(fn, *args, key=key, **kwargs)
+
+    def map(self, fn, *args, key, **kwargs):
+        if key[0].startswith("solve-"):
+            self.out += len(key)
+            self.most = max(self.most, self.out)
+        return self.client.map(fn, *args, key=key, **kwargs)
+
+    def __getattr__(self, name):
+        return getattr(self.client, name)
+
+
+@pytest.mark.parametrize("size", [1, 4])
+def test_prepared_tiles_are_solved_in_batches_on_the_card_and_meshed_after_their_neighbours(size):
+    from distributed import Client, LocalCluster
+
+    from tiled_gridpull.jobdir import neighbors_of
+    from tiled_gridpull.pipeline.job import BATCHES_AHEAD, Batching, add_card_worker, run_tiles
+
+    specs = _grid_specs(4, 3, 2)
+    by_index = {s.index: s for s in specs}
+    with LocalCluster(processes=False, n_workers=1, threads_per_worker=2, dashboard_address=":0") as cluster:
+        add_card_worker(cluster)
+        with Client(cluster) as client:
+            client.wait_for_workers(2, timeout=30)
+            staging = _Staging(client)
+            seen = []
+            for kind, idx, res in run_tiles(staging, specs, None, None, _mesh_where, lambda s: (),
+                                            batching=Batching(size, _prepare_echo, lambda s: (), _batch_echo,
+                                                              lambda group: ())):
+                if kind == "solve":
+                    staging.out -= 1
+                seen.append((kind, idx, res))
+    solves = {idx: res for kind, idx, res in seen if kind == "solve"}
+    meshes = {idx: res for kind, idx, res in seen if kind == "mesh"}
+    assert set(solves) == set(meshes) == set(by_index)  # every tile solved once and meshed once
+    assert len([k for k, _, _ in seen if k == "solve"]) == len(specs)
+    for idx, res in solves.items():
+        if idx in SKIPPED:  # preparations and meshes on the other workers: the card waits for none
+            assert res["status"] == "skipped" and "batch" not in res and res["card"] == 0
+        else:  # batches run on the card's worker only
+            assert res["status"] == "solved" and 1 <= res["batch"] <= size and res["card"] == 1
+    if size > 1:
+        assert max(r.get("batch", 0) for r in solves.values()) > 1  # launches are shared
+    assert staging.most <= BATCHES_AHEAD * size  # the job directory holds a few batches of prepared tiles
+    order = [(k, i) for k, i, _ in seen]
+    for idx, res in meshes.items():
+        want = sorted(n.name for n in neighbors_of(by_index[idx], by_index))
+        assert res["neighbours"] == want and res["summaries"] == want and res["card"] == 0
+        # a mesh comes after the solves of its tile and its neighbours
+        assert all(order.index(("solve", n.index)) < order.index(("mesh", idx))
+                   for n in [by_index[idx], *neighbors_of(by_index[idx], by_index)])
+
+
+def _batch_dies_on_one(specs):
+    if any(s.index == (1, 1, 0) for s in specs):
+        os._exit(137)  # a crash in native code (or the card's driver) takes the worker process down
+    return _batch_echo(specs)
+
+
+@pytest.mark.slow
+def test_a_batch_that_kills_its_worker_fails_only_the_tile_at_fault():
+    """Its tiles are tried alone: the others are solved, the one at fault fails by name."""
+    import dask
+    from distributed import Client, LocalCluster
+
+    from tiled_gridpull.pipeline.job import Batching, add_card_worker, run_tiles
+
+    specs = _grid_specs(3, 2, 1)
+    with dask.config.set({"distributed.scheduler.allowed-failures": 0}), \
+            LocalCluster(processes=True, n_workers=1, threads_per_worker=1, dashboard_address=":0") as cluster:
+        add_card_worker(cluster)
+        with Client(cluster) as client:
+            client.wait_for_workers(2, timeout=60)
+            seen = [(k, i, r) for k, i, r in run_tiles(client, specs, None, None, _mesh_echo, lambda s: (), retries=0,
+                                                       batching=Batching(8, _prepare_echo, lambda s: (),
+                                                                         _batch_dies_on_one, lambda group: ()))
+                    if k == "solve"]
+    failed = [i for _, i, r in seen if r["status"] == "failed"]
+    assert failed == [(1, 1, 0)] and "killed the worker" in dict((i, r) for _, i, r in seen)[(1, 1, 0)]["reason"]
+    assert {i for _, i, r in seen if r["status"] == "solved"} == {s.index for s in specs} - {(1, 1, 0)} - SKIPPED
+
+
+def test_batches_that_no_worker_can_take_stop_the_job_in_one_line():
+    """On a scheduler whose workers hold no card the batches would wait for ever: the job says why and stops."""
+    from distributed import Client
+
+    from tiled_gridpull.errors import ClusterError
+    from tiled_gridpull.pipeline.job import Batching, run_tiles
+
+    with Client(processes=False, n_workers=1, threads_per_worker=1, dashboard_address=":0") as client:
+        with pytest.raises(ClusterError, match="resources GPU=1.*dask worker --resources GPU=1"):
+            for _ in run_tiles(client, _grid_specs(2, 1, 1), None, None, _mesh_echo, lambda s: (),
+                               no_worker_timeout=1.0,
+                               batching=Batching(4, _prepare_echo, lambda s: (), _batch_echo, lambda group: ())):
+                pass
