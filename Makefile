@@ -29,10 +29,10 @@ demo: $(STAMP)
 		--footprint 1.5 3
 
 # the full suite, slow end-to-end tests included (what CI runs), in TEST_JOBS processes (a test file stays in one,
-# so its module fixtures are computed once)
+# so its module fixtures are computed once; files go out longest first, as tests/conftest.py orders them)
 TEST_JOBS ?= 2
 test: $(STAMP)
-	$(PY) -m pytest -q -n $(TEST_JOBS) --dist loadfile
+	$(PY) -m pytest -q -n $(TEST_JOBS) --dist loadfile --no-loadscope-reorder
 
 # the fast tier: everything not marked slow
 check: $(STAMP)

@@ -17,7 +17,8 @@ Stages:
   (:func:`tiled_gridpull.solver.solve_batch`), wall and kernel times each way, fields compared bit for bit;
 * ``shape``: a 100k-point torus at R = 256, one-shape mode, both devices;
 * ``wide``: the 1M-point grid of streets (configs/scene.yaml, 0.1 m), tiled on a local Dask cluster, both devices;
-* ``street``: the 14M-point street, CUDA only unless the budget leaves room for the CPU.
+  on the card once with tiles batched (``--batch-tiles 16``) and once a task per tile (``--scene-batches``);
+* ``street``: the 14M-point street, likewise.
 
 Accuracy here is the sampled metric of :func:`tiled_gridpull.metrics.evaluate` (``exact=False``: pyvista is not on
 such machines), on both devices' meshes alike; the exact figures of the CPU path are in BENCHMARKS.md.
@@ -313,10 +314,11 @@ def stage_shape(out: Path, work: Path, devices=("cuda", "cpu")) -> None:
 
 
 def stage_scene(out: Path, work: Path, name: str, n_points: int, layout: str, devices, workers: int,
-                repeat: int = 1, one_launch: bool = False) -> None:
-    """The scene tiled on a local Dask cluster on each device; CUDA ``repeat`` times (scored once: a card repeats
-    its mesh bit for bit, which the repeats check), and with ``one_launch`` once more with one launch per level
-    (its mesh compared byte for byte with the per-step launches')."""
+                repeat: int = 1, one_launch: bool = False, batches=(16,)) -> None:
+    """The scene tiled on a local Dask cluster on each device; CUDA ``repeat`` times for each ``--batch-tiles`` of
+    ``batches`` (scored once: a card repeats its mesh bit for bit, batched or not, which the repeats check), and
+    with ``one_launch`` once more with one launch per level (its mesh compared byte for byte with the per-step
+    launches')."""
     d = work / name
     if not (d / "street.laz").exists():
         t = time.perf_counter()
@@ -325,12 +327,13 @@ def stage_scene(out: Path, work: Path, name: str, n_points: int, layout: str, de
         out_line(out, {"stage": name, "sample_s": time.perf_counter() - t})
     runs = []
     for dev in devices:
-        runs += [(dev, False, i) for i in range(repeat if dev == "cuda" else 1)]
+        for batch in batches if dev == "cuda" else batches[:1]:
+            runs += [(dev, False, i, batch) for i in range(repeat if dev == "cuda" else 1)]
         if dev == "cuda" and one_launch:
-            runs.append((dev, True, 0))
+            runs.append((dev, True, 0, 1))  # each worker its own launches: the cooperative kernel is per tile
     first_sha: dict = {}
-    for dev, one, i in runs:
-        mesh = d / f"mesh_{dev}{'_one' if one else ''}.ply"
+    for dev, one, i, batch in runs:
+        mesh = d / f"mesh_{dev}{'_one' if one else ''}_b{batch}.ply"
         shutil.rmtree(mesh.with_suffix(".job"), ignore_errors=True)
         env = dict(os.environ)
         if one:
@@ -340,11 +343,11 @@ def stage_scene(out: Path, work: Path, name: str, n_points: int, layout: str, de
         t = time.perf_counter()
         subprocess.run([*CLI, "reconstruct", str(d / "street.laz"), "-o", str(mesh), "--config",
                         str(REPO / "configs" / "scene.yaml"), "--device", dev, "--workers", str(workers), "-q",
-                        "--overwrite"], check=True, env=env)
+                        "--overwrite", "--batch-tiles", str(batch)], check=True, env=env)
         wall = time.perf_counter() - t
         sha = hashlib.sha256(mesh.read_bytes()).hexdigest()
         row = {"stage": name, "device": dev, "points": n_points, "workers": workers, "wall_s": wall,
-               "one_launch": one, "repeat": i, "mesh_sha256": sha, **_sidecar(mesh)}
+               "one_launch": one, "repeat": i, "batch_tiles": batch, "mesh_sha256": sha, **_sidecar(mesh)}
         if dev in first_sha:
             row["same_mesh_as_first"] = sha == first_sha[dev]
         else:
@@ -354,7 +357,8 @@ def stage_scene(out: Path, work: Path, name: str, n_points: int, layout: str, de
             except Exception as exc:  # the timings are worth keeping without the scores
                 row["score_error"] = f"{type(exc).__name__}: {exc}"[:500]
         out_line(out, row)
-        shutil.copy(mesh.with_suffix(".json"), out.parent / f"{name}_{dev}{'_one' if one else ''}_{i}_sidecar.json")
+        shutil.copy(mesh.with_suffix(".json"),
+                    out.parent / f"{name}_{dev}{'_one' if one else ''}_b{batch}_{i}_sidecar.json")
 
 
 class _Stop(Exception):
@@ -428,11 +432,14 @@ def main(argv=None) -> int:
     ap.add_argument("--one-launch", action="store_true", help="each scene once more with one launch per level")
     ap.add_argument("--small", action="store_true", help="tiny sizes: a smoke test of the script (the simulator)")
     ap.add_argument("--batch-tiles", type=int, default=16, help="tiles of the batch stage (the densest)")
+    ap.add_argument("--scene-batches", default="16,1",
+                    help="--batch-tiles of the scene stages' CUDA runs, comma-separated (1: a task per tile)")
     a = ap.parse_args(argv)
     stages = ["env", "agree", "step", "batch", "shape", "wide", "street"] if "all" in a.stages else a.stages
     a.work.mkdir(parents=True, exist_ok=True)
     copy = None
     devices = tuple(a.scene_devices.split(","))
+    batches = tuple(int(b) for b in a.scene_batches.split(","))
     for st in stages:
         if time.perf_counter() - T0 > a.budget:
             out_line(a.out, {"stage": st, "skipped": f"past the budget of {a.budget:.0f} s"})
@@ -452,10 +459,11 @@ def main(argv=None) -> int:
             elif st == "warm":
                 stage_scene(a.out, a.work, "warm", 20_000, "street", devices[:1], a.workers)
             elif st == "wide":
-                stage_scene(a.out, a.work, "wide", 1_000_000, "grid", devices, a.workers, a.repeat, a.one_launch)
+                stage_scene(a.out, a.work, "wide", 1_000_000, "grid", devices, a.workers, a.repeat, a.one_launch,
+                            batches)
             elif st == "street":
                 stage_scene(a.out, a.work, "street", 14_000_000, "street", devices, a.workers, a.repeat,
-                            a.one_launch)
+                            a.one_launch, batches)
         except Exception as exc:  # one stage's failure must not lose the others' figures
             out_line(a.out, {"stage": st, "error": f"{type(exc).__name__}: {exc}"[:2000]})
     return 0
@@ -491,6 +499,8 @@ def table(rows: list[dict]) -> str:
             dev = ", ".join(r["devices"])
         if r.get("one_launch"):
             dev += ", one launch per level"
+        if r.get("batch_tiles", 1) > 1 and "cuda" in dev:  # rows before batched jobs: a task per tile
+            dev += f", batches of up to {r['batch_tiles']} tiles"
         if "task_s_per_level" in r:
             per = " / ".join(f"{v['time_solve_s']:.0f}" for _, v in sorted(r["task_s_per_level"].items()))
             task = f"{r['solve_task_s']:.0f}"

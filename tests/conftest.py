@@ -67,10 +67,16 @@ def terrain(extent: float, density: float, seed: int = 0) -> np.ndarray:
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 
-# The files whose tests take longest (pytest's --durations), run first: `make test` spreads whole files over two
-# processes in collection order, so a long file collected last would leave one process idle at the end.
-_LONG_FILES = ("test_tiled_job_scene.py", "test_reconstruct.py", "test_trajectory.py", "test_noise.py",
-               "test_reconstruct_udf.py", "test_tiled_job.py", "test_attributes.py", "test_bridge.py")
+# The files whose tests take longest, longest first (task-s of each file in a `make test` run, 2026-11-27:
+# pytest --durations=0): `make test` hands whole files to its two processes in collection order (with xdist's
+# --no-loadscope-reorder; by default xdist orders files by their number of tests, which put the 280-s street
+# file last and left one process idle for minutes), so the long files go first and the short ones fill in.
+_LONG_FILES = ("test_reconstruct.py", "test_tiled_job_scene.py", "test_device.py", "test_trajectory.py",
+               "test_noise.py", "test_reliability.py", "test_pipeline_job.py", "test_reconstruct_udf.py",
+               "test_pipeline_cli.py", "test_tiled_job.py", "test_pipeline_cli_fuzz.py", "test_kernels_losses.py",
+               "test_attributes.py", "test_io_remote.py", "test_thin_walls.py", "test_indexed_inputs.py",
+               "test_bridge.py", "test_quality.py", "test_stitch.py", "test_kernels_warmup.py", "test_tiles3d.py",
+               "test_notebooks.py", "test_memory.py", "test_cuda_kernels.py", "test_kernels_mc.py")
 
 
 def pytest_collection_modifyitems(config, items):
