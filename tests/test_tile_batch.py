@@ -104,7 +104,8 @@ def test_a_tile_prepared_in_one_process_and_solved_in_another_is_the_tile_solved
     fields = [str(paths.field(s)) for s in specs[:3]]
     records = [str(paths.summary("solve", s)) for s in specs[:3]]
     prepared = [str(paths.prepared(s)) for s in specs[:3]]
-    firsts = [prepare_tile_resumable(s, TILING, SOLVER, f, r, p) for s, f, r, p in zip(specs, fields, records, prepared)]
+    rows = list(zip(specs, fields, records, prepared))
+    firsts = [prepare_tile_resumable(s, TILING, SOLVER, f, r, p) for s, f, r, p in rows]
     assert [f["status"] for f in firsts] == ["prepared"] * 3
     assert all(paths.prepared(s).is_file() for s in specs[:3]) and not any(paths.field(s).exists() for s in specs[:3])
     out = solve_prepared_resumable(specs[:3], TILING, SOLVER, fields, records, prepared)
@@ -114,7 +115,7 @@ def test_a_tile_prepared_in_one_process_and_solved_in_another_is_the_tile_solved
         # the time of the preparation is the tile's, and so is the solve's
         assert set(b["phases_s"]) == set(a["phases_s"]) and b["time_s"] >= sum(b["phases_s"].values()) - 1e-6
     assert not any(paths.prepared(s).exists() for s in specs[:3])
-    again = [prepare_tile_resumable(s, TILING, SOLVER, f, r, p) for s, f, r, p in zip(specs, fields, records, prepared)]
+    again = [prepare_tile_resumable(s, TILING, SOLVER, f, r, p) for s, f, r, p in rows]
     assert all(a["reused"] and a["status"] == "solved" for a in again)
     assert not any(paths.prepared(s).exists() for s in specs[:3])
 
