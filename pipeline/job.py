@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import os
 import signal
 import threading
@@ -381,6 +382,19 @@ def batch_solve_task(specs: list[TileSpec], tiling: TilingConfig, solver: Solver
     return outs
 
 
+#: Share of the card's free memory a batch may take by its tiles' estimates (:func:`tiled_gridpull.memory.card_bytes`):
+#: the rest holds the nearest-point grids, numba's context and kernels, and what the estimates miss.
+CARD_SHARE = 0.7
+
+
+def card_memory_task() -> tuple[float, float]:
+    """Dask task (the card's worker): its card's free and total memory in bytes
+    (:func:`tiled_gridpull.device.card_memory`)."""
+    from tiled_gridpull.device import card_memory
+
+    return card_memory()
+
+
 def _test_hooks(tile: str) -> None:
     """Test hooks, unset in normal use. ``TILED_GRIDPULL_TEST_CRASH=TILE``: every attempt at solving that tile
     kills its worker process (a tile that keeps running its worker out of memory).
@@ -555,9 +569,16 @@ class DaskExecutor:
                 solve_args, mesh_args = task_arguments(specs, tiling, solver, paths, centre, key_ref)
                 batching = None
                 if options.batch_tiles > 1 and solver.device != "cpu" and _cards(client):
+                    free, total = client.submit(card_memory_task, resources=dict(GPU_RESOURCE), pure=False).result()
                     prepare_args, batch_args = batch_arguments(tiling, solver, paths, centre)
-                    batching = Batching(options.batch_tiles, prepare_task, prepare_args, batch_solve_task, batch_args)
+                    batching = Batching(options.batch_tiles, prepare_task, prepare_args, batch_solve_task, batch_args,
+                                        budget=CARD_SHARE * free)
                     self.engine["batch_tiles"] = options.batch_tiles
+                    # what the card had when the job started, and what a batch may take of it (None: no limit,
+                    # the simulator's)
+                    self.engine["card_memory"] = {k: (v if math.isfinite(v) else None) for k, v in
+                                                  {"free_bytes": free, "total_bytes": total,
+                                                   "batch_budget_bytes": CARD_SHARE * free}.items()}
                 try:
                     yield from run_tiles(client, specs, solve_task, solve_args, mesh_task, mesh_args,
                                          options.retries, window=options.window, stop=interrupted,
@@ -618,7 +639,8 @@ class Batching:
     on any worker reads and sets it up (its summary's status ``"prepared"`` when it awaits its solve, else its
     final solve summary), then ``batch_fn(specs, *batch_args(specs))`` solves up to ``size`` prepared tiles at
     once on a worker that holds ``resources`` (one per card: ``dask worker --resources GPU=1``) and returns their
-    summaries."""
+    summaries. A batch takes at most ``budget`` bytes of the card's memory by its tiles' estimates (a tile that
+    needs more goes alone)."""
 
     size: int
     prepare_fn: Callable
@@ -626,6 +648,7 @@ class Batching:
     batch_fn: Callable
     batch_args: Callable
     resources: dict = field(default_factory=lambda: dict(GPU_RESOURCE))
+    budget: float = math.inf  # card bytes a batch may take (the prepared tiles' ``card_bytes`` summed)
 
     def __post_init__(self):
         if self.size < 1:
@@ -747,6 +770,7 @@ def run_tiles(client, specs: list[TileSpec], solve_fn, solve_args, mesh_fn, mesh
         yield "solve", specs[i].index, result
 
     split: set[int] = set()  # tiles of a batch that killed its worker
+    card: dict[int, float] = {}  # prepared tiles' card memory (bytes, estimated)
     try:
         while next_solve < n or ready or in_flight:
             room = window - in_flight
@@ -773,7 +797,12 @@ def run_tiles(client, specs: list[TileSpec], solve_fn, solve_args, mesh_fn, mesh
                 if alone:
                     submit_batch([alone.popleft()])
                 else:
-                    submit_batch([staged.popleft() for _ in range(min(batching.size, len(staged)))])
+                    group = [staged.popleft()]
+                    total = card[group[0]]
+                    while staged and len(group) < batching.size and total + card[staged[0]] <= batching.budget:
+                        total += card[staged[0]]
+                        group.append(staged.popleft())
+                    submit_batch(group)
             watch.wait_for(pending, stop, needs=batching.resources if batches else None)
             for fut, result in pending.next_batch(block=False):
                 kind, items = kinds.pop(fut.key)
@@ -800,7 +829,10 @@ def run_tiles(client, specs: list[TileSpec], solve_fn, solve_args, mesh_fn, mesh
                     batches -= 1
                     batched -= len(items)
                     in_flight -= len(items)
+                    need = sum(card[i] for i in items)
                     for i, res in zip(items, result, strict=True):
+                        if need:
+                            res["batch_card_bytes"] = need  # the estimate the batch was sized by
                         yield from solved(i, res)
                     continue
                 i = items[0]
@@ -808,6 +840,7 @@ def run_tiles(client, specs: list[TileSpec], solve_fn, solve_args, mesh_fn, mesh
                     preparing -= 1
                     if result.get("status") == "prepared":
                         staged.append(i)  # still in flight: its batch comes
+                        card[i] = float(result.get("card_bytes", 0.0))
                         continue
                 in_flight -= 1
                 if kind == "solve":

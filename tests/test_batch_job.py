@@ -96,6 +96,36 @@ def test_prepared_tiles_are_solved_in_batches_on_the_card_and_meshed_after_their
                    for n in [by_index[idx], *neighbors_of(by_index[idx], by_index)])
 
 
+BIG = (1, 1, 0)  # a tile whose estimate alone exceeds the budget
+
+
+def _prepare_sized(spec):
+    return {"tile": spec.name, "status": "prepared", "card_bytes": 500.0 if spec.index == BIG else 100.0}
+
+
+def test_batches_are_sized_to_the_cards_memory():
+    """A batch takes tiles while their estimated card memory fits the budget; a tile that needs more goes alone,
+    and every tile of a batch says what the batch was sized by."""
+    from distributed import Client, LocalCluster
+
+    from tiled_gridpull.pipeline.job import Batching, add_card_worker, run_tiles
+
+    specs = _grid_specs(4, 3, 1)
+    with LocalCluster(processes=False, n_workers=1, threads_per_worker=2, dashboard_address=":0") as cluster:
+        add_card_worker(cluster)
+        with Client(cluster) as client:
+            client.wait_for_workers(2, timeout=30)
+            solves = {i: r for k, i, r in run_tiles(client, specs, None, None, _mesh_echo, lambda s: (),
+                                                    batching=Batching(8, _prepare_sized, lambda s: (), _batch_echo,
+                                                                      lambda group: (), budget=300.0))
+                      if k == "solve"}
+    assert len(solves) == len(specs) and all(r["status"] == "solved" for r in solves.values())
+    assert solves[BIG]["batch"] == 1 and solves[BIG]["batch_card_bytes"] == 500.0
+    others = [r for i, r in solves.items() if i != BIG]
+    assert all(r["batch_card_bytes"] == 100.0 * r["batch"] <= 300.0 for r in others)
+    assert max(r["batch"] for r in others) == 3  # the budget, not the size, bounds them
+
+
 def _batch_dies_on_one(specs):
     if any(s.index == (1, 1, 0) for s in specs):
         os._exit(137)  # a crash in native code (or the card's driver) takes the worker process down

@@ -381,6 +381,9 @@ def test_a_tiled_job_on_the_card_solves_its_tiles_in_batches_and_meshes_as_the_c
     side = json.loads(out.with_suffix(".json").read_text())
     tiles = side["tile_summaries"]
     assert side["engine"]["batch_tiles"] == 16 and len(tiles) == 3
+    # the card's memory as the job found it (the simulator's has no limit) and what each batch was sized by
+    assert side["engine"]["card_memory"] == {"free_bytes": None, "total_bytes": None, "batch_budget_bytes": None}
+    assert all(t["batch_card_bytes"] > 0 for t in tiles)
     assert all(t["status"] == "solved" and t["device"]["device"] == "cuda" for t in tiles)
     # the card was idle when the first tile was ready: it went alone; the others share the next launches (they
     # are ready long before the simulated card is done)

@@ -139,3 +139,21 @@ def test_a_batch_whose_prepared_file_is_gone_or_another_tiles_prepares_it_again(
     p.save(tmp_path / "p.npz")
     with pytest.raises(ValueError, match=f"holds tile '{specs[0].name}', not '{specs[1].name}'"):
         type(p).load(tmp_path / "p.npz", specs[1])
+
+
+def test_a_tiles_card_memory_estimate_bounds_its_levels_arrays(tmp_path, specs):
+    """The estimate a batch on a card is sized by (:func:`tiled_gridpull.memory.card_bytes`, from the partition
+    alone) is at least what the tile's solved levels hold on the card (per slot of a level's band its arrays, the
+    next level's start, its points), and not wildly more."""
+    from tiled_gridpull.memory import (CARD_BYTES_PER_SLOT, CARD_NEXT_BYTES_PER_SLOT, CARD_POINT_BYTES, SLOT,
+                                       band_bricks_bound, card_bytes)
+    from tiled_gridpull.partition import read_occupancy
+
+    for spec in specs[:3]:
+        out = solve_tile(spec, TILING, SOLVER, tmp_path / f"{spec.name}.npz")
+        est = card_bytes(spec, band_bricks_bound(read_occupancy(spec), spec.block.shape, SOLVER), SOLVER)
+        lv = out["level_bricks"]
+        held = max(b * SLOT * CARD_BYTES_PER_SLOT + (lv[i + 1] * SLOT * CARD_NEXT_BYTES_PER_SLOT if i + 1 < len(lv)
+                                                     else 0) for i, b in enumerate(lv))
+        held += out["points_used"] * CARD_POINT_BYTES
+        assert held <= est <= 3 * held

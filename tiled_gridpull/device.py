@@ -20,7 +20,7 @@ from types import ModuleType
 
 from .errors import ConfigError, MissingDependencyError
 
-__all__ = ["DEVICES", "cuda_card", "cuda_module", "driver_present", "resolve", "describe"]
+__all__ = ["DEVICES", "cuda_card", "cuda_module", "driver_present", "resolve", "describe", "card_memory"]
 
 DEVICES = ("cpu", "cuda", "auto")
 SIMULATOR = "CUDA simulator"
@@ -124,6 +124,24 @@ def resolve(setting: str) -> str:
                               "use --device cpu or auto")
         return "cpu"
     return "cuda"
+
+
+def card_memory() -> tuple[float, float]:
+    """``(free, total)`` bytes of this process's card (numba-cuda's current context; ``inf`` under the simulator,
+    which has no limit). Call only where :func:`resolve` gave ``cuda``.
+
+    Raises
+    ------
+    GridPullError
+        The card's driver fails to answer (one line).
+    """
+    from .errors import GridPullError
+
+    try:
+        free, total = _import_numba_cuda().current_context().get_memory_info()
+    except Exception as exc:  # noqa: BLE001 - numba-cuda raises several types for a driver that fails
+        raise GridPullError(f"the card's free memory could not be read: {type(exc).__name__}: {exc}"[:300]) from None
+    return float(free), float(total)
 
 
 def describe(device: str) -> dict:

@@ -42,9 +42,8 @@ from .partition import read_occupancy
 from .tile_plan import TileSpec
 from .tiling import TilingConfig
 
-__all__ = ["parse_size", "band_bricks_bound", "tile_memory", "tile_time", "mesh_time", "makespan", "level_points",
-           "format_size", "estimate_tiles", "MB", "peak_rss_mb", "reset_peak_rss",
-           "check_memory"]
+__all__ = ["parse_size", "band_bricks_bound", "tile_memory", "card_bytes", "tile_time", "mesh_time", "makespan",
+           "level_points", "format_size", "estimate_tiles", "MB", "peak_rss_mb", "reset_peak_rss", "check_memory"]
 
 log = logging.getLogger("tiled_gridpull")
 
@@ -74,6 +73,17 @@ TRIM_BYTES = 60  # mesh step: the tile's points as float64 and their KD-tree
 ATTRIBUTE_POINT_BYTES = 24
 QUERY_BYTES = 16 * 8 + 16 * 4 + 4 * 4 + 8 + 3 * 4 * 3 + 8 + 4  # slots, grads, losses, centres, q, s, nn
 POOL_BYTES_PER_QUERY = 4  # int32 nearest-point index per pooled query
+# Card memory (bytes) of a tile's level in a batch on a card (solver_cuda.CudaBackend._iterate_batch), counted from
+# the arrays it allocates, not measured: per band slot the field twice, Adam's m and v, the int64 fixed-point
+# gradient, the sqrt TV's inverse norms and the flags (4 + 4 + 4 + 4 + 8 + 4 + 1), plus the next level's start,
+# upsampled on the card while this level's arrays are alive (float32 per slot of the next band); per point its
+# float32 position and normal; per query of the level its pool column (int32 per pool batch), tile index and the
+# host-drawn centres and positions; per brick its 27 neighbours (int32) and its cell of the padded brick table.
+CARD_BYTES_PER_SLOT = 29
+CARD_NEXT_BYTES_PER_SLOT = 4
+CARD_POINT_BYTES = 24
+CARD_QUERY_BYTES = 4 + 8 + 12
+CARD_BRICK_BYTES = 27 * 4 + 4
 UNTRACKED = 1.15  # allocations numpy does not see (KD-trees, numba's per-brick buffers) and heap fragmentation
 # Rough rates of a job on its default local cluster (one-thread workers, two of them sharing the memory bus),
 # fitted by benchmarks/calibrate_time.py (non-negative least squares) to the 32 tiles of four jobs run with
@@ -223,6 +233,28 @@ def tile_memory(spec: TileSpec, occupancy: np.ndarray, solver: SolverConfig, til
     mesh = base + UNTRACKED * (fields + own * SLOT * BLEND_BYTES_PER_SLOT + n * TRIM_BYTES + carried)
     return {"solve": float(solve), "mesh": float(mesh), "peak": float(max(solve, mesh)), "bricks": bricks,
             "points": n}
+
+
+def card_bytes(spec: TileSpec, bricks: list[int], solver: SolverConfig) -> int:
+    """Card memory (bytes) a tile takes in a batch on a card: the most any of its levels holds (the batch solves
+    its tiles level by level, so a batch takes about the sum of its tiles' figures).
+
+    Parameters
+    ----------
+    spec : TileSpec
+    bricks : list of int
+        The tile's band bound per level (:func:`band_bricks_bound`), coarsest first.
+    """
+    worst = 0.0
+    levels = len(bricks)
+    for level, b in enumerate(bricks):
+        points = level_points(spec, level, levels, solver.sampling.points_per_cell)
+        st = solver.level_settings(level, levels, points)
+        nxt = bricks[level + 1] if level + 1 < levels else 0
+        need = (b * SLOT * CARD_BYTES_PER_SLOT + nxt * SLOT * CARD_NEXT_BYTES_PER_SLOT + b * CARD_BRICK_BYTES
+                + points * CARD_POINT_BYTES + st.queries * (st.query_pool * POOL_BYTES_PER_QUERY + CARD_QUERY_BYTES))
+        worst = max(worst, need)
+    return int(UNTRACKED * worst)
 
 
 def level_points(spec: TileSpec, level: int, levels: int, cap: int = 0) -> int:
