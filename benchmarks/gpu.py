@@ -286,6 +286,11 @@ def _sidecar(mesh: Path) -> dict:
                 acc["iterations"] = acc.get("iterations", 0) + (x.get("iterations") or 0)
         keep["task_s_per_level"] = per
         keep["solve_task_s"] = sum(t.get("time_s", 0.0) for t in side.get("tile_summaries", []))
+        # the card's busy time: each batch's solve once (its tiles each carry it), each lone tile's own
+        solves = {t.get("batch_of") or t.get("tile"): (t.get("phases_s") or {}).get("solve", 0.0)
+                  for t in side.get("tile_summaries", [])}
+        keep["solve_s_batches_once"] = sum(solves.values())
+        keep["batches"] = sum(1 for t in side.get("tile_summaries", []) if t.get("batch_of") in (None, t.get("tile")))
         phases: dict = {}
         for t in side.get("tile_summaries", []):
             for k, v in (t.get("phases_s") or {}).items():
@@ -504,6 +509,8 @@ def table(rows: list[dict]) -> str:
         if "task_s_per_level" in r:
             per = " / ".join(f"{v['time_solve_s']:.0f}" for _, v in sorted(r["task_s_per_level"].items()))
             task = f"{r['solve_task_s']:.0f}"
+            if r.get("batch_tiles", 1) > 1 and "solve_s_batches_once" in r:  # a batch's solve is each of its tiles'
+                task += f" (the card solved for {r['solve_s_batches_once']:.0f} s, {r['batches']} batches)"
         else:
             per = " / ".join(f"{v['time_solve_s']:.2f}" for v in r.get("solve_levels", []))
             task = f"{(r.get('timings_s') or {}).get('solve', 0):.1f}"

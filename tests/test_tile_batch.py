@@ -13,7 +13,7 @@ from tiled_gridpull.tiling import TilingConfig
 TILING = TilingConfig(voxel_size=0.2, tile_size=6.4, overlap=1.6)
 SOLVER = SolverConfig(m2=6, refine_m2=6, iterations=30, coarse_iterations=30, queries=3000, device="cpu")
 #: what differs between two runs of one tile: where the time went, the memory, the batch's size
-TIMINGS = {"phases_s", "time_s", "peak_rss_mb", "batch", "solve_levels", "field_path"}
+TIMINGS = {"phases_s", "time_s", "peak_rss_mb", "batch", "batch_of", "solve_levels", "field_path"}
 
 
 @pytest.fixture
@@ -34,7 +34,7 @@ def test_a_batch_of_tiles_writes_each_tiles_own_field(tmp_path, specs):
     assert [t["status"] for t in together] == ["solved"] * 3
     for a, b, path in zip(alone, together, paths):
         _same(a, b)
-        assert b["batch"] == 3 and "batch" not in a
+        assert b["batch"] == 3 and "batch" not in a and b["batch_of"] == specs[0].name
         assert b["field_path"] == str(path) and b["field_sha256"] == a["field_sha256"]
         assert set(b["phases_s"]) == set(a["phases_s"])
 

@@ -112,8 +112,9 @@ def solve_prepared(prepared: list[PreparedTile], tiling: TilingConfig, solver: S
     for (p, _), fld in zip(ready, fields):
         if fld is not None:
             p.lap("solve")  # before any tile's finish: each tile's solve is the batch's time, not its neighbours'
-            if batch > 1:
+            if batch > 1:  # the batch's size, and its first tile's name: which tiles shared the solve
                 p.summary["batch"] = batch
+                p.summary["batch_of"] = ready[0][0].spec.name
     for (p, path), fld in zip(ready, fields):
         if fld is not None:
             _finish(p, fld, tiling, path)
