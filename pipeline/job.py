@@ -249,11 +249,11 @@ def make_client(options: JobOptions, n_tiles: int, card: bool = False):
     return client, cluster
 
 
-def add_card_worker(cluster) -> None:
+def add_card_worker(cluster, name: str = "card") -> None:
     """Add to a LocalCluster a worker like its others but for the card it holds (worker resource ``GPU=1``), so
     that the batches of solves go to it and to it alone; the others prepare and mesh tiles."""
     _, spec = next(iter(cluster.new_worker_spec().items()))
-    cluster.worker_spec["card"] = {**spec, "options": {**spec["options"], "resources": dict(GPU_RESOURCE)}}
+    cluster.worker_spec[name] = {**spec, "options": {**spec["options"], "resources": dict(GPU_RESOURCE)}}
     cluster.scale(len(cluster.worker_spec))
 
 
@@ -683,13 +683,13 @@ def run_tiles(client, specs: list[TileSpec], solve_fn, solve_args, mesh_fn, mesh
 
     With ``batching`` (a job on a card) a tile's solve is two tasks: its preparation, then its part of a batch
     on the card's worker. Preparations and meshes go to the other workers while there are any (the card's
-    worker takes them only when they are all gone), so that the card waits for none. One batch is out at a
-    time, with up to ``batching.size`` of the tiles prepared so far: the first batches are small, later ones
-    fill while the card works. Besides keeping the card's worker to one batch, this keeps a batch that kills
-    its worker from taking batches queued behind it down too (Dask counts a death against every task the
+    worker takes them only when they are all gone), so that the card waits for none. One batch per card is out
+    at a time, with up to ``batching.size`` of the tiles prepared so far: the first batches are small, later
+    ones fill while the card works. Besides keeping each card's worker to one batch, this keeps a batch that
+    kills its worker from taking batches queued behind it down too (Dask counts a death against every task the
     worker held); such a batch is split, each of its tiles tried alone, so only the tile at fault fails. At most
-    :data:`BATCHES_AHEAD` batches' worth of tiles are between their preparation and the end of their batch
-    (each holds a file in the job directory).
+    :data:`BATCHES_AHEAD` batches' worth of tiles per card are between their preparation and the end of their
+    batch (each holds a file in the job directory).
 
     Parameters
     ----------
@@ -733,9 +733,12 @@ def run_tiles(client, specs: list[TileSpec], solve_fn, solve_args, mesh_fn, mesh
     # sorts are stable: equal costs keep tile order)
     solve_order = sorted(range(n), key=lambda i: (specs[i].occupied_bricks, specs[i].n_points), reverse=True)
     solve_order.sort(key=lambda i: i // window)
+    cards = 1  # with batching: batches out at once, one per worker holding a card
     if batching is not None:
         solve_fn, solve_args = batching.prepare_fn, batching.prepare_args
-        others = [a for a, w in _workers(client).items() if not _holds(w, batching.resources)] or None
+        workers = _workers(client)
+        others = [a for a, w in workers.items() if not _holds(w, batching.resources)] or None
+        cards = max(1, sum(_holds(w, batching.resources) for w in workers.values()))
 
     def submit(kind: str, fn, rows: list[tuple], items: list[int]) -> None:
         keys = [f"{kind}-{specs[i].name}" for i in items]
@@ -786,14 +789,14 @@ def run_tiles(client, specs: list[TileSpec], solve_fn, solve_args, mesh_fn, mesh
                 room -= len(take)
                 in_flight += len(take)
             if batching is not None:  # no more tiles prepared ahead (files in the job directory) than that
-                room = min(room, BATCHES_AHEAD * batching.size - preparing - len(staged) - len(alone) - batched)
+                room = min(room, BATCHES_AHEAD * batching.size * cards - preparing - len(staged) - len(alone) - batched)
             if room > 0 and next_solve < n:
                 take = solve_order[next_solve:min(n, next_solve + room)]
                 submit("solve", solve_fn, [(specs[i], *solve_args(specs[i])) for i in take], take)
                 next_solve += len(take)
                 in_flight += len(take)
                 preparing += len(take) if batching is not None else 0
-            if batching is not None and batches == 0 and (alone or staged):
+            while batching is not None and batches < cards and (alone or staged):
                 if alone:
                     submit_batch([alone.popleft()])
                 else:

@@ -96,6 +96,55 @@ def test_prepared_tiles_are_solved_in_batches_on_the_card_and_meshed_after_their
                    for n in [by_index[idx], *neighbors_of(by_index[idx], by_index)])
 
 
+def _batch_slow(specs):
+    import time
+
+    t0 = time.monotonic()
+    time.sleep(0.2)
+    span = (t0, time.monotonic())
+    return [{**r, "span": span} for r in _batch_echo(specs)]
+
+
+@pytest.mark.parametrize("cards", [1, 2])
+def test_one_batch_per_card_at_a_time(cards):
+    """Each card has one batch at a time (a second queued behind it would die with it, were it to kill its
+    worker); with two cards, two batches run at once."""
+    from distributed import Client, LocalCluster
+
+    from tiled_gridpull.pipeline.job import Batching, add_card_worker, run_tiles
+
+    class Out:  # counts the batches submitted and not yet done
+        def __init__(self, client):
+            self.client, self.now, self.most = client, 0, 0
+
+        def submit(self, fn, *args, key, **kwargs):
+            fut = self.client.submit(fn, *args, key=key, **kwargs)
+            if key.startswith("batch-"):
+                self.now += 1
+                self.most = max(self.most, self.now)
+                fut.add_done_callback(lambda f: setattr(self, "now", self.now - 1))
+            return fut
+
+        def __getattr__(self, name):
+            return getattr(self.client, name)
+
+    specs = _grid_specs(4, 4, 1)
+    with LocalCluster(processes=False, n_workers=1, threads_per_worker=2, dashboard_address=":0") as cluster:
+        for _ in range(cards):
+            add_card_worker(cluster, name=f"card{_}")
+        with Client(cluster) as client:
+            client.wait_for_workers(1 + cards, timeout=30)
+            out = Out(client)
+            spans = {r["span"] for k, _, r in run_tiles(out, specs, None, None, _mesh_echo, lambda s: (),
+                                                        batching=Batching(2, _prepare_echo, lambda s: (), _batch_slow,
+                                                                          lambda group: ()))
+                     if k == "solve" and "span" in r}
+    assert out.most == cards
+    spans = sorted(spans)
+    overlaps = sum(b[0] < a[1] for a, b in zip(spans, spans[1:]))
+    assert (overlaps > 0) == (cards == 2), spans
+
+
 BIG = (1, 1, 0)  # a tile whose estimate alone exceeds the budget
 
 
