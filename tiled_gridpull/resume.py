@@ -35,6 +35,7 @@ import hashlib
 import json
 import os
 import stat
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -47,6 +48,7 @@ from .io.atomic import json_default, write_json
 from .io.outputs import load_json_file
 from .io.remote import is_url, validators
 from .jobdir import JobPaths, spill_record
+from .memory import reset_peak_rss
 from .partition import attribute_record
 from .stitch import mesh_tile
 from .tile_plan import TileSpec, plan_tiles
@@ -319,11 +321,12 @@ def solve_prepared_resumable(specs: list[TileSpec], tiling: TilingConfig, solver
     (:func:`tiled_gridpull.tile_solve.solve_prepared`) and recorded as :func:`solve_tile_resumable` records them;
     their prepared files are removed. A tile whose prepared file is gone or damaged (a batch run again after a
     worker died) is prepared again here."""
+    reset_peak_rss()  # each summary's peak is its preparation's or the batch's, not an earlier batch's
     prepared = []
     for spec, path in zip(specs, prepared_paths, strict=True):
         try:
             prepared.append(PreparedTile.load(path, spec))
-        except (OSError, ValueError, KeyError):
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
             prepared.append(prepare_tile(spec, tiling, solver, centre))
     outs = solve_prepared(prepared, tiling, solver, field_paths)
     for spec, out, summary_path, field_path in zip(specs, outs, summary_paths, field_paths, strict=True):
