@@ -26,6 +26,7 @@ import os
 import signal
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -682,14 +683,14 @@ def run_tiles(client, specs: list[TileSpec], solve_fn, solve_args, mesh_fn, mesh
     tile (BENCHMARKS.md).
 
     With ``batching`` (a job on a card) a tile's solve is two tasks: its preparation, then its part of a batch
-    on the card's worker. Preparations and meshes go to the other workers while there are any (the card's
-    worker takes them only when they are all gone), so that the card waits for none. One batch per card is out
-    at a time, with up to ``batching.size`` of the tiles prepared so far: the first batches are small, later
-    ones fill while the card works. Besides keeping each card's worker to one batch, this keeps a batch that
-    kills its worker from taking batches queued behind it down too (Dask counts a death against every task the
-    worker held); such a batch is split, each of its tiles tried alone, so only the tile at fault fails. At most
-    :data:`BATCHES_AHEAD` batches' worth of tiles per card are between their preparation and the end of their
-    batch (each holds a file in the job directory).
+    on the card's worker. Preparations and meshes go to the other workers, one per thread of theirs at a time
+    (:class:`_CardQueue`), so that the card waits for none. One batch per card is out at a time, with up to
+    ``batching.size`` of the tiles prepared so far whose estimates fit the card's memory and the card worker's:
+    the first batches are small, later ones fill while the card works. Besides keeping each card's worker to one
+    batch, this keeps a batch that kills its worker from taking batches queued behind it down too (Dask counts a
+    death against every task the worker held); such a batch is split, each of its tiles tried alone, so only the
+    tile at fault fails. At most :data:`BATCHES_AHEAD` batches' worth of tiles per card are between their
+    preparation and the end of their batch (each holds a file in the job directory).
 
     Parameters
     ----------
@@ -704,8 +705,6 @@ def run_tiles(client, specs: list[TileSpec], solve_fn, solve_args, mesh_fn, mesh
     batching : Batching, optional
         Solve in batches on a card (``solve_fn`` and ``solve_args`` then go unused).
     """
-    from collections import deque
-
     from distributed import as_completed
 
     if window < 1:
@@ -725,25 +724,17 @@ def run_tiles(client, specs: list[TileSpec], solve_fn, solve_args, mesh_fn, mesh
     pending = as_completed(with_results=True)  # results come with the futures, not one request each
     watch = _WorkerWatch(client, no_worker_timeout)
     n, next_solve, in_flight = len(specs), 0, 0  # in flight: tiles in their solve, and mesh tasks
-    # prepare tasks out; tiles prepared and awaiting a batch (those of a batch that killed its worker: alone);
-    # the batch out, if any, and its tiles
-    preparing, staged, alone, batches, batched = 0, deque(), deque(), 0, 0
-    others = None  # with batching: the workers without a card, where preparations and meshes go
     # tile order across windows keeps a window's meshes close to its solves; costliest first within one (both
     # sorts are stable: equal costs keep tile order)
     solve_order = sorted(range(n), key=lambda i: (specs[i].occupied_bricks, specs[i].n_points), reverse=True)
     solve_order.sort(key=lambda i: i // window)
-    cards = 1  # with batching: batches out at once, one per worker holding a card
+    cards = _CardQueue(batching, client) if batching is not None else None
     if batching is not None:
         solve_fn, solve_args = batching.prepare_fn, batching.prepare_args
-        workers = _workers(client)
-        others = [a for a, w in workers.items() if not _holds(w, batching.resources)] or None
-        cards = max(1, sum(_holds(w, batching.resources) for w in workers.values()))
 
     def submit(kind: str, fn, rows: list[tuple], items: list[int]) -> None:
         keys = [f"{kind}-{specs[i].name}" for i in items]
-        # loose: a worker that joins later, or the card's when the others are gone, still takes them
-        where = {"workers": others, "allow_other_workers": True} if others else {}
+        where = cards.placement() if cards is not None else {}
         if len(rows) == 1:
             futs = [client.submit(fn, *rows[0], key=keys[0], retries=retries, pure=False, **where)]
         else:
@@ -751,18 +742,18 @@ def run_tiles(client, specs: list[TileSpec], solve_fn, solve_args, mesh_fn, mesh
         for i, fut in zip(items, futs):
             kinds[fut.key] = (kind, [i])
         pending.update(futs)
+        if cards is not None:
+            cards.cpu_out += len(items)
 
     def submit_batch(items: list[int]) -> None:
-        nonlocal batches, batched
         group = [specs[i] for i in items]
         # a tile is in one batch at a time; "alone" marks the retry of a batch that killed its worker
-        key = f"batch-{group[0].name}-{len(items)}" + ("-alone" if len(items) == 1 and items[0] in split else "")
+        key = f"batch-{group[0].name}-{len(items)}" + ("-alone" if len(items) == 1 and items[0] in cards.split else "")
         fut = client.submit(batching.batch_fn, group, *batching.batch_args(group), key=key, retries=retries,
                             pure=False, resources=batching.resources)
         kinds[fut.key] = ("batch", items)
         pending.add(fut)
-        batches += 1
-        batched += len(items)
+        cards.sent(items)
 
     def solved(i: int, result: dict) -> Iterator[TileEvent]:
         summaries[i] = result
@@ -772,11 +763,12 @@ def run_tiles(client, specs: list[TileSpec], solve_fn, solve_args, mesh_fn, mesh
                 ready.append(j)
         yield "solve", specs[i].index, result
 
-    split: set[int] = set()  # tiles of a batch that killed its worker
-    card: dict[int, float] = {}  # prepared tiles' card memory (bytes, estimated)
     try:
         while next_solve < n or ready or in_flight:
             room = window - in_flight
+            if cards is not None:
+                cards.refresh()
+                room = min(room, cards.cpu_room())
             if room > 0 and ready:  # meshes first: they finish tiles and let summaries go
                 take = [ready.popleft() for _ in range(min(room, len(ready)))]
                 submit("mesh", mesh_fn, [(specs[i], summaries[i], neighbours[i], [summaries[j] for j in needs[i][1:]],
@@ -788,39 +780,31 @@ def run_tiles(client, specs: list[TileSpec], solve_fn, solve_args, mesh_fn, mesh
                             summaries[j] = None
                 room -= len(take)
                 in_flight += len(take)
-            if batching is not None:  # no more tiles prepared ahead (files in the job directory) than that
-                room = min(room, BATCHES_AHEAD * batching.size * cards - preparing - len(staged) - len(alone) - batched)
+            if cards is not None:
+                room = min(room, cards.prepare_room())
             if room > 0 and next_solve < n:
                 take = solve_order[next_solve:min(n, next_solve + room)]
                 submit("solve", solve_fn, [(specs[i], *solve_args(specs[i])) for i in take], take)
                 next_solve += len(take)
                 in_flight += len(take)
-                preparing += len(take) if batching is not None else 0
-            while batching is not None and batches < cards and (alone or staged):
-                if alone:
-                    submit_batch([alone.popleft()])
-                else:
-                    group = [staged.popleft()]
-                    total = card[group[0]]
-                    while staged and len(group) < batching.size and total + card[staged[0]] <= batching.budget:
-                        total += card[staged[0]]
-                        group.append(staged.popleft())
-                    submit_batch(group)
-            watch.wait_for(pending, stop, needs=batching.resources if batches else None)
+                if cards is not None:
+                    cards.preparing += len(take)
+            for group in cards.groups() if cards is not None else ():
+                submit_batch(group)
+            watch.wait_for(pending, stop, needs=batching.resources if cards is not None and cards.out else None)
             for fut, result in pending.next_batch(block=False):
                 kind, items = kinds.pop(fut.key)
+                if cards is not None and kind != "batch":
+                    cards.cpu_out -= 1
                 if fut.status == "error":
                     if not _killed_worker(result[1]):
                         raise result[1].with_traceback(result[2])
                     if kind == "batch" and len(items) > 1:  # which tile killed it? each alone will tell
-                        batches -= 1
-                        batched -= len(items)
-                        split.update(items)
-                        alone.extend(items)
+                        cards.killed(items)
                         continue
                     # the task took its worker down every time it ran (out of memory, a crash in native code):
                     # a failed tile, reported by name; the rest of the job goes on
-                    what = "solve" if kind == "batch" else kind
+                    what = {"batch": "solve", "solve": "preparation" if cards is not None else "solve"}.get(kind, kind)
                     result = [{"tile": specs[i].name, "index": list(specs[i].index), "points": specs[i].block_points,
                                "status": "failed", "faces": 0,
                                "reason": f"its {what} killed the worker process on every attempt (out of memory?)"}
@@ -829,21 +813,17 @@ def run_tiles(client, specs: list[TileSpec], solve_fn, solve_args, mesh_fn, mesh
                 if isinstance(result, BaseException):  # cancelled (e.g. the cluster went away)
                     raise result
                 if kind == "batch":
-                    batches -= 1
-                    batched -= len(items)
                     in_flight -= len(items)
-                    need = sum(card[i] for i in items)
+                    sizing = cards.done(items)
                     for i, res in zip(items, result, strict=True):
-                        if need:
-                            res["batch_card_bytes"] = need  # the estimate the batch was sized by
+                        res.update(sizing)  # the estimates the batch was sized by
                         yield from solved(i, res)
                     continue
                 i = items[0]
-                if kind == "solve" and batching is not None:
-                    preparing -= 1
+                if kind == "solve" and cards is not None:
+                    cards.preparing -= 1
                     if result.get("status") == "prepared":
-                        staged.append(i)  # still in flight: its batch comes
-                        card[i] = float(result.get("card_bytes", 0.0))
+                        cards.stage(i, result)  # still in flight: its batch comes
                         continue
                 in_flight -= 1
                 if kind == "solve":
@@ -858,6 +838,103 @@ def run_tiles(client, specs: list[TileSpec], solve_fn, solve_args, mesh_fn, mesh
         # logged traceback ("Exception in callback ... CommClosedError" after Ctrl-C, now and then)
         _settle_result_fetches(pending)
         raise
+
+
+class _CardQueue:
+    """The batching state of :func:`run_tiles`: the tiles between their preparation and the end of their batch,
+    the batches out (one per card), and where the other tasks go.
+
+    The preparations and meshes go to the workers without a card, at most one per thread of theirs at a time:
+    a task restricted to some workers is no longer queued on the scheduler (Dask queues only unrestricted
+    tasks), so without the cap they would pile up on the workers, and a task that kills its worker would take
+    every one queued behind it down too (and, idle, the card's worker would steal them)."""
+
+    def __init__(self, batching: Batching, client):
+        self.batching, self.client = batching, client
+        self.preparing = 0  # prepare tasks out
+        self.cpu_out = 0  # prepare and mesh tasks out
+        self.staged: deque[int] = deque()  # prepared tiles awaiting a batch
+        self.alone: deque[int] = deque()  # tiles of a batch that killed its worker, each to go in one of its own
+        self.split: set[int] = set()
+        self.out = 0  # batches out
+        self.batched = 0  # tiles in them
+        self.card: dict[int, float] = {}  # estimated card bytes of each prepared tile
+        self.host: dict[int, float] = {}  # and host bytes
+        self.cards, self.others, self.cpu_slots, self.host_budget = 1, None, 1, math.inf
+        self.next_refresh = 0.0
+        self.refresh()
+
+    def refresh(self) -> None:
+        """The cluster's workers as they are now (every 2 s): a restarted worker comes back at a new address."""
+        now = time.monotonic()
+        if now < self.next_refresh:
+            return
+        self.next_refresh = now + 2.0
+        workers = _workers(self.client)
+        holders = [w for w in workers.values() if _holds(w, self.batching.resources)]
+        rest = {a: w for a, w in workers.items() if not _holds(w, self.batching.resources)}
+        self.cards = max(1, len(holders))
+        # loose: with no worker without a card left, the card's workers still take them
+        self.others = sorted(rest) or None
+        self.cpu_slots = max(1, sum(int(w.get("nthreads", 1)) for w in (rest or workers).values()))
+        limits = [float(w.get("memory_limit") or 0) for w in holders]
+        self.host_budget = CARD_SHARE * min(limits) if limits and min(limits) > 0 else math.inf
+
+    def placement(self) -> dict:
+        return {"workers": self.others, "allow_other_workers": True} if self.others else {}
+
+    def cpu_room(self) -> int:
+        return self.cpu_slots - self.cpu_out
+
+    def prepare_room(self) -> int:
+        """Preparations that may go out now: no more tiles between preparation and batch (each a file in the
+        job directory) than :data:`BATCHES_AHEAD` batches per card."""
+        ahead = BATCHES_AHEAD * self.batching.size * self.cards
+        return min(self.cpu_room(), ahead - self.preparing - len(self.staged) - len(self.alone) - self.batched)
+
+    def stage(self, i: int, result: dict) -> None:
+        self.staged.append(i)
+        self.card[i] = float(result.get("card_bytes", 0.0))
+        self.host[i] = float(result.get("host_bytes", 0.0))
+
+    def groups(self) -> Iterator[list[int]]:
+        """The batches to send now: while a card has none out, the next tile alone (after a batch that killed
+        its worker), or the tiles prepared so far while they fit ``size`` and the card and host budgets."""
+        b = self.batching
+        while self.out < self.cards and (self.alone or self.staged):
+            if self.alone:
+                yield [self.alone.popleft()]
+                continue
+            group = [self.staged.popleft()]
+            card, host = self.card[group[0]], self.host[group[0]]
+            while (self.staged and len(group) < b.size and card + self.card[self.staged[0]] <= b.budget
+                   and host + self.host[self.staged[0]] <= self.host_budget):
+                i = self.staged.popleft()
+                card, host = card + self.card[i], host + self.host[i]
+                group.append(i)
+            yield group
+
+    def sent(self, items: list[int]) -> None:
+        self.out += 1
+        self.batched += len(items)
+
+    def killed(self, items: list[int]) -> None:
+        self.out -= 1
+        self.batched -= len(items)
+        self.split.update(items)
+        self.alone.extend(items)
+
+    def done(self, items: list[int]) -> dict:
+        """A batch came back: what it was sized by (for its tiles' summaries)."""
+        self.out -= 1
+        self.batched -= len(items)
+        out = {}
+        card, host = sum(self.card.pop(i, 0.0) for i in items), sum(self.host.pop(i, 0.0) for i in items)
+        if card:
+            out["batch_card_bytes"] = card
+        if host:
+            out["batch_host_bytes"] = host
+        return out
 
 
 def _settle_result_fetches(pending, timeout: float = 5.0) -> None:

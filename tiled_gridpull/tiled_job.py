@@ -31,7 +31,7 @@ from .errors import InputError, TileFailedError
 from .io import write_mesh, write_mesh_and_sidecar
 from .jobdir import JobPaths, check_job_dir, job_lock, neighbors_of
 from .kernels.warmup import cold_kernels, compile_kernels, estimate_seconds
-from .memory import band_bricks_bound, card_bytes, check_memory, peak_rss_mb
+from .memory import BASE_MB, MB, band_bricks_bound, card_bytes, check_memory, peak_rss_mb, tile_memory
 from .mesh import Mesh
 from .partition import read_occupancy
 from .prepare import check_registered, check_remote, prepare_job, resolve_units, scan_noise_treatment
@@ -98,12 +98,15 @@ def prepare_step(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig, fie
                  summary_path: str, prepared_path: str) -> dict:
     """The first half of :func:`solve_step` for tiles solved in batches on a card: the tile's recorded summary,
     or the tile read and set up into ``prepared_path`` (status ``"prepared"``, with ``card_bytes``, the card
-    memory its solve takes: :func:`tiled_gridpull.memory.card_bytes`), or its summary when it needs no solve
+    memory its solve takes: :func:`tiled_gridpull.memory.card_bytes`, and ``host_bytes``, the host memory:
+    :func:`tiled_gridpull.memory.tile_memory`), or its summary when it needs no solve
     (:func:`tiled_gridpull.resume.prepare_tile_resumable`)."""
     out = prepare_tile_resumable(spec, tiling, solver, field_path, summary_path, prepared_path, centre)
     if out.get("status") == "prepared":
         bricks = band_bricks_bound(read_occupancy(spec), spec.block.shape, solver)
         out["card_bytes"] = card_bytes(spec, bricks, solver)
+        # and the host memory it adds to the card worker's while its batch runs (the process's own base apart)
+        out["host_bytes"] = tile_memory(spec, None, solver, tiling, bricks=bricks)["solve"] - BASE_MB * MB
     return out
 
 
