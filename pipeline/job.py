@@ -246,7 +246,12 @@ def make_client(options: JobOptions, n_tiles: int, card: bool = False):
             add_card_worker(cluster)
     client = Client(cluster)
     if card:
-        client.wait_for_workers(workers + 1, timeout=60)
+        try:
+            client.wait_for_workers(workers + 1, timeout=60)
+        except TimeoutError:
+            client.close()
+            cluster.close()
+            raise ClusterError("the local cluster's worker holding the card did not start within 60 s") from None
     return client, cluster
 
 
@@ -568,19 +573,8 @@ class DaskExecutor:
             client = self._connect(len(specs), paths.root)
             try:
                 solve_args, mesh_args = task_arguments(specs, tiling, solver, paths, centre, key_ref)
-                batching = None
-                if options.batch_tiles > 1 and solver.device != "cpu" and _cards(client):
-                    free, total = client.submit(card_memory_task, resources=dict(GPU_RESOURCE), pure=False).result()
-                    prepare_args, batch_args = batch_arguments(tiling, solver, paths, centre)
-                    batching = Batching(options.batch_tiles, prepare_task, prepare_args, batch_solve_task, batch_args,
-                                        budget=CARD_SHARE * free)
-                    self.engine["batch_tiles"] = options.batch_tiles
-                    # what the card had when the job started, and what a batch may take of it (None: no limit,
-                    # the simulator's)
-                    self.engine["card_memory"] = {k: (v if math.isfinite(v) else None) for k, v in
-                                                  {"free_bytes": free, "total_bytes": total,
-                                                   "batch_budget_bytes": CARD_SHARE * free}.items()}
                 try:
+                    batching = self._batching(client, tiling, solver, paths, centre)
                     yield from run_tiles(client, specs, solve_task, solve_args, mesh_task, mesh_args,
                                          options.retries, window=options.window, stop=interrupted,
                                          no_worker_timeout=options.no_worker_timeout, batching=batching)
@@ -589,8 +583,31 @@ class DaskExecutor:
                     if lost is None:
                         raise
                     raise lost from None
+                finally:
+                    _sweep_prepared(paths)
             finally:
                 self.close()
+
+    def _batching(self, client, tiling: TilingConfig, solver: SolverConfig, paths: JobPaths, centre):
+        """How the tiles are solved in batches on the cluster's cards, or None (no card, a CPU job, or
+        ``batch_tiles`` 1). The card's memory is read once on its worker, and recorded in :attr:`engine`."""
+        options = self.options
+        if options.batch_tiles <= 1 or solver.device == "cpu" or not _cards(client):
+            return None
+        try:
+            free, total = client.submit(card_memory_task, resources=dict(GPU_RESOURCE), pure=False).result(
+                timeout=max(options.no_worker_timeout, 30.0) if options.no_worker_timeout > 0 else None)
+        except TimeoutError:
+            raise ClusterError(f"the worker holding a card did not say how much memory the card has free within "
+                               f"{max(options.no_worker_timeout, 30.0):g} s: the job stops; rerun to resume") from None
+        prepare_args, batch_args = batch_arguments(tiling, solver, paths, centre)
+        self.engine["batch_tiles"] = options.batch_tiles
+        # what the card had when the job started, and what a batch may take of it (None: no limit, the simulator's)
+        self.engine["card_memory"] = {k: (v if math.isfinite(v) else None) for k, v in
+                                      {"free_bytes": free, "total_bytes": total,
+                                       "batch_budget_bytes": CARD_SHARE * free}.items()}
+        return Batching(options.batch_tiles, prepare_task, prepare_args, batch_solve_task, batch_args,
+                        budget=CARD_SHARE * free)
 
     def close(self) -> None:
         """Close the client and the LocalCluster this executor started (if any)."""
@@ -599,6 +616,17 @@ class DaskExecutor:
             client.close()
         if cluster is not None:
             cluster.close()
+
+
+def _sweep_prepared(paths: JobPaths) -> None:
+    """Remove the prepared tiles a batched run left (interrupted, or a tile whose batch failed): each is a copy
+    of a tile's points and normals, and a rerun prepares again what it needs."""
+    folder = paths.root / "prepared"
+    if folder.is_symlink() or not folder.is_dir():
+        return
+    for f in folder.glob("*.npz"):
+        with contextlib.suppress(OSError):
+            f.unlink()
 
 
 @contextlib.contextmanager

@@ -216,3 +216,18 @@ def test_batches_that_no_worker_can_take_stop_the_job_in_one_line():
                                no_worker_timeout=1.0,
                                batching=Batching(4, _prepare_echo, lambda s: (), _batch_echo, lambda group: ())):
                 pass
+
+
+def test_a_runs_leftover_prepared_tiles_are_swept(tmp_path):
+    """A batched run leaves no prepared tile behind, however it ends (each is a copy of a tile's points)."""
+    from tiled_gridpull.jobdir import JobPaths
+    from tiled_gridpull.pipeline.job import _sweep_prepared
+
+    paths = JobPaths(tmp_path / "job")
+    (paths.root / "prepared").mkdir(parents=True)
+    for name in ("tile_0_0_0.npz", "tile_1_0_0.npz"):
+        (paths.root / "prepared" / name).write_bytes(b"x")
+    (paths.root / "prepared" / "notes.txt").write_text("not ours")
+    _sweep_prepared(paths)
+    assert sorted(f.name for f in (paths.root / "prepared").iterdir()) == ["notes.txt"]
+    _sweep_prepared(JobPaths(tmp_path / "none"))  # nothing there: nothing to do

@@ -382,12 +382,17 @@ def test_a_tiled_job_on_the_card_solves_its_tiles_in_batches_and_meshes_as_the_c
     tiles = side["tile_summaries"]
     assert side["engine"]["batch_tiles"] == 16 and len(tiles) == 3
     # the card's memory as the job found it (the simulator's has no limit) and what each batch was sized by
-    assert side["engine"]["card_memory"] == {"free_bytes": None, "total_bytes": None, "batch_budget_bytes": None}
-    assert all(t["batch_card_bytes"] > 0 for t in tiles)
+    memory = side["engine"]["card_memory"]
+    if device.cuda_card() == device.SIMULATOR:
+        assert memory == {"free_bytes": None, "total_bytes": None, "batch_budget_bytes": None}
+    else:
+        assert 0 < memory["batch_budget_bytes"] < memory["free_bytes"] <= memory["total_bytes"]
+    assert all(t["batch_card_bytes"] > 0 and t["batch_host_bytes"] > 0 for t in tiles)
     assert all(t["status"] == "solved" and t["device"]["device"] == "cuda" for t in tiles)
-    # the card was idle when the first tile was ready: it went alone; the others share the next launches (they
-    # are ready long before the simulated card is done)
-    assert max(t.get("batch", 1) for t in tiles) == 2
+    if device.cuda_card() == device.SIMULATOR:
+        # the card was idle when the first tile was ready: it went alone; the others share the next launches
+        # (they are ready long before the simulated card is done; a real card may be done first)
+        assert max(t.get("batch", 1) for t in tiles) == 2
     assert len({t["worker"] for t in tiles}) == 1  # the card's worker
     assert not list((tmp_path / "card.job" / "prepared").iterdir())  # each prepared tile removed once solved
     cpu = reconstruct_scene([str(src)], tmp_path / "cpu.ply", TilingConfig(voxel_size=0.15, tile_size=2.4, overlap=1.2),

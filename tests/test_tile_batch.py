@@ -121,8 +121,8 @@ def test_a_tile_prepared_in_one_process_and_solved_in_another_is_the_tile_solved
 
 
 def test_a_batch_whose_prepared_file_is_gone_or_another_tiles_prepares_it_again(tmp_path, specs):
-    """A batch run again after its worker died may find its tiles' files gone (or, damaged, naming another
-    tile): it prepares those tiles itself rather than failing them or solving the wrong points."""
+    """A batch run again after its worker died may find its tiles' files gone or damaged, or one of another tile
+    or of other settings: it prepares those tiles itself rather than failing them or solving the wrong points."""
     from tiled_gridpull.resume import prepare_tile_resumable, solve_prepared_resumable
 
     paths = JobPaths(tmp_path / "job")
@@ -135,11 +135,22 @@ def test_a_batch_whose_prepared_file_is_gone_or_another_tiles_prepares_it_again(
     out = solve_prepared_resumable(specs[:2], TILING, SOLVER, *([a[k] for a in args] for k in range(3)))
     alone = [solve_tile(s, TILING, SOLVER, tmp_path / f"alone_{s.name}.npz") for s in specs[:2]]
     assert [o["field_sha256"] for o in out] == [a["field_sha256"] for a in alone]
-    # a file of another tile is refused by name
-    p = prepare_tile(specs[0], TILING, SOLVER)
-    p.save(tmp_path / "p.npz")
+    # a file of another tile, or of other settings (an earlier run's, written late), is not solved: the tile is
+    # prepared again in the batch
+    from tiled_gridpull.resume import solve_key
+
+    other = SolverConfig(m2=6, refine_m2=6, iterations=30, coarse_iterations=30, queries=3000, device="cpu", seed=7)
+    stale = prepare_tile(specs[1], TILING, other)
+    stale.save(paths.prepared(specs[1]), solve_key(specs[1], TILING, other))
+    with pytest.raises(ValueError, match="prepared with other settings"):
+        type(stale).load(paths.prepared(specs[1]), specs[1], solve_key(specs[1], TILING, SOLVER))
+    prepare_tile(specs[0], TILING, SOLVER).save(paths.prepared(specs[0]), solve_key(specs[0], TILING, SOLVER))
     with pytest.raises(ValueError, match=f"holds tile '{specs[0].name}', not '{specs[1].name}'"):
-        type(p).load(tmp_path / "p.npz", specs[1])
+        type(stale).load(paths.prepared(specs[0]), specs[1])
+    paths.prepared(specs[0]).replace(paths.prepared(specs[1]))  # tile 0's points where tile 1's should be
+    again = solve_prepared_resumable(specs[:2], TILING, SOLVER, *([a[k] for a in args] for k in range(3)))
+    assert [o["field_sha256"] for o in again] == [a["field_sha256"] for a in alone]
+    assert not list(paths.prepared(specs[0]).parent.iterdir())
 
 
 def test_a_tiles_card_memory_estimate_bounds_its_levels_arrays(tmp_path, specs):

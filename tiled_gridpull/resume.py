@@ -305,13 +305,15 @@ def prepare_tile_resumable(spec: TileSpec, tiling: TilingConfig, solver: SolverC
     key = solve_key(spec, tiling, solver, centre)
     prev, why = _reusable(Path(summary_path), key, ("solved", "skipped"), field_path)
     if prev is not None:
+        _unlink(prepared_path)  # an interrupted run's, now of no use
         return prev
     p = prepare_tile(spec, tiling, solver, centre)
     if why:
         p.summary["redone"] = why
     if p.status is not None:
+        _unlink(prepared_path)
         return _close_solve(p.summary, key, summary_path, field_path)
-    p.save(prepared_path)
+    p.save(prepared_path, key)
     return {"tile": spec.name, "index": list(spec.index), "points": spec.block_points, "status": "prepared"}
 
 
@@ -322,19 +324,24 @@ def solve_prepared_resumable(specs: list[TileSpec], tiling: TilingConfig, solver
     their prepared files are removed. A tile whose prepared file is gone or damaged (a batch run again after a
     worker died) is prepared again here."""
     reset_peak_rss()  # each summary's peak is its preparation's or the batch's, not an earlier batch's
+    keys = [solve_key(spec, tiling, solver, centre) for spec in specs]
     prepared = []
-    for spec, path in zip(specs, prepared_paths, strict=True):
+    for spec, path, key in zip(specs, prepared_paths, keys, strict=True):
         try:
-            prepared.append(PreparedTile.load(path, spec))
+            prepared.append(PreparedTile.load(path, spec, key))
         except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
             prepared.append(prepare_tile(spec, tiling, solver, centre))
     outs = solve_prepared(prepared, tiling, solver, field_paths)
-    for spec, out, summary_path, field_path in zip(specs, outs, summary_paths, field_paths, strict=True):
-        _close_solve(out, solve_key(spec, tiling, solver, centre), summary_path, field_path)
+    for key, out, summary_path, field_path in zip(keys, outs, summary_paths, field_paths, strict=True):
+        _close_solve(out, key, summary_path, field_path)
     for path in prepared_paths:
-        with contextlib.suppress(OSError):
-            os.unlink(path)
+        _unlink(path)
     return outs
+
+
+def _unlink(path: str | Path) -> None:
+    with contextlib.suppress(OSError):
+        os.unlink(path)
 
 
 def _close_solve(out: dict, key: str, summary_path: str | Path, field_path: str | Path) -> dict:
@@ -344,8 +351,7 @@ def _close_solve(out: dict, key: str, summary_path: str | Path, field_path: str 
         _record(out, summary_path, key, field_path if out["status"] == "solved" else None)
     else:
         out["key"] = key
-        with contextlib.suppress(OSError):
-            os.unlink(summary_path)
+        _unlink(summary_path)
     out["reused"] = False
     return out
 

@@ -173,35 +173,39 @@ class PreparedTile:
         self.summary["time_s"] = time.perf_counter() - self.t0
         self.summary["peak_rss_mb"] = max(peak_rss_mb(), self.peak_before_mb)
 
-    def save(self, path: str | Path) -> None:
+    def save(self, path: str | Path, key: str | None = None) -> None:
         """Write a tile awaiting its solve (``status`` None) to ``path`` (``.npz``, atomically), for
         :meth:`load` in another process: a job on a card prepares its tiles on CPU workers and solves them in
-        batches on the card's worker."""
+        batches on the card's worker. ``key`` names what it was prepared for (the solve key of
+        :mod:`tiled_gridpull.resume`)."""
         if self.status is not None:
             raise ValueError(f"tile {self.spec.name} is {self.status}: only a tile awaiting its solve is saved")
         now = time.perf_counter()
         state = {"summary": self.summary, "rule": self.rule, "elapsed_s": now - self.t0,
-                 "peak_rss_mb": max(peak_rss_mb(), self.peak_before_mb)}
+                 "peak_rss_mb": max(peak_rss_mb(), self.peak_before_mb), "key": key}
         arrays = {name: getattr(self, name) for name in _PREPARED_ARRAYS if getattr(self, name) is not None}
         with atomic_path(path) as tmp:
             with open(tmp, "wb") as fh:
                 np.savez(fh, state=np.frombuffer(json.dumps(state).encode(), np.uint8), **arrays)
 
     @classmethod
-    def load(cls, path: str | Path, spec: TileSpec) -> PreparedTile:
-        """A tile :meth:`save` wrote for ``spec``. Its ``time_s`` goes on from the time its preparation took
-        (the wait for the batch is not the tile's), its ``peak_rss_mb`` is the larger of both processes'.
+    def load(cls, path: str | Path, spec: TileSpec, key: str | None = None) -> PreparedTile:
+        """A tile :meth:`save` wrote for ``spec`` (and for ``key``, when given: a file an earlier run with other
+        settings left, or wrote late, is not this run's). Its ``time_s`` goes on from the time its preparation
+        took (the wait for the batch is not the tile's), its ``peak_rss_mb`` is the larger of both processes'.
 
         Raises
         ------
         OSError, ValueError, KeyError
-            ``path`` missing, damaged or written for another tile.
+            ``path`` missing, damaged, or written for another tile or key.
         """
         with np.load(path) as z:
             state = json.loads(z["state"].tobytes().decode())
             arrays = {name: z[name] for name in _PREPARED_ARRAYS if name in z.files}
         if state["summary"].get("tile") != spec.name:
             raise ValueError(f"{path} holds tile {state['summary'].get('tile')!r}, not {spec.name!r}")
+        if key is not None and state.get("key") != key:
+            raise ValueError(f"{path} was prepared with other settings (solve key {state.get('key')!r})")
         now = time.perf_counter()
         p = cls(spec, state["summary"], now - float(state["elapsed_s"]), now, rule=state["rule"],
                 peak_before_mb=float(state["peak_rss_mb"]), **arrays)
