@@ -37,8 +37,8 @@ from tiled_gridpull.errors import ClusterError, ConfigError
 from tiled_gridpull.jobdir import JobPaths, neighbors_of
 from tiled_gridpull.mesh import Mesh
 from tiled_gridpull.tile_plan import TileSpec
-from tiled_gridpull.tiled_job import (TileEvent, batch_arguments, mesh_step, prepare_step, run_tiled_job,
-                                      solve_prepared_step, solve_step, task_arguments)
+from tiled_gridpull.tiled_job import (TileEvent, batch_arguments, finish_step, mesh_step, prepare_step, run_tiled_job,
+                                      solve_batch_step, solve_step, task_arguments)
 from tiled_gridpull.tiling import TilingConfig
 
 log = logging.getLogger("tiled_gridpull")
@@ -375,17 +375,25 @@ def prepare_task(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig, fie
 
 
 def batch_solve_task(specs: list[TileSpec], tiling: TilingConfig, solver: SolverConfig, field_paths: list[str],
-                     centre, summary_paths: list[str], prepared_paths: list[str]) -> list[dict]:
-    """Dask task (the card's worker): prepared tiles solved as one batch
-    (:func:`tiled_gridpull.tiled_job.solve_prepared_step`)."""
+                     centre, summary_paths: list[str], prepared_paths: list[str],
+                     solved_paths: list[str]) -> list[dict]:
+    """Dask task (the card's worker): prepared tiles solved as one batch, each left for its finish
+    (:func:`tiled_gridpull.tiled_job.solve_batch_step`)."""
     _configure_worker_threads()
     for spec in specs:
         _test_hooks(spec.name)
-    outs = solve_prepared_step(specs, tiling, solver, field_paths, centre, summary_paths, prepared_paths)
-    worker = _worker_address()
-    for out in outs:
-        out["worker"] = worker
-    return outs
+    return solve_batch_step(specs, tiling, solver, field_paths, centre, summary_paths, prepared_paths, solved_paths,
+                            note={"worker": _worker_address()})
+
+
+def finish_task(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig, field_path: str, centre,
+                summary_path: str, prepared_path: str, solved_path: str) -> dict:
+    """Dask task (any worker, off the card's): a batch-solved tile oriented, bridged and written
+    (:func:`tiled_gridpull.tiled_job.finish_step`)."""
+    _configure_worker_threads()
+    out = finish_step(spec, tiling, solver, field_path, centre, summary_path, prepared_path, solved_path)
+    out["finish_worker"] = _worker_address()
+    return out
 
 
 #: Share of the card's free memory a batch may take by its tiles' estimates (:func:`tiled_gridpull.memory.card_bytes`):
@@ -600,14 +608,14 @@ class DaskExecutor:
         except TimeoutError:
             raise ClusterError(f"the worker holding a card did not say how much memory the card has free within "
                                f"{max(options.no_worker_timeout, 30.0):g} s: the job stops; rerun to resume") from None
-        prepare_args, batch_args = batch_arguments(tiling, solver, paths, centre)
+        prepare_args, batch_args, finish_args = batch_arguments(tiling, solver, paths, centre)
         self.engine["batch_tiles"] = options.batch_tiles
         # what the card had when the job started, and what a batch may take of it (None: no limit, the simulator's)
         self.engine["card_memory"] = {k: (v if math.isfinite(v) else None) for k, v in
                                       {"free_bytes": free, "total_bytes": total,
                                        "batch_budget_bytes": CARD_SHARE * free}.items()}
-        return Batching(options.batch_tiles, prepare_task, prepare_args, batch_solve_task, batch_args,
-                        budget=CARD_SHARE * free)
+        return Batching(options.batch_tiles, prepare_task, prepare_args, batch_solve_task, batch_args, finish_task,
+                        finish_args, budget=CARD_SHARE * free)
 
     def close(self) -> None:
         """Close the client and the LocalCluster this executor started (if any)."""
@@ -668,14 +676,18 @@ class Batching:
     on any worker reads and sets it up (its summary's status ``"prepared"`` when it awaits its solve, else its
     final solve summary), then ``batch_fn(specs, *batch_args(specs))`` solves up to ``size`` prepared tiles at
     once on a worker that holds ``resources`` (one per card: ``dask worker --resources GPU=1``) and returns their
-    summaries. A batch takes at most ``budget`` bytes of the card's memory by its tiles' estimates (a tile that
-    needs more goes alone)."""
+    summaries (status ``"unfinished"`` for each solved tile), then each solved tile's
+    ``finish_fn(spec, *finish_args(spec))`` on any worker orients, bridges and writes it (its final summary). A
+    batch takes at most ``budget`` bytes of the card's memory by its tiles' estimates (a tile that needs more goes
+    alone)."""
 
     size: int
     prepare_fn: Callable
     prepare_args: Callable
     batch_fn: Callable
     batch_args: Callable
+    finish_fn: Callable
+    finish_args: Callable
     resources: dict = field(default_factory=lambda: dict(GPU_RESOURCE))
     budget: float = math.inf  # card bytes a batch may take (the prepared tiles' ``card_bytes`` summed)
 
@@ -797,6 +809,12 @@ def run_tiles(client, specs: list[TileSpec], solve_fn, solve_args, mesh_fn, mesh
             if cards is not None:
                 cards.refresh()
                 room = min(room, cards.cpu_room())
+                if room > 0 and cards.to_finish:  # finishes first: they free the card worker's files
+                    take = [cards.to_finish.popleft() for _ in range(min(room, len(cards.to_finish)))]
+                    submit("finish", batching.finish_fn, [(specs[i], *batching.finish_args(specs[i])) for i in take],
+                           take)
+                    cards.finishing += len(take)
+                    room -= len(take)
             if room > 0 and ready:  # meshes first: they finish tiles and let summaries go
                 take = [ready.popleft() for _ in range(min(room, len(ready)))]
                 submit("mesh", mesh_fn, [(specs[i], summaries[i], neighbours[i], [summaries[j] for j in needs[i][1:]],
@@ -824,6 +842,7 @@ def run_tiles(client, specs: list[TileSpec], solve_fn, solve_args, mesh_fn, mesh
                 kind, items = kinds.pop(fut.key)
                 if cards is not None and kind != "batch":
                     cards.cpu_out -= 1
+                    cards.finishing -= kind == "finish"
                 if fut.status == "error":
                     if not _killed_worker(result[1]):
                         raise result[1].with_traceback(result[2])
@@ -841,13 +860,21 @@ def run_tiles(client, specs: list[TileSpec], solve_fn, solve_args, mesh_fn, mesh
                 if isinstance(result, BaseException):  # cancelled (e.g. the cluster went away)
                     raise result
                 if kind == "batch":
-                    in_flight -= len(items)
                     sizing = cards.done(items)
                     for i, res in zip(items, result, strict=True):
-                        res.update(sizing)  # the estimates the batch was sized by
-                        yield from solved(i, res)
+                        if res.get("status") == "unfinished":  # solved: its finish comes
+                            cards.to_finish.append(i)
+                            cards.sizing[i] = sizing
+                            continue
+                        in_flight -= 1
+                        yield from solved(i, {**res, **sizing})
                     continue
                 i = items[0]
+                if kind == "finish":
+                    in_flight -= 1
+                    # the estimates the tile's batch was sized by
+                    yield from solved(i, {**result, **cards.sizing.pop(i, {})})
+                    continue
                 if kind == "solve" and cards is not None:
                     cards.preparing -= 1
                     if result.get("status") == "prepared":
@@ -883,6 +910,9 @@ class _CardQueue:
         self.cpu_out = 0  # prepare and mesh tasks out
         self.staged: deque[int] = deque()  # prepared tiles awaiting a batch
         self.alone: deque[int] = deque()  # tiles of a batch that killed its worker, each to go in one of its own
+        self.to_finish: deque[int] = deque()  # tiles solved in a batch, awaiting their finish task
+        self.finishing = 0  # finish tasks out
+        self.sizing: dict[int, dict] = {}  # what each solved tile's batch was sized by
         self.split: set[int] = set()
         self.out = 0  # batches out
         self.batched = 0  # tiles in them
@@ -915,10 +945,11 @@ class _CardQueue:
         return self.cpu_slots - self.cpu_out
 
     def prepare_room(self) -> int:
-        """Preparations that may go out now: no more tiles between preparation and batch (each a file in the
-        job directory) than :data:`BATCHES_AHEAD` batches per card."""
+        """Preparations that may go out now: no more tiles between preparation and finish (each a file or two in
+        the job directory) than :data:`BATCHES_AHEAD` batches per card."""
         ahead = BATCHES_AHEAD * self.batching.size * self.cards
-        return min(self.cpu_room(), ahead - self.preparing - len(self.staged) - len(self.alone) - self.batched)
+        return min(self.cpu_room(), ahead - self.preparing - len(self.staged) - len(self.alone) - self.batched
+                   - len(self.to_finish) - self.finishing)
 
     def stage(self, i: int, result: dict) -> None:
         self.staged.append(i)

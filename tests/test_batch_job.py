@@ -19,11 +19,31 @@ def _prepare_echo(spec):
     return {"tile": spec.name, "status": status, "card": get_worker().state.total_resources.get("GPU", 0)}
 
 
-def _batch_echo(specs):
+#: what each stand-in batch did, for its tiles' stand-in finishes (the in-process clusters share it)
+_BATCHED: dict = {}
+
+
+def _batch_echo(specs, **extra):
     from distributed import get_worker
 
     card = get_worker().state.total_resources.get("GPU", 0)
-    return [{"tile": s.name, "status": "solved", "batch": len(specs), "card": card} for s in specs]
+    for s in specs:
+        _BATCHED[s.name] = {"batch": len(specs), "card": card, **extra}
+    return [{"tile": s.name, "status": "unfinished"} for s in specs]
+
+
+def _finish_echo(spec):
+    from distributed import get_worker
+
+    return {"tile": spec.name, "status": "solved", **_BATCHED.get(spec.name, {}),
+            "finish_card": get_worker().state.total_resources.get("GPU", 0)}
+
+
+def _batching(size, prepare_fn=None, batch_fn=None, **kwargs):
+    from tiled_gridpull.pipeline.job import Batching
+
+    return Batching(size, prepare_fn or _prepare_echo, lambda s: (), batch_fn or _batch_echo, lambda group: (),
+                    _finish_echo, lambda s: (), **kwargs)
 
 
 def _mesh_where(spec, own, nbs, nb_summaries):
@@ -59,7 +79,7 @@ def test_prepared_tiles_are_solved_in_batches_on_the_card_and_meshed_after_their
     from distributed import Client, LocalCluster
 
     from tiled_gridpull.jobdir import neighbors_of
-    from tiled_gridpull.pipeline.job import BATCHES_AHEAD, Batching, add_card_worker, run_tiles
+    from tiled_gridpull.pipeline.job import BATCHES_AHEAD, add_card_worker, run_tiles
 
     specs = _grid_specs(4, 3, 2)
     by_index = {s.index: s for s in specs}
@@ -70,8 +90,7 @@ def test_prepared_tiles_are_solved_in_batches_on_the_card_and_meshed_after_their
             staging = _Staging(client)
             seen = []
             for kind, idx, res in run_tiles(staging, specs, None, None, _mesh_where, lambda s: (),
-                                            batching=Batching(size, _prepare_echo, lambda s: (), _batch_echo,
-                                                              lambda group: ())):
+                                            batching=_batching(size)):
                 if kind == "solve":
                     staging.out -= 1
                 seen.append((kind, idx, res))
@@ -82,8 +101,9 @@ def test_prepared_tiles_are_solved_in_batches_on_the_card_and_meshed_after_their
     for idx, res in solves.items():
         if idx in SKIPPED:  # preparations and meshes on the other workers: the card waits for none
             assert res["status"] == "skipped" and "batch" not in res and res["card"] == 0
-        else:  # batches run on the card's worker only
+        else:  # batches run on the card's worker only, and the finishes off it
             assert res["status"] == "solved" and 1 <= res["batch"] <= size and res["card"] == 1
+            assert res["finish_card"] == 0
     if size > 1:
         assert max(r.get("batch", 0) for r in solves.values()) > 1  # launches are shared
     assert staging.most <= BATCHES_AHEAD * size  # the job directory holds a few batches of prepared tiles
@@ -101,8 +121,7 @@ def _batch_slow(specs):
 
     t0 = time.monotonic()
     time.sleep(0.2)
-    span = (t0, time.monotonic())
-    return [{**r, "span": span} for r in _batch_echo(specs)]
+    return _batch_echo(specs, span=(t0, time.monotonic()))
 
 
 @pytest.mark.parametrize("cards", [1, 2])
@@ -111,17 +130,18 @@ def test_one_batch_per_card_at_a_time(cards):
     worker); with two cards, two batches run at once."""
     from distributed import Client, LocalCluster
 
-    from tiled_gridpull.pipeline.job import Batching, add_card_worker, run_tiles
+    from tiled_gridpull.pipeline.job import add_card_worker, run_tiles
 
-    class Out:  # counts the batches submitted and not yet come back to the driver
+    class Out:  # counts the batches out (submitted and not done) as each is submitted
         def __init__(self, client):
-            self.client, self.sent, self.back, self.most = client, 0, set(), 0
+            self.client, self.batches, self.most = client, [], 0
 
         def submit(self, fn, *args, key, **kwargs):
+            fut = self.client.submit(fn, *args, key=key, **kwargs)
             if key.startswith("batch-"):
-                self.sent += 1
-                self.most = max(self.most, self.sent - len(self.back))
-            return self.client.submit(fn, *args, key=key, **kwargs)
+                self.most = max(self.most, 1 + sum(not f.done() for f in self.batches))
+                self.batches.append(fut)
+            return fut
 
         def __getattr__(self, name):
             return getattr(self.client, name)
@@ -133,11 +153,9 @@ def test_one_batch_per_card_at_a_time(cards):
         with Client(cluster) as client:
             client.wait_for_workers(1 + cards, timeout=30)
             out = Out(client)
-            for k, _, r in run_tiles(out, specs, None, None, _mesh_echo, lambda s: (),
-                                     batching=Batching(2, _prepare_echo, lambda s: (), _batch_slow, lambda group: ())):
-                if k == "solve" and "span" in r:
-                    out.back.add(r["span"])  # a batch's tiles all carry its span
-    spans = out.back
+            spans = {r["span"] for k, _, r in run_tiles(out, specs, None, None, _mesh_echo, lambda s: (),
+                                                        batching=_batching(2, batch_fn=_batch_slow))
+                     if k == "solve" and "span" in r}
     assert out.most == cards
     spans = sorted(spans)
     overlaps = sum(b[0] < a[1] for a, b in zip(spans, spans[1:]))
@@ -156,7 +174,7 @@ def test_batches_are_sized_to_the_cards_memory():
     and every tile of a batch says what the batch was sized by."""
     from distributed import Client, LocalCluster
 
-    from tiled_gridpull.pipeline.job import Batching, add_card_worker, run_tiles
+    from tiled_gridpull.pipeline.job import add_card_worker, run_tiles
 
     specs = _grid_specs(4, 3, 1)
     with LocalCluster(processes=False, n_workers=1, threads_per_worker=2, dashboard_address=":0") as cluster:
@@ -164,8 +182,8 @@ def test_batches_are_sized_to_the_cards_memory():
         with Client(cluster) as client:
             client.wait_for_workers(2, timeout=30)
             solves = {i: r for k, i, r in run_tiles(client, specs, None, None, _mesh_echo, lambda s: (),
-                                                    batching=Batching(8, _prepare_sized, lambda s: (), _batch_slow,
-                                                                      lambda group: (), budget=300.0))
+                                                    batching=_batching(8, _prepare_sized, _batch_slow,
+                                                                       budget=300.0))
                       if k == "solve"}
     assert len(solves) == len(specs) and all(r["status"] == "solved" for r in solves.values())
     assert solves[BIG]["batch"] == 1 and solves[BIG]["batch_card_bytes"] == 500.0
@@ -186,7 +204,7 @@ def test_a_batch_that_kills_its_worker_fails_only_the_tile_at_fault():
     import dask
     from distributed import Client, LocalCluster
 
-    from tiled_gridpull.pipeline.job import Batching, add_card_worker, run_tiles
+    from tiled_gridpull.pipeline.job import add_card_worker, run_tiles
 
     specs = _grid_specs(3, 2, 1)
     with dask.config.set({"distributed.scheduler.allowed-failures": 0}), \
@@ -195,8 +213,7 @@ def test_a_batch_that_kills_its_worker_fails_only_the_tile_at_fault():
         with Client(cluster) as client:
             client.wait_for_workers(2, timeout=60)
             seen = [(k, i, r) for k, i, r in run_tiles(client, specs, None, None, _mesh_echo, lambda s: (), retries=0,
-                                                       batching=Batching(8, _prepare_echo, lambda s: (),
-                                                                         _batch_dies_on_one, lambda group: ()))
+                                                       batching=_batching(8, batch_fn=_batch_dies_on_one))
                     if k == "solve"]
     failed = [i for _, i, r in seen if r["status"] == "failed"]
     assert failed == [(1, 1, 0)] and "killed the worker" in dict((i, r) for _, i, r in seen)[(1, 1, 0)]["reason"]
@@ -208,13 +225,13 @@ def test_batches_that_no_worker_can_take_stop_the_job_in_one_line():
     from distributed import Client
 
     from tiled_gridpull.errors import ClusterError
-    from tiled_gridpull.pipeline.job import Batching, run_tiles
+    from tiled_gridpull.pipeline.job import run_tiles
 
     with Client(processes=False, n_workers=1, threads_per_worker=1, dashboard_address=":0") as client:
         with pytest.raises(ClusterError, match="resources GPU=1.*dask worker --resources GPU=1"):
             for _ in run_tiles(client, _grid_specs(2, 1, 1), None, None, _mesh_echo, lambda s: (),
                                no_worker_timeout=1.0,
-                               batching=Batching(4, _prepare_echo, lambda s: (), _batch_echo, lambda group: ())):
+                               batching=_batching(4)):
                 pass
 
 

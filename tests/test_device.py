@@ -393,7 +393,8 @@ def test_a_tiled_job_on_the_card_solves_its_tiles_in_batches_and_meshes_as_the_c
         # the card was idle when the first tile was ready: it went alone; the others share the next launches
         # (they are ready long before the simulated card is done; a real card may be done first)
         assert max(t.get("batch", 1) for t in tiles) == 2
-    assert len({t["worker"] for t in tiles}) == 1  # the card's worker
+    assert len({t["worker"] for t in tiles}) == 1  # the card's worker solved them; another oriented and wrote them
+    assert all(t["finish_worker"] != t["worker"] for t in tiles)
     assert not list((tmp_path / "card.job" / "prepared").iterdir())  # each prepared tile removed once solved
     cpu = reconstruct_scene([str(src)], tmp_path / "cpu.ply", TilingConfig(voxel_size=0.15, tile_size=2.4, overlap=1.2),
                             SolverConfig(**schedule, device="cpu"), tmp_path / "cpu.job")

@@ -2,6 +2,7 @@
 the same fields written, byte for byte, and the same summaries but for timings; a tile that cannot be solved fails
 alone. (That a card's batch shares its launches and gives each tile its own field is tests/test_device.py's.)"""
 
+import numpy as np
 import pytest
 
 from tiled_gridpull.config import SolverConfig
@@ -91,39 +92,67 @@ def test_solve_tiles_needs_a_field_path_per_tile(tmp_path, specs):
         solve_tiles(specs[:3], TILING, SOLVER, [tmp_path / "a.npz", tmp_path / "b.npz"])
 
 
-def test_a_tile_prepared_in_one_process_and_solved_in_another_is_the_tile_solved_alone(tmp_path, specs):
+def _batch_then_finish(specs, paths, solver=SOLVER):
+    """The card job's last two steps, in this process: the batch, then each solved tile's finish."""
+    from tiled_gridpull.resume import finish_tile_resumable, solve_batch_resumable
+
+    cols = [[str(f(s)) for s in specs] for f in (paths.field, lambda s: paths.summary("solve", s), paths.prepared,
+                                                 paths.solved)]
+    outs = solve_batch_resumable(specs, TILING, solver, *cols)
+    return [finish_tile_resumable(s, TILING, solver, *(c[k] for c in cols)) if o["status"] == "unfinished" else o
+            for k, (s, o) in enumerate(zip(specs, outs))]
+
+
+def test_a_tile_prepared_solved_and_finished_in_three_processes_is_the_tile_solved_alone(tmp_path, specs):
     """On a card a job prepares its tiles on CPU workers (:func:`prepare_tile_resumable` writes them to the job
-    directory) and solves them in batches on the card's worker (:func:`solve_prepared_resumable`): the fields and
-    records are those of each tile solved alone, the prepared files go once solved, and a rerun reuses the
-    records without preparing anything."""
-    from tiled_gridpull.resume import prepare_tile_resumable, solve_prepared_resumable, solve_tile_resumable
+    directory), solves them in batches on the card's worker (:func:`solve_batch_resumable` writes each field as
+    the solve left it) and finishes each on a CPU worker (:func:`finish_tile_resumable`): the fields and records
+    are those of each tile solved alone, the files between the steps go once the tile is finished, and a rerun
+    reuses the records without preparing anything."""
+    from tiled_gridpull.resume import prepare_tile_resumable, solve_tile_resumable
 
     paths = JobPaths(tmp_path / "job")
     alone = [solve_tile_resumable(s, TILING, SOLVER, tmp_path / f"alone_{s.name}.npz",
                                   tmp_path / f"alone_{s.name}.json") for s in specs[:3]]
-    fields = [str(paths.field(s)) for s in specs[:3]]
-    records = [str(paths.summary("solve", s)) for s in specs[:3]]
-    prepared = [str(paths.prepared(s)) for s in specs[:3]]
-    rows = list(zip(specs, fields, records, prepared))
+    rows = [(s, str(paths.field(s)), str(paths.summary("solve", s)), str(paths.prepared(s))) for s in specs[:3]]
     firsts = [prepare_tile_resumable(s, TILING, SOLVER, f, r, p) for s, f, r, p in rows]
     assert [f["status"] for f in firsts] == ["prepared"] * 3
     assert all(paths.prepared(s).is_file() for s in specs[:3]) and not any(paths.field(s).exists() for s in specs[:3])
-    out = solve_prepared_resumable(specs[:3], TILING, SOLVER, fields, records, prepared)
+    out = _batch_then_finish(specs[:3], paths)
     for a, b in zip(alone, out):
         _same({**a, "key": None, "output": None}, {**b, "key": None, "output": None})
         assert b["batch"] == 3 and b["field_sha256"] == a["field_sha256"] and b["key"] == a["key"]
-        # the time of the preparation is the tile's, and so is the solve's
+        # the time of the preparation is the tile's, and so are the solve's and the finish's
         assert set(b["phases_s"]) == set(a["phases_s"]) and b["time_s"] >= sum(b["phases_s"].values()) - 1e-6
-    assert not any(paths.prepared(s).exists() for s in specs[:3])
+    assert not list(paths.prepared(specs[0]).parent.iterdir())
     again = [prepare_tile_resumable(s, TILING, SOLVER, f, r, p) for s, f, r, p in rows]
     assert all(a["reused"] and a["status"] == "solved" for a in again)
-    assert not any(paths.prepared(s).exists() for s in specs[:3])
+    assert not list(paths.prepared(specs[0]).parent.iterdir())
 
 
-def test_a_batch_whose_prepared_file_is_gone_or_another_tiles_prepares_it_again(tmp_path, specs):
-    """A batch run again after its worker died may find its tiles' files gone or damaged, or one of another tile
-    or of other settings: it prepares those tiles itself rather than failing them or solving the wrong points."""
-    from tiled_gridpull.resume import prepare_tile_resumable, solve_prepared_resumable
+def test_a_solved_field_on_disk_is_the_field_its_solve_left(tmp_path, specs):
+    """The field a batch leaves for the tile's finish comes back with the same band (brick table and neighbours
+    rebuilt), values and solve record."""
+    from tiled_gridpull.solver import solve_batch
+    from tiled_gridpull.tile_field import load_solved_field, save_solved_field
+
+    p = prepare_tile(specs[0], TILING, SOLVER)
+    fld = solve_batch([p.problem()], SOLVER, history_every=10)[0]
+    save_solved_field(tmp_path / "f.npz", fld, {"n": 1})
+    back, state = load_solved_field(tmp_path / "f.npz", p.local)
+    assert state == {"n": 1} and back.signed == fld.signed and back.lattice == fld.lattice
+    for name in ("brick_coords", "brick_table", "neighbors", "flags"):
+        np.testing.assert_array_equal(getattr(back.band, name), getattr(fld.band, name))
+    assert (back.band.m1, back.band.m2) == (fld.band.m1, fld.band.m2)
+    np.testing.assert_array_equal(back.values, fld.values)
+    assert back.info["history"] == fld.info["history"] and len(back.info["levels"]) == len(fld.info["levels"])
+
+
+def test_a_batch_or_finish_whose_files_are_gone_or_another_tiles_still_gives_the_tiles_field(tmp_path, specs):
+    """A batch run again after its worker died may find its tiles' prepared files gone or damaged, or one of
+    another tile or of other settings: it prepares those tiles itself rather than failing them or solving the
+    wrong points. A finish that finds its files gone solves its tile alone."""
+    from tiled_gridpull.resume import finish_tile_resumable, prepare_tile_resumable, solve_batch_resumable, solve_key
 
     paths = JobPaths(tmp_path / "job")
     args = [(str(paths.field(s)), str(paths.summary("solve", s)), str(paths.prepared(s))) for s in specs[:2]]
@@ -132,13 +161,11 @@ def test_a_batch_whose_prepared_file_is_gone_or_another_tiles_prepares_it_again(
     paths.prepared(specs[0]).unlink()
     whole = paths.prepared(specs[1]).read_bytes()
     paths.prepared(specs[1]).write_bytes(whole[:len(whole) // 2])  # cut short: a zip without its directory
-    out = solve_prepared_resumable(specs[:2], TILING, SOLVER, *([a[k] for a in args] for k in range(3)))
+    out = _batch_then_finish(specs[:2], paths)
     alone = [solve_tile(s, TILING, SOLVER, tmp_path / f"alone_{s.name}.npz") for s in specs[:2]]
     assert [o["field_sha256"] for o in out] == [a["field_sha256"] for a in alone]
     # a file of another tile, or of other settings (an earlier run's, written late), is not solved: the tile is
     # prepared again in the batch
-    from tiled_gridpull.resume import solve_key
-
     other = SolverConfig(m2=6, refine_m2=6, iterations=30, coarse_iterations=30, queries=3000, device="cpu", seed=7)
     stale = prepare_tile(specs[1], TILING, other)
     stale.save(paths.prepared(specs[1]), solve_key(specs[1], TILING, other))
@@ -148,9 +175,18 @@ def test_a_batch_whose_prepared_file_is_gone_or_another_tiles_prepares_it_again(
     with pytest.raises(ValueError, match=f"holds tile '{specs[0].name}', not '{specs[1].name}'"):
         type(stale).load(paths.prepared(specs[0]), specs[1])
     paths.prepared(specs[0]).replace(paths.prepared(specs[1]))  # tile 0's points where tile 1's should be
-    again = solve_prepared_resumable(specs[:2], TILING, SOLVER, *([a[k] for a in args] for k in range(3)))
-    assert [o["field_sha256"] for o in again] == [a["field_sha256"] for a in alone]
-    assert not list(paths.prepared(specs[0]).parent.iterdir())
+    paths.summary("solve", specs[1]).unlink()  # not reusable: solved again
+    again = _batch_then_finish(specs[1:2], paths)
+    assert again[0]["field_sha256"] == alone[1]["field_sha256"]
+    # the finish of a tile whose files a sweep removed: solved alone, the same field
+    paths.summary("solve", specs[0]).unlink()
+    prepare_tile_resumable(specs[0], TILING, SOLVER, *args[0])
+    cols = [[str(f(specs[0]))] for f in (paths.field, lambda s: paths.summary("solve", s), paths.prepared,
+                                         paths.solved)]
+    assert solve_batch_resumable(specs[:1], TILING, SOLVER, *cols)[0]["status"] == "unfinished"
+    paths.solved(specs[0]).unlink()
+    done = finish_tile_resumable(specs[0], TILING, SOLVER, *(c[0] for c in cols))
+    assert done["field_sha256"] == alone[0]["field_sha256"] and not list(paths.prepared(specs[0]).parent.iterdir())
 
 
 def test_a_tiles_card_memory_estimate_bounds_its_levels_arrays(tmp_path, specs):

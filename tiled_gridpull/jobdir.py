@@ -10,8 +10,10 @@ A job directory holds everything a run produces, so a finished or interrupted jo
   (one record of them per point, in the spill file's order: :func:`tiled_gridpull.partition.attribute_record`);
 * ``fields/<tile>.npz``: solved tile fields (:mod:`tiled_gridpull.tile_field`);
 * ``pieces/<tile>.npz``: tile meshes (:mod:`tiled_gridpull.stitch`);
-* ``prepared/<tile>.npz``: on a card, a tile read and set up on a CPU worker, until its batch's solve
-  (:meth:`tiled_gridpull.tile_solve.PreparedTile.save`) removes it;
+* ``prepared/<tile>.npz``: on a card, a tile read and set up on a CPU worker
+  (:meth:`tiled_gridpull.tile_solve.PreparedTile.save`), and ``prepared/<tile>.solved.npz``, its field as the
+  batch on the card left it (:func:`tiled_gridpull.tile_field.save_solved_field`), until the tile's finish
+  removes both;
 * ``summaries/<step>_<tile>.json``: one JSON per finished tile step, with the key of what produced it;
 * ``report.json`` and ``tiles.png`` once the job finished (:mod:`tiled_gridpull.report`);
 * ``.lock``: held while a job runs (:func:`job_lock`).
@@ -95,6 +97,9 @@ class JobPaths:
 
     def prepared(self, spec: TileSpec) -> Path:
         return self.root / "prepared" / f"{spec.name}.npz"
+
+    def solved(self, spec: TileSpec) -> Path:
+        return self.root / "prepared" / f"{spec.name}.solved.npz"
 
     def summary(self, step: str, spec: TileSpec) -> Path:
         return self.root / "summaries" / f"{step}_{spec.name}.json"

@@ -35,6 +35,7 @@ import hashlib
 import json
 import os
 import stat
+import time
 import zipfile
 from pathlib import Path
 
@@ -48,15 +49,18 @@ from .io.atomic import json_default, write_json
 from .io.outputs import load_json_file
 from .io.remote import is_url, validators
 from .jobdir import JobPaths, spill_record
-from .memory import reset_peak_rss
+from .memory import peak_rss_mb, reset_peak_rss
 from .partition import attribute_record
 from .stitch import mesh_tile
 from .tile_plan import TileSpec, plan_tiles
-from .tile_solve import PreparedTile, orientation_rule, prepare_tile, solve_prepared, solve_tile
+from .tile_field import load_solved_field, save_solved_field
+from .tile_solve import (PreparedTile, finish_prepared, orientation_rule, prepare_tile, solve_prepared_fields,
+                         solve_tile)
 from .tiling import TilingConfig
 
 __all__ = ["partition_key", "load_partition", "solve_key", "mesh_key", "solve_tile_resumable",
-           "prepare_tile_resumable", "solve_prepared_resumable", "mesh_tile_resumable", "input_fingerprint"]
+           "prepare_tile_resumable", "solve_batch_resumable", "finish_tile_resumable", "mesh_tile_resumable",
+           "input_fingerprint"]
 
 SPILL_FORMAT = 3  # bump when the spill/occupancy layout or the order of a tile's points changes
 
@@ -317,12 +321,15 @@ def prepare_tile_resumable(spec: TileSpec, tiling: TilingConfig, solver: SolverC
     return {"tile": spec.name, "index": list(spec.index), "points": spec.block_points, "status": "prepared"}
 
 
-def solve_prepared_resumable(specs: list[TileSpec], tiling: TilingConfig, solver: SolverConfig,
-                             field_paths: list, summary_paths: list, prepared_paths: list, centre=None) -> list[dict]:
-    """The second half: the tiles :func:`prepare_tile_resumable` prepared, solved as one batch
-    (:func:`tiled_gridpull.tile_solve.solve_prepared`) and recorded as :func:`solve_tile_resumable` records them;
-    their prepared files are removed. A tile whose prepared file is gone or damaged (a batch run again after a
-    worker died) is prepared again here."""
+def solve_batch_resumable(specs: list[TileSpec], tiling: TilingConfig, solver: SolverConfig, field_paths: list,
+                          summary_paths: list, prepared_paths: list, solved_paths: list, centre=None,
+                          note: dict | None = None) -> list[dict]:
+    """The second step: the tiles :func:`prepare_tile_resumable` prepared, solved as one batch
+    (:func:`tiled_gridpull.tile_solve.solve_prepared_fields`), each field written as its solve left it to its
+    ``solved_paths`` entry for :func:`finish_tile_resumable` (status ``"unfinished"``). A tile whose solve failed
+    gets its final summary here. A tile whose prepared file is gone, damaged, of another tile or of other settings
+    (an earlier run's, written late; a batch run again after its worker died) is prepared again here. ``note``
+    goes into each tile's summary (e.g. which worker solved the batch)."""
     reset_peak_rss()  # each summary's peak is its preparation's or the batch's, not an earlier batch's
     keys = [solve_key(spec, tiling, solver, centre) for spec in specs]
     prepared = []
@@ -330,13 +337,49 @@ def solve_prepared_resumable(specs: list[TileSpec], tiling: TilingConfig, solver
         try:
             prepared.append(PreparedTile.load(path, spec, key))
         except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
-            prepared.append(prepare_tile(spec, tiling, solver, centre))
-    outs = solve_prepared(prepared, tiling, solver, field_paths)
-    for key, out, summary_path, field_path in zip(keys, outs, summary_paths, field_paths, strict=True):
-        _close_solve(out, key, summary_path, field_path)
-    for path in prepared_paths:
-        _unlink(path)
+            p = prepare_tile(spec, tiling, solver, centre)
+            if p.status is None:
+                p.save(path, key)  # for the tile's finish
+            prepared.append(p)
+    fields = solve_prepared_fields(prepared, solver)
+    outs = []
+    for p, fld, key, summary_path, field_path, prepared_path, solved_path in zip(
+            prepared, fields, keys, summary_paths, field_paths, prepared_paths, solved_paths, strict=True):
+        p.summary.update(note or {})
+        if fld is None:  # failed (or, prepared again, skipped): its final summary
+            _unlink(prepared_path)
+            outs.append(_close_solve(p.summary, key, summary_path, field_path))
+            continue
+        now = time.perf_counter()
+        save_solved_field(solved_path, fld, {"summary": p.summary, "elapsed_s": now - p.t0,
+                                             "peak_rss_mb": max(peak_rss_mb(), p.peak_before_mb)})
+        outs.append({"tile": p.spec.name, "index": list(p.spec.index), "points": p.spec.block_points,
+                     "status": "unfinished"})
     return outs
+
+
+def finish_tile_resumable(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig, field_path: str | Path,
+                          summary_path: str | Path, prepared_path: str | Path, solved_path: str | Path,
+                          centre=None) -> dict:
+    """The last step: a tile's batch-solved field (:func:`solve_batch_resumable`) checked against its oriented
+    normals, bridged, written and recorded as :func:`solve_tile_resumable` records it; its prepared and solved
+    files are removed. Should either be gone or damaged (a worker that died, a run interrupted), the tile is
+    solved here on its own instead: the same field."""
+    key = solve_key(spec, tiling, solver, centre)
+    try:
+        p = PreparedTile.load(prepared_path, spec, key)
+        fld, state = load_solved_field(solved_path, p.local)
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
+        out = solve_tile(spec, tiling, solver, field_path, centre=centre)
+    else:
+        # the batch's account of the tile: its summary and time so far, and the larger memory peak
+        now = time.perf_counter()
+        p.summary, p.t0, p.mark = state["summary"], now - float(state["elapsed_s"]), now
+        p.peak_before_mb = max(p.peak_before_mb, float(state["peak_rss_mb"]))
+        out = finish_prepared(p, fld, tiling, field_path)
+    _unlink(prepared_path)
+    _unlink(solved_path)
+    return _close_solve(out, key, summary_path, field_path)
 
 
 def _unlink(path: str | Path) -> None:

@@ -26,7 +26,8 @@ from .tile_field import save_tile_field
 from .tile_plan import TileSpec
 from .tiling import TilingConfig
 
-__all__ = ["solve_tile", "solve_tiles", "solve_prepared", "prepare_tile", "PreparedTile", "orientation_rule"]
+__all__ = ["solve_tile", "solve_tiles", "solve_prepared", "solve_prepared_fields", "finish_prepared",
+           "prepare_tile", "PreparedTile", "orientation_rule"]
 
 def orientation_rule(tiling: TilingConfig, has_sensor: bool) -> str:
     """The orientation rule a tile applies: ``tiling.orientation`` with ``auto`` resolved (sensor when the tile
@@ -80,7 +81,8 @@ def solve_tiles(specs: list[TileSpec], tiling: TilingConfig, solver: SolverConfi
 def solve_prepared(prepared: list[PreparedTile], tiling: TilingConfig, solver: SolverConfig,
                    field_paths: list[str | Path]) -> list[dict]:
     """The second half of :func:`solve_tiles`: tiles already read and set up (:func:`prepare_tile`, here or on
-    another machine: :meth:`PreparedTile.save`) solved as one batch, then each checked, bridged and written.
+    another machine: :meth:`PreparedTile.save`) solved as one batch (:func:`solve_prepared_fields`), then each
+    checked, bridged and written (:func:`finish_prepared`).
 
     Returns
     -------
@@ -89,37 +91,58 @@ def solve_prepared(prepared: list[PreparedTile], tiling: TilingConfig, solver: S
     """
     if len(field_paths) != len(prepared):
         raise ValueError(f"{len(prepared)} tiles need as many field paths, got {len(field_paths)}")
-    ready = [(p, path) for p, path in zip(prepared, field_paths, strict=True) if p.status is None]
-    if not ready:
-        return [p.summary for p in prepared]
-    start = time.perf_counter()
-    for p, _ in ready:
-        p.mark = start  # a batch's solve is each of its tiles' solve
-    fields: list = []
-    batch = len(ready)
-    try:
-        fields = solve_batch([p.problem() for p, _ in ready], solver, history_every=100)
-    except GridPullError as exc:
-        reason = str(exc)  # not the exception: its traceback holds the failed batch's arrays (on a card, memory)
-    if not fields:
-        # outside the except block, for the same reason: the retries run with the failed batch gone
-        if batch == 1:
-            _fail(ready[0][0], reason)
-            fields = [None]
-        else:  # one tile's data reason (too few points in its lattice) must not fail the others: each alone
-            fields = [_solve_alone(p, solver) for p, _ in ready]
-            batch = 1
-    for (p, _), fld in zip(ready, fields):
+    fields = solve_prepared_fields(prepared, solver)
+    for p, fld, path in zip(prepared, fields, field_paths):
         if fld is not None:
-            p.lap("solve")  # before any tile's finish: each tile's solve is the batch's time, not its neighbours'
-            if batch > 1:  # the batch's size, and its first tile's name: which tiles shared the solve
-                p.summary["batch"] = batch
-                p.summary["batch_of"] = ready[0][0].spec.name
-    for (p, path), fld in zip(ready, fields):
-        if fld is not None:
-            _finish(p, fld, tiling, path)
-        p.close()
+            finish_prepared(p, fld, tiling, path)
     return [p.summary for p in prepared]
+
+
+def solve_prepared_fields(prepared: list[PreparedTile], solver: SolverConfig) -> list:
+    """The tiles awaiting their solve (``status`` None) solved as one batch
+    (:func:`tiled_gridpull.solver.solve_batch`: on a card one launch per step for all): their fields, in order,
+    None for a tile that needed no solve or whose solve failed (its summary then closed, with the reason). A batch
+    that fails for one tile's data reason is solved tile by tile, so only that tile fails. Each solved tile's
+    summary gets the batch's solve time and, in a batch of several, its size (``batch``) and first tile
+    (``batch_of``)."""
+    ready = [p for p in prepared if p.status is None]
+    out: dict[int, object] = {}
+    if ready:
+        start = time.perf_counter()
+        for p in ready:
+            p.mark = start  # a batch's solve is each of its tiles' solve
+        fields: list = []
+        batch = len(ready)
+        try:
+            fields = solve_batch([p.problem() for p in ready], solver, history_every=100)
+        except GridPullError as exc:
+            reason = str(exc)  # not the exception: its traceback holds the failed batch's arrays (on a card, memory)
+        if not fields:
+            # outside the except block, for the same reason: the retries run with the failed batch gone
+            if batch == 1:
+                _fail(ready[0], reason)
+                fields = [None]
+            else:  # one tile's data reason (too few points in its lattice) must not fail the others: each alone
+                fields = [_solve_alone(p, solver) for p in ready]
+                batch = 1
+        for p, fld in zip(ready, fields):
+            out[id(p)] = fld
+            if fld is not None:
+                p.lap("solve")  # before any tile's finish: its solve is the batch's time, not its neighbours'
+                if batch > 1:  # the batch's size, and its first tile's name: which tiles shared the solve
+                    p.summary["batch"] = batch
+                    p.summary["batch_of"] = ready[0].spec.name
+            else:
+                p.close()
+    return [out.get(id(p)) for p in prepared]
+
+
+def finish_prepared(p: PreparedTile, fld, tiling: TilingConfig, field_path: str | Path) -> dict:
+    """After a tile's solve: its sign checked against the oriented normals (flipped where they disagree), the
+    ground's sampling gaps bridged, the field written; its summary filled in, closed and returned."""
+    _finish(p, fld, tiling, field_path)
+    p.close()
+    return p.summary
 
 
 def _solve_alone(p: PreparedTile, solver: SolverConfig):

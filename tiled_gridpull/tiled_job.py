@@ -36,7 +36,8 @@ from .mesh import Mesh
 from .partition import read_occupancy
 from .prepare import check_registered, check_remote, prepare_job, resolve_units, scan_noise_treatment
 from .report import write_report
-from .resume import mesh_tile_resumable, prepare_tile_resumable, solve_prepared_resumable, solve_tile_resumable
+from .resume import (finish_tile_resumable, mesh_tile_resumable, prepare_tile_resumable, solve_batch_resumable,
+                     solve_tile_resumable)
 from .stitch import load_piece, mesh_tile, weld_pieces
 from .tile_plan import TilePlan, TileSpec
 from .tile_solve import solve_tile
@@ -45,9 +46,9 @@ from .tiling import TilingConfig, check_compatible, with_halo
 log = logging.getLogger("tiled_gridpull")
 
 __all__ = ["run_tiled_job", "reconstruct_scene", "TileExecutor", "SerialExecutor", "solve_step", "prepare_step",
-           "solve_prepared_step", "mesh_step", "task_arguments", "batch_arguments", "collect_summaries", "finish_job",
-           "job_metadata", "plan_centre", "key_reference", "check_some_tile_solvable", "check_some_tile_solved",
-           "compile_ahead"]
+           "solve_batch_step", "finish_step", "mesh_step", "task_arguments", "batch_arguments", "collect_summaries",
+           "finish_job", "job_metadata", "plan_centre", "key_reference", "check_some_tile_solvable",
+           "check_some_tile_solved", "compile_ahead"]
 
 #: One finished tile step from an executor: ``(kind, tile index, summary)``, ``kind`` "solve" or "mesh".
 TileEvent = tuple[str, tuple[int, int, int], dict]
@@ -110,11 +111,20 @@ def prepare_step(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig, fie
     return out
 
 
-def solve_prepared_step(specs: list[TileSpec], tiling: TilingConfig, solver: SolverConfig, field_paths: list[str],
-                        centre, summary_paths: list[str], prepared_paths: list[str]) -> list[dict]:
-    """The second half: prepared tiles solved as one batch (one launch per step for all of them on a card),
-    then each finished, written and recorded (:func:`tiled_gridpull.resume.solve_prepared_resumable`)."""
-    return solve_prepared_resumable(specs, tiling, solver, field_paths, summary_paths, prepared_paths, centre)
+def solve_batch_step(specs: list[TileSpec], tiling: TilingConfig, solver: SolverConfig, field_paths: list[str],
+                     centre, summary_paths: list[str], prepared_paths: list[str],
+                     solved_paths: list[str], note: dict | None = None) -> list[dict]:
+    """The second step: prepared tiles solved as one batch (one launch per step for all of them on a card), each
+    field left for its finish (:func:`tiled_gridpull.resume.solve_batch_resumable`)."""
+    return solve_batch_resumable(specs, tiling, solver, field_paths, summary_paths, prepared_paths, solved_paths,
+                                 centre, note)
+
+
+def finish_step(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig, field_path: str, centre,
+                summary_path: str, prepared_path: str, solved_path: str) -> dict:
+    """The last step: a batch-solved tile oriented, bridged, written and recorded
+    (:func:`tiled_gridpull.resume.finish_tile_resumable`)."""
+    return finish_tile_resumable(spec, tiling, solver, field_path, summary_path, prepared_path, solved_path, centre)
 
 
 def mesh_step(spec: TileSpec, own: dict, neighbor_specs: list, neighbor_summaries: list, tiling: TilingConfig,
@@ -156,17 +166,23 @@ def task_arguments(specs: list[TileSpec], tiling: TilingConfig, solver: SolverCo
 
 
 def batch_arguments(tiling: TilingConfig, solver: SolverConfig, paths: JobPaths, centre):
-    """The arguments after the spec of a tile's :func:`prepare_step`, and after the specs of a batch of tiles,
-    of :func:`solve_prepared_step`: ``(prepare_args, batch_args)``, functions of a spec and of a list of specs."""
+    """The arguments after the spec of a tile's :func:`prepare_step` and :func:`finish_step`, and after the
+    specs of a batch of tiles, of :func:`solve_batch_step`: ``(prepare_args, batch_args, finish_args)``, functions
+    of a spec, of a list of specs and of a spec."""
 
     def prepare_args(s: TileSpec) -> tuple:
         return tiling, solver, str(paths.field(s)), centre, str(paths.summary("solve", s)), str(paths.prepared(s))
 
     def batch_args(group: list[TileSpec]) -> tuple:
         return (tiling, solver, [str(paths.field(s)) for s in group], centre,
-                [str(paths.summary("solve", s)) for s in group], [str(paths.prepared(s)) for s in group])
+                [str(paths.summary("solve", s)) for s in group], [str(paths.prepared(s)) for s in group],
+                [str(paths.solved(s)) for s in group])
 
-    return prepare_args, batch_args
+    def finish_args(s: TileSpec) -> tuple:
+        return (tiling, solver, str(paths.field(s)), centre, str(paths.summary("solve", s)), str(paths.prepared(s)),
+                str(paths.solved(s)))
+
+    return prepare_args, batch_args, finish_args
 
 
 class SerialExecutor:
