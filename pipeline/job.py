@@ -364,11 +364,11 @@ def solve_task(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig, field
 
 
 def prepare_task(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig, field_path: str, centre,
-                 summary_path: str, prepared_path: str) -> dict:
+                 summary_path: str, prepared_path: str, solved_path: str) -> dict:
     """Dask task (any worker): a tile read and set up for its batch on the card, or its recorded result
     (:func:`tiled_gridpull.tiled_job.prepare_step`)."""
     _configure_worker_threads()
-    out = prepare_step(spec, tiling, solver, field_path, centre, summary_path, prepared_path)
+    out = prepare_step(spec, tiling, solver, field_path, centre, summary_path, prepared_path, solved_path)
     if out.get("status") != "prepared" and not out.get("reused"):
         out["worker"] = _worker_address()
     return out
@@ -591,10 +591,9 @@ class DaskExecutor:
                     if lost is None:
                         raise
                     raise lost from None
-                finally:
-                    _sweep_prepared(paths)
             finally:
                 self.close()
+                _sweep_prepared(paths)  # once no task of this run's local cluster can write there any more
 
     def _batching(self, client, tiling: TilingConfig, solver: SolverConfig, paths: JobPaths, centre):
         """How the tiles are solved in batches on the cluster's cards, or None (no card, a CPU job, or
@@ -632,7 +631,8 @@ def _sweep_prepared(paths: JobPaths) -> None:
     folder = paths.root / "prepared"
     if folder.is_symlink() or not folder.is_dir():
         return
-    for f in folder.glob("*.npz"):
+    # and the temporary files of writes a killed worker cut short (io.atomic names them .<name>.<random>.tmp)
+    for f in [*folder.glob("*.npz"), *folder.glob(".*.npz.*.tmp")]:
         with contextlib.suppress(OSError):
             f.unlink()
 
@@ -695,6 +695,9 @@ class Batching:
         if self.size < 1:
             raise ValueError(f"a batch holds at least 1 tile, got {self.size}")
 
+
+#: Times a tile's files may be lost between its batch and its finish before the tile is failed.
+LOST_TRIES = 3
 
 #: Tiles a batched job keeps prepared ahead of the card, in batches: the CPU workers read and set up the next
 #: batches while the card solves one, without filling the job directory with every tile of a window.
@@ -772,8 +775,8 @@ def run_tiles(client, specs: list[TileSpec], solve_fn, solve_args, mesh_fn, mesh
     if batching is not None:
         solve_fn, solve_args = batching.prepare_fn, batching.prepare_args
 
-    def submit(kind: str, fn, rows: list[tuple], items: list[int]) -> None:
-        keys = [f"{kind}-{specs[i].name}" for i in items]
+    def submit(kind: str, fn, rows: list[tuple], items: list[int], suffix: str = "") -> None:
+        keys = [f"{kind}-{specs[i].name}{suffix}" for i in items]
         where = cards.placement() if cards is not None else {}
         if len(rows) == 1:
             futs = [client.submit(fn, *rows[0], key=keys[0], retries=retries, pure=False, **where)]
@@ -807,14 +810,24 @@ def run_tiles(client, specs: list[TileSpec], solve_fn, solve_args, mesh_fn, mesh
         while next_solve < n or ready or in_flight:
             room = window - in_flight
             if cards is not None:
+                # finishes, then tiles whose files were lost, first and whatever the window: their tiles are in
+                # flight already (bounded by the window, they hung a small one)
                 cards.refresh()
-                room = min(room, cards.cpu_room())
-                if room > 0 and cards.to_finish:  # finishes first: they free the card worker's files
-                    take = [cards.to_finish.popleft() for _ in range(min(room, len(cards.to_finish)))]
+                cpu = cards.cpu_room()
+                if cpu > 0 and cards.to_finish:
+                    take = [cards.to_finish.popleft() for _ in range(min(cpu, len(cards.to_finish)))]
                     submit("finish", batching.finish_fn, [(specs[i], *batching.finish_args(specs[i])) for i in take],
                            take)
                     cards.finishing += len(take)
-                    room -= len(take)
+                    cpu -= len(take)
+                again = min(cpu, cards.prepare_room(), len(cards.redo))
+                if again > 0:
+                    take = [cards.redo.popleft() for _ in range(again)]
+                    submit("solve", solve_fn, [(specs[i], *solve_args(specs[i])) for i in take], take,
+                           suffix=f"-again{cards.lost[take[0]]}")
+                    cards.preparing += len(take)
+                    cpu -= len(take)
+                room = min(room, cpu)
             if room > 0 and ready:  # meshes first: they finish tiles and let summaries go
                 take = [ready.popleft() for _ in range(min(room, len(ready)))]
                 submit("mesh", mesh_fn, [(specs[i], summaries[i], neighbours[i], [summaries[j] for j in needs[i][1:]],
@@ -871,6 +884,12 @@ def run_tiles(client, specs: list[TileSpec], solve_fn, solve_args, mesh_fn, mesh
                     continue
                 i = items[0]
                 if kind == "finish":
+                    if result.get("status") == "lost":
+                        if cards.lose(i):
+                            continue  # prepared and batched again
+                        result = {**result, "status": "failed",
+                                  "reason": f"its files between its batch and its finish were lost {LOST_TRIES} times "
+                                            f"({result.get('reason')})"}
                     in_flight -= 1
                     # the estimates the tile's batch was sized by
                     yield from solved(i, {**result, **cards.sizing.pop(i, {})})
@@ -913,6 +932,8 @@ class _CardQueue:
         self.to_finish: deque[int] = deque()  # tiles solved in a batch, awaiting their finish task
         self.finishing = 0  # finish tasks out
         self.sizing: dict[int, dict] = {}  # what each solved tile's batch was sized by
+        self.redo: deque[int] = deque()  # tiles whose files were lost before their finish: prepared again
+        self.lost: dict[int, int] = {}  # times each tile's files were lost
         self.split: set[int] = set()
         self.out = 0  # batches out
         self.batched = 0  # tiles in them
@@ -949,7 +970,17 @@ class _CardQueue:
         the job directory) than :data:`BATCHES_AHEAD` batches per card."""
         ahead = BATCHES_AHEAD * self.batching.size * self.cards
         return min(self.cpu_room(), ahead - self.preparing - len(self.staged) - len(self.alone) - self.batched
-                   - len(self.to_finish) - self.finishing)
+                   - len(self.to_finish) - self.finishing - len(self.redo))
+
+    def lose(self, i: int) -> bool:
+        """Tile ``i``'s files were lost before its finish (a worker that died, a sweep): True when it is to be
+        prepared and batched again, False once that happened :data:`LOST_TRIES` times."""
+        self.sizing.pop(i, None)
+        self.lost[i] = self.lost.get(i, 0) + 1
+        if self.lost[i] >= LOST_TRIES:
+            return False
+        self.redo.append(i)
+        return True
 
     def stage(self, i: int, result: dict) -> None:
         self.staged.append(i)

@@ -248,3 +248,52 @@ def test_a_runs_leftover_prepared_tiles_are_swept(tmp_path):
     _sweep_prepared(paths)
     assert sorted(f.name for f in (paths.root / "prepared").iterdir()) == ["notes.txt"]
     _sweep_prepared(JobPaths(tmp_path / "none"))  # nothing there: nothing to do
+
+
+def _run_in_thread(fn, timeout: float = 60.0):
+    """``fn()``'s result, or a failed test if it has not returned within ``timeout`` (a hung driver)."""
+    import threading
+
+    box = {}
+    t = threading.Thread(target=lambda: box.setdefault("out", fn()), daemon=True)
+    t.start()
+    t.join(timeout)
+    assert not t.is_alive(), f"the job's driver hung (no end within {timeout:g} s)"
+    return box["out"]
+
+
+#: stand-in finishes that find their tile's files lost: how often each tile's were
+_LOST: dict = {}
+
+
+def _finish_loses(spec):
+    if spec.index == (0, 0, 0) or (spec.index == (1, 0, 0) and _LOST.get(spec.name, 0) < 1):
+        _LOST[spec.name] = _LOST.get(spec.name, 0) + 1
+        return {"tile": spec.name, "status": "lost", "reason": "gone"}
+    return _finish_echo(spec)
+
+
+@pytest.mark.parametrize("window", [1, 4])
+def test_a_small_window_or_lost_files_do_not_hang_the_job(window):
+    """Tiles between their batch and their finish are in flight already: a window they fill must not stop their
+    finishes (a window of 4 hung). A tile whose files were lost before its finish is prepared and batched again;
+    one that keeps losing them fails by name."""
+    from distributed import Client, LocalCluster
+
+    from tiled_gridpull.pipeline.job import LOST_TRIES, Batching, add_card_worker, run_tiles
+
+    _LOST.clear()
+    specs = _grid_specs(3, 2, 1)
+    with LocalCluster(processes=False, n_workers=1, threads_per_worker=2, dashboard_address=":0") as cluster:
+        add_card_worker(cluster)
+        with Client(cluster) as client:
+            client.wait_for_workers(2, timeout=30)
+            batching = Batching(4, _prepare_echo, lambda s: (), _batch_echo, lambda group: (), _finish_loses,
+                                lambda s: ())
+            seen = _run_in_thread(lambda: list(run_tiles(client, specs, None, None, _mesh_echo, lambda s: (),
+                                                         window=window, batching=batching)))
+    solves = {i: r for k, i, r in seen if k == "solve"}
+    assert set(solves) == {s.index for s in specs} and len([k for k, _, _ in seen if k == "mesh"]) == len(specs)
+    assert solves[(1, 0, 0)]["status"] == "solved" and _LOST["tile_1_0_0"] == 1  # lost once, batched again
+    assert solves[(0, 0, 0)]["status"] == "failed" and _LOST["tile_0_0_0"] == LOST_TRIES
+    assert f"lost {LOST_TRIES} times" in solves[(0, 0, 0)]["reason"]

@@ -151,7 +151,7 @@ def test_a_solved_field_on_disk_is_the_field_its_solve_left(tmp_path, specs):
 def test_a_batch_or_finish_whose_files_are_gone_or_another_tiles_still_gives_the_tiles_field(tmp_path, specs):
     """A batch run again after its worker died may find its tiles' prepared files gone or damaged, or one of
     another tile or of other settings: it prepares those tiles itself rather than failing them or solving the
-    wrong points. A finish that finds its files gone solves its tile alone."""
+    wrong points. A finish that finds its files gone or foreign gives the tile back to be batched again."""
     from tiled_gridpull.resume import finish_tile_resumable, prepare_tile_resumable, solve_batch_resumable, solve_key
 
     paths = JobPaths(tmp_path / "job")
@@ -178,13 +178,30 @@ def test_a_batch_or_finish_whose_files_are_gone_or_another_tiles_still_gives_the
     paths.summary("solve", specs[1]).unlink()  # not reusable: solved again
     again = _batch_then_finish(specs[1:2], paths)
     assert again[0]["field_sha256"] == alone[1]["field_sha256"]
-    # the finish of a tile whose files a sweep removed: solved alone, the same field
+    # a finish whose solved field is gone, or is another run's (other settings, written late), does not solve the
+    # tile on its (card-less) worker nor write the foreign field: the tile is "lost", to be batched again
     paths.summary("solve", specs[0]).unlink()
-    prepare_tile_resumable(specs[0], TILING, SOLVER, *args[0])
     cols = [[str(f(specs[0]))] for f in (paths.field, lambda s: paths.summary("solve", s), paths.prepared,
                                          paths.solved)]
-    assert solve_batch_resumable(specs[:1], TILING, SOLVER, *cols)[0]["status"] == "unfinished"
+
+    def batched():
+        prepare_tile_resumable(specs[0], TILING, SOLVER, *args[0])
+        assert solve_batch_resumable(specs[:1], TILING, SOLVER, *cols)[0]["status"] == "unfinished"
+
+    batched()
     paths.solved(specs[0]).unlink()
+    lost = finish_tile_resumable(specs[0], TILING, SOLVER, *(c[0] for c in cols))
+    assert lost["status"] == "lost" and not list(paths.prepared(specs[0]).parent.iterdir())
+    assert not paths.summary("solve", specs[0]).exists()
+    batched()
+    foreign = tmp_path / "foreign.npz"
+    oth = [[str(tmp_path / f"o_{k}")] for k in ("field.npz", "sum.json", "prep.npz")] + [[str(foreign)]]
+    prepare_tile_resumable(specs[0], TILING, other, *(c[0] for c in oth[:3]))
+    solve_batch_resumable(specs[:1], TILING, other, *oth)
+    foreign.replace(paths.solved(specs[0]))
+    lost = finish_tile_resumable(specs[0], TILING, SOLVER, *(c[0] for c in cols))
+    assert lost["status"] == "lost" and "other settings" in lost["reason"]
+    batched()  # and batched again, it is the tile's own field
     done = finish_tile_resumable(specs[0], TILING, SOLVER, *(c[0] for c in cols))
     assert done["field_sha256"] == alone[0]["field_sha256"] and not list(paths.prepared(specs[0]).parent.iterdir())
 

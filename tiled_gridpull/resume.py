@@ -301,16 +301,20 @@ def solve_tile_resumable(spec: TileSpec, tiling: TilingConfig, solver: SolverCon
 
 
 def prepare_tile_resumable(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig, field_path: str | Path,
-                           summary_path: str | Path, prepared_path: str | Path, centre=None) -> dict:
-    """The first half of :func:`solve_tile_resumable` for a tile solved in a batch (on a card): its recorded
-    summary when it can be reused; else the tile read and set up (:func:`tiled_gridpull.tile_solve.prepare_tile`)
-    and written to ``prepared_path`` for :func:`solve_prepared_resumable`, with a summary of status
-    ``"prepared"``; a tile that needs no solve (skipped, failed) gets its final summary here."""
+                           summary_path: str | Path, prepared_path: str | Path, centre=None,
+                           solved_path: str | Path | None = None) -> dict:
+    """The first step of a tile solved in a batch (on a card): its recorded summary when it can be reused; else
+    the tile read and set up (:func:`tiled_gridpull.tile_solve.prepare_tile`) and written to ``prepared_path``
+    for :func:`solve_batch_resumable`, with a summary of status ``"prepared"``; a tile that needs no solve
+    (skipped, failed) gets its final summary here. An earlier run's files of the tile (``prepared_path``,
+    ``solved_path``) go."""
     key = solve_key(spec, tiling, solver, centre)
+    _unlink(solved_path)  # an interrupted run's, of no use now: this run solves the tile again or not at all
     prev, why = _reusable(Path(summary_path), key, ("solved", "skipped"), field_path)
     if prev is not None:
-        _unlink(prepared_path)  # an interrupted run's, now of no use
+        _unlink(prepared_path)
         return prev
+    reset_peak_rss()  # the summary's peak is the tile's, not the worker's earlier tasks'
     p = prepare_tile(spec, tiling, solver, centre)
     if why:
         p.summary["redone"] = why
@@ -351,7 +355,7 @@ def solve_batch_resumable(specs: list[TileSpec], tiling: TilingConfig, solver: S
             outs.append(_close_solve(p.summary, key, summary_path, field_path))
             continue
         now = time.perf_counter()
-        save_solved_field(solved_path, fld, {"summary": p.summary, "elapsed_s": now - p.t0,
+        save_solved_field(solved_path, fld, {"summary": p.summary, "elapsed_s": now - p.t0, "key": key,
                                              "peak_rss_mb": max(peak_rss_mb(), p.peak_before_mb)})
         outs.append({"tile": p.spec.name, "index": list(p.spec.index), "points": p.spec.block_points,
                      "status": "unfinished"})
@@ -362,29 +366,36 @@ def finish_tile_resumable(spec: TileSpec, tiling: TilingConfig, solver: SolverCo
                           summary_path: str | Path, prepared_path: str | Path, solved_path: str | Path,
                           centre=None) -> dict:
     """The last step: a tile's batch-solved field (:func:`solve_batch_resumable`) checked against its oriented
-    normals, bridged, written and recorded as :func:`solve_tile_resumable` records it; its prepared and solved
-    files are removed. Should either be gone or damaged (a worker that died, a run interrupted), the tile is
-    solved here on its own instead: the same field."""
+    normals, bridged, written and recorded as :func:`solve_tile_resumable` records it; then its prepared and
+    solved files are removed. Should either be gone, damaged or not this run's (another run's settings), the
+    tile comes back with status ``"lost"`` (its files removed): the caller prepares and batches it again (solved
+    here, it would run on a worker without the card)."""
     key = solve_key(spec, tiling, solver, centre)
+    reset_peak_rss()
     try:
         p = PreparedTile.load(prepared_path, spec, key)
         fld, state = load_solved_field(solved_path, p.local)
-    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
-        out = solve_tile(spec, tiling, solver, field_path, centre=centre)
-    else:
-        # the batch's account of the tile: its summary and time so far, and the larger memory peak
-        now = time.perf_counter()
-        p.summary, p.t0, p.mark = state["summary"], now - float(state["elapsed_s"]), now
-        p.peak_before_mb = max(p.peak_before_mb, float(state["peak_rss_mb"]))
-        out = finish_prepared(p, fld, tiling, field_path)
-    _unlink(prepared_path)
+        if state.get("key") != key:
+            raise ValueError(f"{solved_path} was solved with other settings")
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
+        _unlink(prepared_path)
+        _unlink(solved_path)
+        return {"tile": spec.name, "index": list(spec.index), "points": spec.block_points, "status": "lost",
+                "reason": str(exc)[:300]}
+    # the batch's account of the tile: its summary and time so far, and the larger memory peak
+    now = time.perf_counter()
+    p.summary, p.t0, p.mark = state["summary"], now - float(state["elapsed_s"]), now
+    p.peak_before_mb = max(p.peak_before_mb, float(state["peak_rss_mb"]))
+    out = _close_solve(finish_prepared(p, fld, tiling, field_path), key, summary_path, field_path)
+    _unlink(prepared_path)  # once recorded: a worker that dies before this point leaves a finish to run again
     _unlink(solved_path)
-    return _close_solve(out, key, summary_path, field_path)
+    return out
 
 
-def _unlink(path: str | Path) -> None:
-    with contextlib.suppress(OSError):
-        os.unlink(path)
+def _unlink(path: str | Path | None) -> None:
+    if path is not None:
+        with contextlib.suppress(OSError):
+            os.unlink(path)
 
 
 def _close_solve(out: dict, key: str, summary_path: str | Path, field_path: str | Path) -> dict:

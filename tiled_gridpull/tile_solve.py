@@ -13,7 +13,7 @@ from .bridge import BridgeRule, bridge_field
 from .cloud import duplicate_mask
 from .config import SolverConfig
 from .errors import ConfigError, GridPullError
-from .io.atomic import atomic_path
+from .io.atomic import atomic_path, json_default
 from .kernels import BRICK
 from .lattice import Lattice
 from .memory import peak_rss_mb, reset_peak_rss
@@ -209,7 +209,8 @@ class PreparedTile:
         arrays = {name: getattr(self, name) for name in _PREPARED_ARRAYS if getattr(self, name) is not None}
         with atomic_path(path) as tmp:
             with open(tmp, "wb") as fh:
-                np.savez(fh, state=np.frombuffer(json.dumps(state).encode(), np.uint8), **arrays)
+                np.savez(fh, state=np.frombuffer(json.dumps(state, default=json_default).encode(), np.uint8),
+                         **arrays)
 
     @classmethod
     def load(cls, path: str | Path, spec: TileSpec, key: str | None = None) -> PreparedTile:

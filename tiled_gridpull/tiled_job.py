@@ -96,13 +96,13 @@ def solve_step(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig, field
 
 
 def prepare_step(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig, field_path: str, centre,
-                 summary_path: str, prepared_path: str) -> dict:
+                 summary_path: str, prepared_path: str, solved_path: str | None = None) -> dict:
     """The first half of :func:`solve_step` for tiles solved in batches on a card: the tile's recorded summary,
     or the tile read and set up into ``prepared_path`` (status ``"prepared"``, with ``card_bytes``, the card
     memory its solve takes: :func:`tiled_gridpull.memory.card_bytes`, and ``host_bytes``, the host memory:
     :func:`tiled_gridpull.memory.tile_memory`), or its summary when it needs no solve
     (:func:`tiled_gridpull.resume.prepare_tile_resumable`)."""
-    out = prepare_tile_resumable(spec, tiling, solver, field_path, summary_path, prepared_path, centre)
+    out = prepare_tile_resumable(spec, tiling, solver, field_path, summary_path, prepared_path, centre, solved_path)
     if out.get("status") == "prepared":
         bricks = band_bricks_bound(read_occupancy(spec), spec.block.shape, solver)
         out["card_bytes"] = card_bytes(spec, bricks, solver)
@@ -171,7 +171,8 @@ def batch_arguments(tiling: TilingConfig, solver: SolverConfig, paths: JobPaths,
     of a spec, of a list of specs and of a spec."""
 
     def prepare_args(s: TileSpec) -> tuple:
-        return tiling, solver, str(paths.field(s)), centre, str(paths.summary("solve", s)), str(paths.prepared(s))
+        return (tiling, solver, str(paths.field(s)), centre, str(paths.summary("solve", s)), str(paths.prepared(s)),
+                str(paths.solved(s)))
 
     def batch_args(group: list[TileSpec]) -> tuple:
         return (tiling, solver, [str(paths.field(s)) for s in group], centre,
