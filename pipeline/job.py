@@ -597,22 +597,27 @@ class DaskExecutor:
 
     def _batching(self, client, tiling: TilingConfig, solver: SolverConfig, paths: JobPaths, centre):
         """How the tiles are solved in batches on the cluster's cards, or None (no card, a CPU job, or
-        ``batch_tiles`` 1). The card's memory is read once on its worker, and recorded in :attr:`engine`."""
+        ``batch_tiles`` 1). Each card's memory is read once on its worker; the batches are sized to the card with
+        the least free (any card may take any batch), which :attr:`engine` records."""
         options = self.options
-        if options.batch_tiles <= 1 or solver.device == "cpu" or not _cards(client):
+        holders = [a for a, w in _workers(client).items() if _holds(w, GPU_RESOURCE)]
+        if options.batch_tiles <= 1 or solver.device == "cpu" or not holders:
             return None
+        wait = max(options.no_worker_timeout, 30.0)
+        futs = [client.submit(card_memory_task, workers=[a], resources=dict(GPU_RESOURCE), pure=False)
+                for a in holders]
         try:
-            free, total = client.submit(card_memory_task, resources=dict(GPU_RESOURCE), pure=False).result(
-                timeout=max(options.no_worker_timeout, 30.0) if options.no_worker_timeout > 0 else None)
+            free, total = min(f.result(timeout=wait if options.no_worker_timeout > 0 else None) for f in futs)
         except TimeoutError:
-            raise ClusterError(f"the worker holding a card did not say how much memory the card has free within "
-                               f"{max(options.no_worker_timeout, 30.0):g} s: the job stops; rerun to resume") from None
+            raise ClusterError(f"a worker holding a card did not say how much memory the card has free within "
+                               f"{wait:g} s: the job stops; rerun to resume") from None
         prepare_args, batch_args, finish_args = batch_arguments(tiling, solver, paths, centre)
         self.engine["batch_tiles"] = options.batch_tiles
         # what the card had when the job started, and what a batch may take of it (None: no limit, the simulator's)
         self.engine["card_memory"] = {k: (v if math.isfinite(v) else None) for k, v in
                                       {"free_bytes": free, "total_bytes": total,
                                        "batch_budget_bytes": CARD_SHARE * free}.items()}
+        self.engine["cards"] = len(holders)
         return Batching(options.batch_tiles, prepare_task, prepare_args, batch_solve_task, batch_args, finish_task,
                         finish_args, budget=CARD_SHARE * free)
 

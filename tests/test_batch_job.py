@@ -297,3 +297,29 @@ def test_a_small_window_or_lost_files_do_not_hang_the_job(window):
     assert solves[(1, 0, 0)]["status"] == "solved" and _LOST["tile_1_0_0"] == 1  # lost once, batched again
     assert solves[(0, 0, 0)]["status"] == "failed" and _LOST["tile_0_0_0"] == LOST_TRIES
     assert f"lost {LOST_TRIES} times" in solves[(0, 0, 0)]["reason"]
+
+
+def test_batches_are_sized_to_the_card_with_the_least_free_memory(tmp_path, monkeypatch):
+    """Each card says how much memory it has free; any card may take any batch, so the budget is the least."""
+    from distributed import Client, LocalCluster, get_worker
+
+    from tiled_gridpull import device
+    from tiled_gridpull.config import SolverConfig
+    from tiled_gridpull.jobdir import JobPaths
+    from tiled_gridpull.pipeline.job import CARD_SHARE, DaskExecutor, JobOptions, add_card_worker
+    from tiled_gridpull.tiling import TilingConfig
+
+    free = {"card0": 40e9, "card1": 10e9}
+    monkeypatch.setattr(device, "card_memory", lambda: (free[get_worker().name], 80e9))  # in-process workers
+    with LocalCluster(processes=False, n_workers=1, threads_per_worker=1, dashboard_address=":0") as cluster:
+        for name in free:
+            add_card_worker(cluster, name=name)
+        with Client(cluster) as client:
+            client.wait_for_workers(3, timeout=30)
+            ex = DaskExecutor(JobOptions(progress=False), device="cuda")
+            batching = ex._batching(client, TilingConfig(voxel_size=0.1), SolverConfig(device="cuda"),
+                                    JobPaths(tmp_path), (0.0, 0.0, 0.0))
+            assert ex._batching(client, TilingConfig(voxel_size=0.1), SolverConfig(device="cpu"), JobPaths(tmp_path),
+                                (0.0, 0.0, 0.0)) is None  # a CPU job never batches
+    assert batching.budget == CARD_SHARE * 10e9 and batching.size == JobOptions().batch_tiles
+    assert ex.engine["cards"] == 2 and ex.engine["card_memory"]["free_bytes"] == 10e9

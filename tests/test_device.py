@@ -380,7 +380,7 @@ def test_a_tiled_job_on_the_card_solves_its_tiles_in_batches_and_meshes_as_the_c
                     *[a for k, v in schedule.items() for a in ("--set", f"{k}={v}")]], check=True)
     side = json.loads(out.with_suffix(".json").read_text())
     tiles = side["tile_summaries"]
-    assert side["engine"]["batch_tiles"] == 16 and len(tiles) == 3
+    assert side["engine"]["batch_tiles"] == 16 and side["engine"]["cards"] == 1 and len(tiles) == 3
     # the card's memory as the job found it (the simulator's has no limit) and what each batch was sized by
     memory = side["engine"]["card_memory"]
     if device.cuda_card() == device.SIMULATOR:
