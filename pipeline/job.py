@@ -37,6 +37,7 @@ from tiled_gridpull.errors import ClusterError, ConfigError
 from tiled_gridpull.jobdir import JobPaths, neighbors_of
 from tiled_gridpull.mesh import Mesh
 from tiled_gridpull.tile_plan import TileSpec
+from tiled_gridpull.tile_solve import tile_summary
 from tiled_gridpull.tiled_job import (TileEvent, batch_arguments, finish_step, mesh_step, prepare_step, run_tiled_job,
                                       solve_batch_step, solve_step, task_arguments)
 from tiled_gridpull.tiling import TilingConfig
@@ -611,15 +612,15 @@ class DaskExecutor:
         except TimeoutError:
             raise ClusterError(f"a worker holding a card did not say how much memory the card has free within "
                                f"{wait:g} s: the job stops; rerun to resume") from None
-        prepare_args, batch_args, finish_args = batch_arguments(tiling, solver, paths, centre)
+        tile_args, batch_args = batch_arguments(tiling, solver, paths, centre)
         self.engine["batch_tiles"] = options.batch_tiles
         # what the card had when the job started, and what a batch may take of it (None: no limit, the simulator's)
         self.engine["card_memory"] = {k: (v if math.isfinite(v) else None) for k, v in
                                       {"free_bytes": free, "total_bytes": total,
                                        "batch_budget_bytes": CARD_SHARE * free}.items()}
         self.engine["cards"] = len(holders)
-        return Batching(options.batch_tiles, prepare_task, prepare_args, batch_solve_task, batch_args, finish_task,
-                        finish_args, budget=CARD_SHARE * free)
+        return Batching(options.batch_tiles, prepare_task, tile_args, batch_solve_task, batch_args, finish_task,
+                        tile_args, budget=CARD_SHARE * free)
 
     def close(self) -> None:
         """Close the client and the LocalCluster this executor started (if any)."""
@@ -633,7 +634,7 @@ class DaskExecutor:
 def _sweep_prepared(paths: JobPaths) -> None:
     """Remove the prepared tiles a batched run left (interrupted, or a tile whose batch failed): each is a copy
     of a tile's points and normals, and a rerun prepares again what it needs."""
-    folder = paths.root / "prepared"
+    folder = paths.prepared_dir()
     if folder.is_symlink() or not folder.is_dir():
         return
     # and the temporary files of writes a killed worker cut short (io.atomic names them .<name>.<random>.tmp)
@@ -791,7 +792,7 @@ def run_tiles(client, specs: list[TileSpec], solve_fn, solve_args, mesh_fn, mesh
             kinds[fut.key] = (kind, [i])
         pending.update(futs)
         if cards is not None:
-            cards.cpu_out += len(items)
+            cards.cpu_sent(kind, len(items))
 
     def submit_batch(items: list[int]) -> None:
         group = [specs[i] for i in items]
@@ -823,14 +824,12 @@ def run_tiles(client, specs: list[TileSpec], solve_fn, solve_args, mesh_fn, mesh
                     take = [cards.to_finish.popleft() for _ in range(min(cpu, len(cards.to_finish)))]
                     submit("finish", batching.finish_fn, [(specs[i], *batching.finish_args(specs[i])) for i in take],
                            take)
-                    cards.finishing += len(take)
                     cpu -= len(take)
                 again = min(cpu, cards.prepare_room(), len(cards.redo))
                 if again > 0:
                     take = [cards.redo.popleft() for _ in range(again)]
                     submit("solve", solve_fn, [(specs[i], *solve_args(specs[i])) for i in take], take,
                            suffix=f"-again{cards.lost[take[0]]}")
-                    cards.preparing += len(take)
                     cpu -= len(take)
                 room = min(room, cpu)
             if room > 0 and ready:  # meshes first: they finish tiles and let summaries go
@@ -851,16 +850,13 @@ def run_tiles(client, specs: list[TileSpec], solve_fn, solve_args, mesh_fn, mesh
                 submit("solve", solve_fn, [(specs[i], *solve_args(specs[i])) for i in take], take)
                 next_solve += len(take)
                 in_flight += len(take)
-                if cards is not None:
-                    cards.preparing += len(take)
             for group in cards.groups() if cards is not None else ():
                 submit_batch(group)
             watch.wait_for(pending, stop, needs=batching.resources if cards is not None and cards.out else None)
             for fut, result in pending.next_batch(block=False):
                 kind, items = kinds.pop(fut.key)
                 if cards is not None and kind != "batch":
-                    cards.cpu_out -= 1
-                    cards.finishing -= kind == "finish"
+                    cards.cpu_back(kind)
                 if fut.status == "error":
                     if not _killed_worker(result[1]):
                         raise result[1].with_traceback(result[2])
@@ -870,10 +866,9 @@ def run_tiles(client, specs: list[TileSpec], solve_fn, solve_args, mesh_fn, mesh
                     # the task took its worker down every time it ran (out of memory, a crash in native code):
                     # a failed tile, reported by name; the rest of the job goes on
                     what = {"batch": "solve", "solve": "preparation" if cards is not None else "solve"}.get(kind, kind)
-                    result = [{"tile": specs[i].name, "index": list(specs[i].index), "points": specs[i].block_points,
-                               "status": "failed", "faces": 0,
-                               "reason": f"its {what} killed the worker process on every attempt (out of memory?)"}
-                              for i in items]
+                    result = [tile_summary(specs[i], status="failed", faces=0,
+                                           reason=f"its {what} killed the worker process on every attempt (out of "
+                                                  "memory?)") for i in items]
                     result = result if kind == "batch" else result[0]
                 if isinstance(result, BaseException):  # cancelled (e.g. the cluster went away)
                     raise result
@@ -899,11 +894,9 @@ def run_tiles(client, specs: list[TileSpec], solve_fn, solve_args, mesh_fn, mesh
                     # the estimates the tile's batch was sized by
                     yield from solved(i, {**result, **cards.sizing.pop(i, {})})
                     continue
-                if kind == "solve" and cards is not None:
-                    cards.preparing -= 1
-                    if result.get("status") == "prepared":
-                        cards.stage(i, result)  # still in flight: its batch comes
-                        continue
+                if kind == "solve" and cards is not None and result.get("status") == "prepared":
+                    cards.stage(i, result)  # still in flight: its batch comes
+                    continue
                 in_flight -= 1
                 if kind == "solve":
                     yield from solved(i, result)
@@ -931,7 +924,7 @@ class _CardQueue:
     def __init__(self, batching: Batching, client):
         self.batching, self.client = batching, client
         self.preparing = 0  # prepare tasks out
-        self.cpu_out = 0  # prepare and mesh tasks out
+        self.cpu_out = 0  # prepare, finish and mesh tasks out
         self.staged: deque[int] = deque()  # prepared tiles awaiting a batch
         self.alone: deque[int] = deque()  # tiles of a batch that killed its worker, each to go in one of its own
         self.to_finish: deque[int] = deque()  # tiles solved in a batch, awaiting their finish task
@@ -963,6 +956,16 @@ class _CardQueue:
         self.cpu_slots = max(1, sum(int(w.get("nthreads", 1)) for w in (rest or workers).values()))
         limits = [float(w.get("memory_limit") or 0) for w in holders]
         self.host_budget = CARD_SHARE * min(limits) if limits and min(limits) > 0 else math.inf
+
+    def cpu_sent(self, kind: str, n: int) -> None:
+        """``n`` tasks of ``kind`` ("solve": preparations, "finish", "mesh") went to the workers without a card."""
+        self.cpu_out += n
+        self.preparing += n if kind == "solve" else 0
+        self.finishing += n if kind == "finish" else 0
+
+    def cpu_back(self, kind: str) -> None:
+        """One of them came back."""
+        self.cpu_sent(kind, -1)
 
     def placement(self) -> dict:
         return {"workers": self.others, "allow_other_workers": True} if self.others else {}
@@ -1097,7 +1100,7 @@ class _WorkerWatch:
         elif now - self.last_seen > self.timeout:
             raise ClusterError(f"the Dask cluster has had no worker for {self.timeout:g} s (workers killed, or "
                                "none started): the job stops; rerun to resume from the tiles already done")
-        if needs is None or any(_holds(w, needs) for w in (workers or {}).values()):
+        if needs is None or any(_holds(w, needs) for w in workers.values()):
             self.last_holder = now
         elif now - self.last_holder > self.timeout:
             what = ", ".join(f"{k}={v:g}" for k, v in needs.items())
@@ -1113,11 +1116,6 @@ def _workers(client) -> dict:
         return client.scheduler_info(n_workers=-1).get("workers") or {}
     except TypeError:  # older distributed: no n_workers argument
         return client.scheduler_info().get("workers") or {}
-
-
-def _cards(client) -> bool:
-    """Whether a worker of ``client``'s cluster holds a card (the resource the batches need)."""
-    return any(_holds(w, GPU_RESOURCE) for w in _workers(client).values())
 
 
 def _holds(worker: dict, needs: dict) -> bool:

@@ -95,11 +95,14 @@ class JobPaths:
     def piece(self, spec: TileSpec) -> Path:
         return self.root / "pieces" / f"{spec.name}.npz"
 
+    def prepared_dir(self) -> Path:
+        return self.root / "prepared"
+
     def prepared(self, spec: TileSpec) -> Path:
-        return self.root / "prepared" / f"{spec.name}.npz"
+        return self.prepared_dir() / f"{spec.name}.npz"
 
     def solved(self, spec: TileSpec) -> Path:
-        return self.root / "prepared" / f"{spec.name}.solved.npz"
+        return self.prepared_dir() / f"{spec.name}.solved.npz"
 
     def summary(self, step: str, spec: TileSpec) -> Path:
         return self.root / "summaries" / f"{step}_{spec.name}.json"

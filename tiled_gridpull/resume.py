@@ -55,7 +55,7 @@ from .stitch import mesh_tile
 from .tile_plan import TileSpec, plan_tiles
 from .tile_field import load_solved_field, save_solved_field
 from .tile_solve import (PreparedTile, finish_prepared, orientation_rule, prepare_tile, solve_prepared_fields,
-                         solve_tile)
+                         solve_tile, tile_summary)
 from .tiling import TilingConfig
 
 __all__ = ["partition_key", "load_partition", "solve_key", "mesh_key", "solve_tile_resumable",
@@ -322,7 +322,7 @@ def prepare_tile_resumable(spec: TileSpec, tiling: TilingConfig, solver: SolverC
         _unlink(prepared_path)
         return _close_solve(p.summary, key, summary_path, field_path)
     p.save(prepared_path, key)
-    return {"tile": spec.name, "index": list(spec.index), "points": spec.block_points, "status": "prepared"}
+    return tile_summary(spec, status="prepared")
 
 
 def solve_batch_resumable(specs: list[TileSpec], tiling: TilingConfig, solver: SolverConfig, field_paths: list,
@@ -357,8 +357,7 @@ def solve_batch_resumable(specs: list[TileSpec], tiling: TilingConfig, solver: S
         now = time.perf_counter()
         save_solved_field(solved_path, fld, {"summary": p.summary, "elapsed_s": now - p.t0, "key": key,
                                              "peak_rss_mb": max(peak_rss_mb(), p.peak_before_mb)})
-        outs.append({"tile": p.spec.name, "index": list(p.spec.index), "points": p.spec.block_points,
-                     "status": "unfinished"})
+        outs.append(tile_summary(p.spec, status="unfinished"))
     return outs
 
 
@@ -380,8 +379,7 @@ def finish_tile_resumable(spec: TileSpec, tiling: TilingConfig, solver: SolverCo
     except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
         _unlink(prepared_path)
         _unlink(solved_path)
-        return {"tile": spec.name, "index": list(spec.index), "points": spec.block_points, "status": "lost",
-                "reason": str(exc)[:300]}
+        return tile_summary(spec, status="lost", reason=str(exc)[:300])
     # the batch's account of the tile: its summary and time so far, and the larger memory peak
     now = time.perf_counter()
     p.summary, p.t0, p.mark = state["summary"], now - float(state["elapsed_s"]), now

@@ -27,7 +27,13 @@ from .tile_plan import TileSpec
 from .tiling import TilingConfig
 
 __all__ = ["solve_tile", "solve_tiles", "solve_prepared", "solve_prepared_fields", "finish_prepared",
-           "prepare_tile", "PreparedTile", "orientation_rule"]
+           "prepare_tile", "PreparedTile", "orientation_rule", "tile_summary"]
+
+def tile_summary(spec: TileSpec, **fields) -> dict:
+    """The start of a tile's solve summary, whichever step writes it: the tile's name, grid index and block
+    points, then ``fields``."""
+    return {"tile": spec.name, "index": list(spec.index), "points": spec.block_points, **fields}
+
 
 def orientation_rule(tiling: TilingConfig, has_sensor: bool) -> str:
     """The orientation rule a tile applies: ``tiling.orientation`` with ``auto`` resolved (sensor when the tile
@@ -258,7 +264,7 @@ def prepare_tile(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig,
     oriented. A tile with too few points comes back ``skipped``, one that fails for a data reason ``failed``
     (both with their summaries closed)."""
     t0 = time.perf_counter()
-    summary: dict = {"tile": spec.name, "index": list(spec.index), "points": spec.block_points, "phases_s": {}}
+    summary = tile_summary(spec, phases_s={})
     p = PreparedTile(spec, summary, t0, time.perf_counter())
     try:
         stored, sensor32 = read_tile_points(spec)

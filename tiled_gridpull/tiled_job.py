@@ -166,11 +166,11 @@ def task_arguments(specs: list[TileSpec], tiling: TilingConfig, solver: SolverCo
 
 
 def batch_arguments(tiling: TilingConfig, solver: SolverConfig, paths: JobPaths, centre):
-    """The arguments after the spec of a tile's :func:`prepare_step` and :func:`finish_step`, and after the
-    specs of a batch of tiles, of :func:`solve_batch_step`: ``(prepare_args, batch_args, finish_args)``, functions
-    of a spec, of a list of specs and of a spec."""
+    """The arguments after the spec of a tile's :func:`prepare_step` and :func:`finish_step` (the same: the tile's
+    files), and after the specs of a batch of tiles, of :func:`solve_batch_step`: ``(tile_args, batch_args)``,
+    functions of a spec and of a list of specs."""
 
-    def prepare_args(s: TileSpec) -> tuple:
+    def tile_args(s: TileSpec) -> tuple:
         return (tiling, solver, str(paths.field(s)), centre, str(paths.summary("solve", s)), str(paths.prepared(s)),
                 str(paths.solved(s)))
 
@@ -179,11 +179,7 @@ def batch_arguments(tiling: TilingConfig, solver: SolverConfig, paths: JobPaths,
                 [str(paths.summary("solve", s)) for s in group], [str(paths.prepared(s)) for s in group],
                 [str(paths.solved(s)) for s in group])
 
-    def finish_args(s: TileSpec) -> tuple:
-        return (tiling, solver, str(paths.field(s)), centre, str(paths.summary("solve", s)), str(paths.prepared(s)),
-                str(paths.solved(s)))
-
-    return prepare_args, batch_args, finish_args
+    return tile_args, batch_args
 
 
 class SerialExecutor:
