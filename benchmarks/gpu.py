@@ -239,8 +239,8 @@ def stage_step(out: Path, copy_gbps: float | None, small: bool = False) -> None:
 
         def q():
             k.query_scatter[qb, 512](d_a, flags, tab, nx, ny, nz, pts_d, no_normals, False, near, key,
-                                     len(pts) / nq, np.float32(0.5), nrm_t, CELL_PULL, 1.0, 0.005, 0.0, acc, counts,
-                                     0, loss_sums, False)
+                                     len(pts) / nq, np.float32(0.5), nrm_t, CELL_PULL, *np.float32([1.0, 0.005, 0.0]),
+                                     acc, counts, 0, loss_sums, False)
         q()
         cuda.synchronize()
         e0, e1 = cuda.event(), cuda.event()

@@ -154,3 +154,44 @@ def test_bounded_slot_of_refuses_vertices_beyond_the_table_and_in_missing_bricks
     assert bounded(table, 16, 0, 16) == -1        # x beyond the table
     assert bounded(table, 8, 8, 16) == -1         # y beyond the table
     assert bounded(table, 8, 0, 24) == -1         # z beyond the table
+
+
+def _double_ops(dispatcher, *args, ops=("fmul", "fadd", "fsub", "fdiv", "sqrt")) -> dict:
+    """How many of ``ops`` act on doubles in the LLVM IR of ``dispatcher`` compiled afresh for ``args`` (a cached
+    dispatcher keeps no IR to inspect); serially, which types every expression alike and compiles in a fraction of
+    the time."""
+    import re
+
+    from numba import njit
+
+    fresh = njit(fastmath=dispatcher.targetoptions.get("fastmath", False))(dispatcher.py_func)
+    fresh(*args)
+    ir = "".join(fresh.inspect_llvm().values())
+    return {op: len(re.findall(rf"\b{op}\b[^\n]*\bdouble\b", ir)) for op in ops}
+
+
+def test_the_loss_and_step_kernels_compute_in_float32(small_band):
+    """With float32 arrays and weights the query losses and the TV + Adam step do no float64 arithmetic: a float64
+    literal promotes every expression it touches (docs/solver.md, "Float32 iteration kernels": 20 % of a query's
+    cost, 18 % of a step's). The step's loss sums for the history stay float64 (additions only)."""
+    band, pts, values = small_band
+    rng = np.random.default_rng(5)
+    q, s = _queries(pts, rng)
+    f32 = np.float32
+    v32 = values.astype(f32)
+    flags = band.flags.reshape(-1)
+    nq = len(q)
+    losses = _double_ops(kl.query_losses, v32, flags, band.brick_table, np.asarray(band.lattice.shape, np.int64),
+                         q.astype(f32), s.astype(f32), np.arange(nq), np.zeros((0, 3), f32), CELL_PULL, f32(0.8),
+                         f32(0.7), f32(0.0), np.empty((nq, 16), np.int64), np.empty((nq, 16), f32),
+                         np.empty((nq, 4), f32))
+    assert losses == dict.fromkeys(losses, 0), losses
+    for form in (ks.TV_SQUARED, ks.TV_SQRT):
+        inv = np.ones_like(v32) if form == ks.TV_SQRT else np.zeros(1, f32)
+        step = _double_ops(ks.tv_adam_step, v32.copy(), v32.copy(), np.zeros_like(v32), np.zeros_like(v32),
+                           np.zeros_like(v32), flags, band.neighbors, inv, form, f32(1e-3), f32(1e-3), f32(0.9),
+                           f32(0.999), f32(1e-8), False, ops=("fmul", "fsub", "fdiv", "sqrt"))
+        assert step == dict.fromkeys(step, 0), (form, step)
+    norms = _double_ops(ks.tv_inverse_norms, v32, flags, band.neighbors, np.zeros_like(v32),
+                        ops=("fmul", "fsub", "fdiv", "sqrt"))
+    assert norms == dict.fromkeys(norms, 0), norms

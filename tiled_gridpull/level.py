@@ -124,6 +124,12 @@ class LevelRun:
         return self.cfg.losses.udf_beta if self.udf else self.cfg.losses.beta
 
     @property
+    def loss_weights(self) -> tuple[np.float32, np.float32, np.float32]:
+        """``beta, gamma, lam`` (surface, gradient-consistency and normal weights) as the loss kernels take them:
+        float32, since a Python float would make their arithmetic float64 (slower on the CPU, and on a card)."""
+        return np.float32(self.beta), np.float32(self.gamma), np.float32(self.cfg.losses.normal_weight)
+
+    @property
     def uses_normals(self) -> bool:
         """Whether the normal loss runs: weighted, and every point with its normal."""
         return bool(self.cfg.losses.normal_weight > 0.0 and self.normals.shape[0] == self.P.shape[0])

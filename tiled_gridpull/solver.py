@@ -359,6 +359,7 @@ class CpuBackend:
         losses = np.empty((nq, 4), np.float32)
         centres = np.empty(nq, np.int64)
         q = np.empty((nq, 3), np.float32)
+        beta, gamma, lam = run.loss_weights
         t_query = t_step = 0.0
         for it in range(st.iterations):
             ta = time.perf_counter()
@@ -367,8 +368,7 @@ class CpuBackend:
             ksamp.draw_queries(P, cfg.sampling.seed, run.it0 + batch, sigma, centres, q)
             nn_idx = run.pool_nn[batch] if run.pool_nn is not None else run.nn.query(q, centres)[0]
             n_valid = kl.query_losses(d_a, flat_flags, band.brick_table, shape, q, P, nn_idx, run.normals,
-                                      CELL_PULL, run.beta, run.gamma, cfg.losses.normal_weight, slots, grads,
-                                      losses)
+                                      CELL_PULL, beta, gamma, lam, slots, grads, losses)
             if n_valid:
                 kl.scatter_add(qgrad, slots, grads, np.float32(1.0 / n_valid))
             tb = time.perf_counter()

@@ -129,7 +129,7 @@ class CudaBackend:
         cfg, iters = run.cfg, run.st.iterations
         lr_ts = np.array([run.lr_t(it)[1] for it in range(iters)], np.float32)
         args = (d_a, d_b, m, v, acc, inv, *common, pool, int(cfg.sampling.seed), int(run.it0), float(step), sigma,
-                self._normals, CELL_PULL, float(run.beta), float(run.gamma), float(cfg.losses.normal_weight),
+                self._normals, CELL_PULL, *run.loss_weights,
                 self.cuda.to_device(lr_ts), form, tv_scale, np.float32(ADAM_BETA1), np.float32(ADAM_BETA2),
                 np.float32(ADAM_EPS), run.udf, counts, loss_sums, tv_sums, int(run.history_every))
         if self.simulator:
@@ -248,8 +248,8 @@ class CudaBackend:
             want = run.records(it)
             key = np.uint64(ksamp.iteration_key(seed, run.it0 + batch))  # one kernel type for every key
             k.query_scatter[qb, qt](d_a, flags, table, nx, ny, nz, points, normals, use_normals, nearest, key, step,
-                                    sigma, self._normals, CELL_PULL, float(run.beta), float(run.gamma),
-                                    float(cfg.losses.normal_weight), acc, counts, it, loss_sums, want)
+                                    sigma, self._normals, CELL_PULL, *run.loss_weights, acc, counts, it, loss_sums,
+                                    want)
             _, lr_t = run.lr_t(it)
             if form:
                 k.tv_norms[sb, stt](d_a, flags, neighbors, inv, tv_sums, it, want)
@@ -359,7 +359,7 @@ class CudaBackend:
             key = np.uint64(ksamp.iteration_key(seed, first.it0 + batch))
             k.query_scatter_batch[qb, qt](d_a, flags, tables, dims, points, p_start, normals, n_start, use_normals,
                                           pool[batch], q_tile, q_start, key, steps, sigma, self._normals, CELL_PULL,
-                                          float(first.beta), float(first.gamma), float(cfg.losses.normal_weight), acc,
+                                          *first.loss_weights, acc,
                                           counts, it, loss_sums, want)
             _, lr_t = first.lr_t(it)
             if form:

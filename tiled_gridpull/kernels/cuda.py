@@ -55,7 +55,7 @@ _FIXED_ROOM = 9.0e18
 SUMS_DTYPE = np.int64
 SUMS_SCALE = float(1 << 20)
 _SUMS_CLIP = 1e6 * SUMS_SCALE
-_TV_EPS = 1e-8
+_TV_EPS = np.float32(1e-8)  # float32: the norms run in float32 (a float64 constant would promote them)
 _PARAM = np.uint8(1)
 
 
@@ -236,7 +236,7 @@ def _norm_item(s, d, flags, neighbors, inv, sums, t, want_sum):
         inv[s] = 0.0
         return
     r = math.sqrt(_edge_sum(s, d, flags, neighbors, inv, 2) + _TV_EPS)
-    inv[s] = 1.0 / r
+    inv[s] = np.float32(1.0) / r
     if want_sum:
         cuda.atomic.add(sums, t, _sum_fixed(r))
 
@@ -278,8 +278,9 @@ def _adam_item(s, d_in, d_out, m, v, acc, scale, flags, neighbors, inv, form, tv
     if want_sum and form == 0:
         cuda.atomic.add(sums, t, _sum_fixed(lap * d))
     g = qg + tv_scale * lap
-    mm = beta1 * m[s] + (1.0 - beta1) * g
-    vv = beta2 * v[s] + (1.0 - beta2) * g * g
+    # float32 throughout, as on the CPU (:func:`.step.tv_adam_step`)
+    mm = beta1 * m[s] + (np.float32(1.0) - beta1) * g
+    vv = beta2 * v[s] + (np.float32(1.0) - beta2) * g * g
     m[s] = mm
     v[s] = vv
     nd = d - lr_t * mm / (math.sqrt(vv) + eps)
