@@ -157,8 +157,13 @@ def test_cli_refuses_what_a_trajectory_cannot_serve(street, tmp_path, capsys):
 @pytest.mark.slow
 def test_sensor_origins_from_the_trajectory_orient_every_tile(street):
     """With the trajectory every tile orients its outside towards the sensor and none has to be flipped after
-    its solve; the surface is as close to the truth as with 'up' and its normals agree with it better
-    (measured: CD-L1 0.0983 against 0.1005 m, NC 0.923 against 0.917, one of 12 tiles flipped with 'up')."""
+    its solve, and the surface is as close to the truth as with 'up'.
+
+    "As close" is within the spread between solver seeds: measured over seeds 0-2 (2026-11-27, with the float64
+    and with the float32 query losses), sensor and 'up' differ by at most 0.0021 in NC and 0.0009 m in CD-L1,
+    either way round, while each method's NC spans 0.0026 over the seeds; sensor was below 'up' at two of the three
+    seeds with either kernel, so an exact ">=" asserted the seed, not the orientation. A tile oriented the wrong
+    way would cost far more than that (the blend then meets a sheet of the other sign)."""
     from tiled_gridpull.metrics import evaluate
 
     d, scan, laz, csv, _ = street
@@ -177,8 +182,8 @@ def test_sensor_origins_from_the_trajectory_orient_every_tile(street):
     metrics, tiles = runs["sensor"]
     assert {t["orientation"] for t in tiles} == {"sensor"} and not any(t["flipped"] for t in tiles)
     assert {t["orientation"] for t in runs["up"][1]} == {"up"}
-    assert metrics["normal_consistency"] >= runs["up"][0]["normal_consistency"]
-    assert metrics["chamfer_l1"] <= runs["up"][0]["chamfer_l1"]
+    assert metrics["normal_consistency"] >= runs["up"][0]["normal_consistency"] - 0.005
+    assert metrics["chamfer_l1"] <= runs["up"][0]["chamfer_l1"] * 1.05
 
 
 @pytest.mark.parametrize("epsg,metres_per_unit", [(32610, 1.0), (2994, 0.3048), (2227, 1200 / 3937)])
