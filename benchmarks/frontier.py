@@ -36,6 +36,9 @@ from benchmarks.common import REPO, append_jsonl, machine, markdown_table
 RESULTS = REPO / "benchmarks" / "results" / "frontier.jsonl"
 PLOT = REPO / "benchmarks" / "results" / "frontier.png"
 WIDE = "grid of streets (synthetic)"
+#: The solver's iteration arithmetic, recorded on every GridPull row: runs of one preset are pooled only with runs
+#: of the same arithmetic (rows without the field ran the float64-promoted kernels before 2026-11-27 12:00)
+KERNELS = "float32"
 
 
 def record(row: dict) -> None:
@@ -71,7 +74,7 @@ def gridpull(src: Path, out: Path, quality: str, cell: float, extra: list[str] |
     # the preset's settings as they were: repeats of one preset are only pooled while its schedule is unchanged
     return {"wall_s": row["wall_s"], "tiles": row["tiles"], "solve_task_s": row["stages_s"]["solve_task_s"],
             "peak_rss_mb": row["peak_rss_mb"], "method": "gridpull", "setting": quality, "cell": cell,
-            "preset": QUALITY_PRESETS[quality]}
+            "preset": QUALITY_PRESETS[quality], "kernels": KERNELS}
 
 
 def poisson(src: Path, out: Path, depth: int) -> dict:
@@ -244,20 +247,21 @@ def repeats(rows: list[dict]) -> str:
         if r.get("method") == "gridpull" and r.get("preset") == QUALITY_PRESETS.get(r["setting"]):
             depth = 11 if r["scene"] == WIDE else 10
             if f"x_poisson_{depth}" in r:
-                groups.setdefault((r["scene"], r["what"], depth), []).append(r)
+                groups.setdefault((r["scene"], r["what"], depth, r.get("kernels", "float64")), []).append(r)
     out = []
-    for (scene, what, depth), rs in sorted(groups.items()):
+    for (scene, what, depth, kernels), rs in sorted(groups.items()):
         if len(rs) < 2:
             continue
         score = "chamfer_l1_m" if scene == WIDE else "holdout_mean"
         ratios = [r[f"x_poisson_{depth}"] for r in rs]
-        out.append({"scene": scene, "what": what, "runs": len(rs), "depth": depth,
+        out.append({"scene": scene, "what": what, "kernels": kernels, "runs": len(rs), "depth": depth,
                     "ratios": ", ".join(f"{x:.2f}" for x in ratios), "median": statistics.median(ratios),
                     "score": statistics.median(r[score] for r in rs),
                     "score_name": "CD-L1 m" if scene == WIDE else "held-out mean"})
     if not out:
         return ""
-    return markdown_table(out, [("scene", "scene", ""), ("what", "preset @ cell", ""), ("runs", "runs", ""),
+    return markdown_table(out, [("scene", "scene", ""), ("what", "preset @ cell", ""),
+                                ("kernels", "kernel arithmetic", ""), ("runs", "runs", ""),
                                 ("depth", "beside Poisson depth", ""), ("ratios", "time / Poisson's, each run", ""),
                                 ("median", "median", ".2f"), ("score_name", "score", ""),
                                 ("score", "median score", ".4f")])

@@ -238,8 +238,14 @@ FRONTIER_NOTE = (
 )
 #: What the frontier's rows say (written from the rows of benchmarks/results/frontier.jsonl).
 FRONTIER_READING = (
-    "What it shows. The first two tables are the latest run of each scene (2026-11-27 03:39-03:42, a 2-core "
-    "machine at load 1-2); the third pools the runs of draft's current schedule (coarsest level 150 "
+    "What it shows. The first two tables are the latest run of each scene (the grid 2026-11-27 03:39-03:41, a "
+    "2-core machine at load 1-2; the airborne files 12:05-12:06, a machine shared with a code review: Poisson "
+    "depth 10 on AHN3 took 16.5 s there against 9.4 s in the two rounds before); the third pools the runs of "
+    "draft's current schedule by the solver's arithmetic. **Float32 kernels** (docs/solver.md, \"Float32 iteration "
+    "kernels\"; rounds of 12:03-12:06): AHN3 at 1.06-1.48x Poisson depth 10's time (median 1.07x against 1.16x "
+    "with the float64 kernels: still missed, by 7 %), Autzen at 2.32-4.07x (median 2.67x against 2.92x: missed); "
+    "held out 0.1340 m and 0.3878 ft, against Poisson's 0.1542 m and 0.7066 ft. The float64 rounds follow. "
+    "The pooled runs are draft's current schedule (coarsest level 150 "
     "iterations, middle 50, finest 100, a query pool of 10 batches; docs/solver.md has the measurements that "
     "chose it), each against its own run's Poisson. The latest round ran with the wall vote reading a wall's side "
     "from the normal's horizontal part (docs/solver.md, \"Steep faces\"), which changes these up-oriented "
@@ -467,6 +473,12 @@ def main() -> None:
                   "eigenvector; the bridge's columns take each ground sample's sector by comparisons instead of "
                   "`atan2`, with the same output bit for bit.", "",
                   phases_bench.table(phase_rows), ""]
+    demo_rows = [r for r in load("demo") if r.get("suite") != "machine"]
+    if demo_rows:
+        from benchmarks import demo as demo_bench
+
+        parts += ["## The demo's job (`benchmarks/demo.py`)", "", demo_bench.NOTE, "", demo_bench.render(demo_rows), "",
+                  demo_bench.READING, ""]
     attributes_file = REPO / "benchmarks" / "results" / "attributes.json"
     if attributes_file.exists():
         from benchmarks import attributes as attributes_bench
@@ -507,6 +519,13 @@ def main() -> None:
                   "streets; pyvista is not on that machine): compare the two devices' rows, not with the exact "
                   "figures elsewhere in this file. Step rows are the fused TV + Adam kernel alone on a band of "
                   "dense bricks.", "",
+                  "Every tiled row below ran a task per tile, each of the 16 workers with its own context on the "
+                  "card. Since 2026-11-27 a tiled job on a card solves its tiles in batches on one worker that holds "
+                  "the card (README, \"On a GPU\"), and the iteration kernels compute in float32 (docs/solver.md, "
+                  "\"Float32 iteration kernels\"); no card has been lent since, so neither is timed here. The next "
+                  "card session runs `python -m benchmarks.gpu env batch wide --scene-batches 16,1` first: the batch "
+                  "stage (the densest tiles alone and as one batch) and the grid of streets end to end batched and a "
+                  "task per tile, their meshes compared byte for byte.", "",
                   gpu_bench.table(gpu_rows), "",
                   "What it shows (runs 3-4): the card's field now matches the CPU's to 0.001 cells on average near "
                   "the surface (0.2 before the key fix), the card repeats its field and mesh bit for bit, and the "
