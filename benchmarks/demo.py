@@ -152,8 +152,9 @@ def main() -> None:
         # one job first, untimed: numba's cache is warm for every round (a fresh clone compiles once, ~30 s)
         for name, src in sources:
             run_job(src, work, work / f"warm_{name.replace(' ', '_')}.ply", a.seeds[0])
-        for seed in a.seeds:
-            for name, src in sources:
+        for r, seed in enumerate(a.seeds):
+            # in turn which goes first: a machine warming or cooling over a round favours neither
+            for name, src in (sources if r % 2 == 0 else sources[::-1]):
                 out = work / f"{name.replace(' ', '_')}_{seed}.ply"
                 row = run_job(src, work, out, seed)
                 row.update(seed=seed, **scores(out, work))
@@ -171,7 +172,7 @@ def main() -> None:
     rows = []
     for name, rs in runs.items():
         med = {k: statistics.median(r[k] for r in rs) for k in rs[0]
-               if isinstance(rs[0][k], (int, float)) and k != "seed"}
+               if k != "seed" and all(isinstance(r.get(k), (int, float)) for r in rs)}
         ratio = statistics.median(r["job_s"] / p["wall_s"] for r, p in zip(rs, poisson))
         row = {"date": date, "source": name, "seeds": [r["seed"] for r in rs], "poisson_s": p_med,
                "x_poisson": ratio, **med, "job_runs_s": [round(r["job_s"], 1) for r in rs],

@@ -54,6 +54,12 @@ def setup():
     return P, band, values, normals
 
 
+def _weights(lam: float) -> tuple:
+    """beta, gamma, lam as the solver passes them (:attr:`~tiled_gridpull.level.LevelRun.loss_weights`): float32,
+    so that both sides run the float32 arithmetic production runs (Python floats would compile float64 twins)."""
+    return np.float32(1.0), np.float32(0.005), np.float32(lam)
+
+
 def _cpu_queries(P, band, values, normals, nq, seed, it, sigma, lam):
     centres = np.empty(nq, np.int64)
     q = np.empty((nq, 3), np.float32)
@@ -65,7 +71,7 @@ def _cpu_queries(P, band, values, normals, nq, seed, it, sigma, lam):
     losses = np.empty((nq, 4), np.float32)
     shape = np.asarray(band.lattice.shape, np.int64)
     n_valid = kl.query_losses(values, band.flags.reshape(-1), band.brick_table, shape, q, P, nearest,
-                              normals if lam > 0 else np.zeros((0, 3), np.float32), CELL_PULL, 1.0, 0.005, lam,
+                              normals if lam > 0 else np.zeros((0, 3), np.float32), CELL_PULL, *_weights(lam),
                               slots, grads, losses)
     qgrad = np.zeros(band.n_slots, np.float32)
     kl.scatter_add(qgrad, slots, grads, np.float32(1.0 / n_valid))
@@ -81,7 +87,7 @@ def _gpu_queries(P, band, values, normals, nearest, seed, it, sigma, lam, grid):
     K.query_scatter[grid](cuda.to_device(values), cuda.to_device(band.flags.reshape(-1)),
                           cuda.to_device(band.brick_table), nx, ny, nz, cuda.to_device(P),
                           cuda.to_device(normals), lam > 0, cuda.to_device(nearest), ksamp.iteration_key(seed, it),
-                          len(P) / nq, np.float32(sigma), cuda.to_device(ksamp.NORMALS), CELL_PULL, 1.0, 0.005, lam,
+                          len(P) / nq, np.float32(sigma), cuda.to_device(ksamp.NORMALS), CELL_PULL, *_weights(lam),
                           acc, counts, 0, sums, True)
     return acc.copy_to_host(), int(counts.copy_to_host()[0]), sums.copy_to_host()[0] / K.SUMS_SCALE
 
@@ -271,7 +277,7 @@ def test_the_fixed_point_sums_cannot_wrap(setup):
     grads = np.empty((nq, 16), np.float32)
     losses = np.empty((nq, 4), np.float32)
     n_valid = kl.query_losses(flat, band.flags.reshape(-1), band.brick_table, np.asarray(band.lattice.shape, np.int64),
-                              q, P, nearest, np.zeros((0, 3), np.float32), CELL_PULL, 1.0, 0.005, 0.0, slots, grads,
+                              q, P, nearest, np.zeros((0, 3), np.float32), CELL_PULL, *_weights(0.0), slots, grads,
                               losses)
     assert n_valid == nq
     old = np.clip(grads.astype(np.float64) * K.FIXED_SCALE, -K._FIXED_CLIP * K.FIXED_SCALE,
@@ -306,7 +312,7 @@ def test_the_history_sums_do_not_depend_on_the_launch(setup):
         key = np.uint64(ksamp.iteration_key(1, 0))
         K.query_scatter[grid](d, flags, cuda.to_device(band.brick_table), nx, ny, nz, cuda.to_device(P),
                               cuda.to_device(normals), True, cuda.to_device(nearest), key, len(P) / 300,
-                              np.float32(0.8), cuda.to_device(ksamp.NORMALS), CELL_PULL, 1.0, 0.005, 0.5,
+                              np.float32(0.8), cuda.to_device(ksamp.NORMALS), CELL_PULL, *_weights(0.5),
                               cuda.to_device(np.zeros(n, np.int64)), cuda.to_device(np.zeros(1, np.int32)), 0, sums,
                               True)
         tv = cuda.to_device(np.zeros(1, dtype))

@@ -49,7 +49,7 @@ KERNELS: dict[str, tuple[tuple, float]] = {
     "graph.vertex_components": ((_I64, _c(_I64, 2)), 0.6),
     "interp.sample_field": ((_F, _TABLE, _c(_I64, 1), _c(_F32, 2), _F32), 2.0),
     "losses.query_losses": ((_F, _c(_U8, 1), _TABLE, _c(_I64, 1), _c(_F32, 2), _c(_F32, 2), _c(_I32, 1),
-                             _c(_F32, 2), _I64, _F64, _F64, _F64, _c(_I64, 2), _c(_F32, 2), _c(_F32, 2)), 6.9),
+                             _c(_F32, 2), _I64, _F32, _F32, _F32, _c(_I64, 2), _c(_F32, 2), _c(_F32, 2)), 6.9),
     "losses.scatter_add": ((_F, _c(_I64, 2), _c(_F32, 2), _F32), 0.1),
     "mc.count_triangles": ((_F, _c(_U8, 1), _TABLE, _c(_I32, 2), _c(_I64, 1), _c(_I64, 1), _F32), 3.1),
     "mc.emit_triangles": ((_F, _c(_U8, 1), _TABLE, _c(_I32, 2), _c(_I64, 1), _c(_I64, 1), _F32, _c(_I64, 2),
