@@ -238,13 +238,15 @@ FRONTIER_NOTE = (
 )
 #: What the frontier's rows say (written from the rows of benchmarks/results/frontier.jsonl).
 FRONTIER_READING = (
-    "What it shows. The first two tables are the latest run of each scene (the grid 2026-11-27 03:39-03:41, a "
-    "2-core machine at load 1-2; the airborne files 12:05-12:06, a machine shared with a code review: Poisson "
-    "depth 10 on AHN3 took 16.5 s there against 9.4 s in the two rounds before); the third pools the runs of "
-    "draft's current schedule by the solver's arithmetic. **Float32 kernels** (docs/solver.md, \"Float32 iteration "
-    "kernels\"; rounds of 12:03-12:06): AHN3 at 1.06-1.48x Poisson depth 10's time (median 1.07x against 1.16x "
-    "with the float64 kernels: still missed, by 7 %), Autzen at 2.32-4.07x (median 2.67x against 2.92x: missed); "
-    "held out 0.1340 m and 0.3878 ft, against Poisson's 0.1542 m and 0.7066 ft. The float64 rounds follow. "
+    "What it shows. The first two tables are the latest run of each scene (the grid 2026-11-27 12:29-12:30, the "
+    "airborne files 12:05-12:06, a machine shared with a code review: Poisson depth 10 on AHN3 took 16.5 s there "
+    "against 9.4 s in the two rounds before); the third pools the runs of draft's current schedule by the solver's "
+    "arithmetic (a single run is not pooled). **Float32 kernels** (docs/solver.md, \"Float32 iteration kernels\"; "
+    "rounds of 12:03-12:06 and 12:29): the grid of streets at 0.68x Poisson depth 11's time (28.8 s against 42.2 s; "
+    "one run), CD-L1 0.0483 m and F@0.1 0.875 (the float64 rounds: 0.84-0.93x, 0.0487-0.0489 m, 0.873-0.874); AHN3 "
+    "at 1.06-1.48x Poisson depth 10's time (median 1.07x against 1.16x with the float64 kernels: still missed, by "
+    "7 %), Autzen at 2.32-4.07x (median 2.67x against 2.92x: missed); held out 0.1340 m and 0.3878 ft, against "
+    "Poisson's 0.1542 m and 0.7066 ft. The float64 rounds follow. "
     "The pooled runs are draft's current schedule (coarsest level 150 "
     "iterations, middle 50, finest 100, a query pool of 10 batches; docs/solver.md has the measurements that "
     "chose it), each against its own run's Poisson. The latest round ran with the wall vote reading a wall's side "
