@@ -35,7 +35,6 @@ import hashlib
 import json
 import os
 import stat
-import time
 import zipfile
 from pathlib import Path
 
@@ -49,7 +48,7 @@ from .io.atomic import json_default, write_json
 from .io.outputs import load_json_file
 from .io.remote import is_url, validators
 from .jobdir import JobPaths, spill_record
-from .memory import peak_rss_mb, reset_peak_rss
+from .memory import reset_peak_rss
 from .partition import attribute_record
 from .stitch import mesh_tile
 from .tile_plan import TileSpec, plan_tiles
@@ -340,7 +339,7 @@ def solve_batch_resumable(specs: list[TileSpec], tiling: TilingConfig, solver: S
     for spec, path, key in zip(specs, prepared_paths, keys, strict=True):
         try:
             prepared.append(PreparedTile.load(path, spec, key))
-        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
+        except _DAMAGED:
             p = prepare_tile(spec, tiling, solver, centre)
             if p.status is None:
                 p.save(path, key)  # for the tile's finish
@@ -354,9 +353,7 @@ def solve_batch_resumable(specs: list[TileSpec], tiling: TilingConfig, solver: S
             _unlink(prepared_path)
             outs.append(_close_solve(p.summary, key, summary_path, field_path))
             continue
-        now = time.perf_counter()
-        save_solved_field(solved_path, fld, {"summary": p.summary, "elapsed_s": now - p.t0, "key": key,
-                                             "peak_rss_mb": max(peak_rss_mb(), p.peak_before_mb)})
+        save_solved_field(solved_path, fld, {**p.account(), "key": key})
         outs.append(tile_summary(p.spec, status="unfinished"))
     return outs
 
@@ -376,18 +373,19 @@ def finish_tile_resumable(spec: TileSpec, tiling: TilingConfig, solver: SolverCo
         fld, state = load_solved_field(solved_path, p.local)
         if state.get("key") != key:
             raise ValueError(f"{solved_path} was solved with other settings")
-    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
+    except _DAMAGED as exc:
         _unlink(prepared_path)
         _unlink(solved_path)
         return tile_summary(spec, status="lost", reason=str(exc)[:300])
-    # the batch's account of the tile: its summary and time so far, and the larger memory peak
-    now = time.perf_counter()
-    p.summary, p.t0, p.mark = state["summary"], now - float(state["elapsed_s"]), now
-    p.peak_before_mb = max(p.peak_before_mb, float(state["peak_rss_mb"]))
+    p.take_account(state)  # the batch's account of the tile: its summary and time so far, the larger peak
     out = _close_solve(finish_prepared(p, fld, tiling, field_path), key, summary_path, field_path)
     _unlink(prepared_path)  # once recorded: a worker that dies before this point leaves a finish to run again
     _unlink(solved_path)
     return out
+
+
+#: What reading a prepared or batch-solved tile's file raises when it is missing, cut short or damaged.
+_DAMAGED = (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile)
 
 
 def _unlink(path: str | Path | None) -> None:

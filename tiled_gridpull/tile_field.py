@@ -3,13 +3,12 @@
 from __future__ import annotations
 
 import hashlib
-import json
 from pathlib import Path
 
 import numpy as np
 
 from .blend import TileField
-from .io.atomic import atomic_path
+from .io.atomic import atomic_path, npz_document, save_npz
 from .tile_plan import TileSpec
 
 __all__ = ["field_checksum", "save_tile_field", "load_tile_field", "save_solved_field", "load_solved_field"]
@@ -51,15 +50,10 @@ def save_solved_field(path: str | Path, fld, state: dict) -> None:
     fld : :class:`~tiled_gridpull.field.Field`
         On the tile's local lattice; its ``info`` must be JSON (NumPy scalars become numbers).
     """
-    from .io.atomic import json_default
-
     band = fld.band
-    meta = {"m1": band.m1, "m2": band.m2, "signed": fld.signed, "info": fld.info, "stats": band.stats,
-            "state": state}
-    with atomic_path(path) as tmp:
-        with open(tmp, "wb") as fh:
-            np.savez(fh, brick_coords=band.brick_coords, flags=band.flags, values=fld.values,
-                     meta=np.frombuffer(json.dumps(meta, default=json_default).encode(), np.uint8))
+    save_npz(path, {"brick_coords": band.brick_coords, "flags": band.flags, "values": fld.values},
+             meta={"m1": band.m1, "m2": band.m2, "signed": fld.signed, "info": fld.info, "stats": band.stats,
+                   "state": state})
 
 
 def load_solved_field(path: str | Path, lattice):
@@ -82,7 +76,7 @@ def load_solved_field(path: str | Path, lattice):
     with np.load(path) as z:
         coords = np.ascontiguousarray(z["brick_coords"])
         flags, values = np.ascontiguousarray(z["flags"]), np.ascontiguousarray(z["values"])
-        meta = json.loads(z["meta"].tobytes().decode())
+        meta = npz_document(z, "meta")
     bshape = tuple(int(v) for v in -(-np.asarray(lattice.shape) // BRICK))
     table = dense_brick_table(bshape, coords)
     band = Band(lattice, int(meta["m1"]), int(meta["m2"]), coords, table, brick_neighbors(coords, table), flags,

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -13,7 +12,7 @@ from .bridge import BridgeRule, bridge_field
 from .cloud import duplicate_mask
 from .config import SolverConfig
 from .errors import ConfigError, GridPullError
-from .io.atomic import atomic_path, json_default
+from .io.atomic import npz_document, save_npz
 from .kernels import BRICK
 from .lattice import Lattice
 from .memory import peak_rss_mb, reset_peak_rss
@@ -202,6 +201,19 @@ class PreparedTile:
         self.summary["time_s"] = time.perf_counter() - self.t0
         self.summary["peak_rss_mb"] = max(peak_rss_mb(), self.peak_before_mb)
 
+    def account(self) -> dict:
+        """The tile's account so far, for the process that goes on with it (:meth:`take_account`): its summary,
+        the time it has taken and the memory peak of the processes it went through."""
+        return {"summary": self.summary, "elapsed_s": time.perf_counter() - self.t0,
+                "peak_rss_mb": max(peak_rss_mb(), self.peak_before_mb)}
+
+    def take_account(self, state: dict) -> None:
+        """Go on from an :meth:`account` another process wrote: its summary, its time (the wait between the two
+        processes is not the tile's) and the larger memory peak."""
+        now = time.perf_counter()
+        self.summary, self.t0, self.mark = state["summary"], now - float(state["elapsed_s"]), now
+        self.peak_before_mb = max(self.peak_before_mb, float(state["peak_rss_mb"]))
+
     def save(self, path: str | Path, key: str | None = None) -> None:
         """Write a tile awaiting its solve (``status`` None) to ``path`` (``.npz``, atomically), for
         :meth:`load` in another process: a job on a card prepares its tiles on CPU workers and solves them in
@@ -209,14 +221,8 @@ class PreparedTile:
         :mod:`tiled_gridpull.resume`)."""
         if self.status is not None:
             raise ValueError(f"tile {self.spec.name} is {self.status}: only a tile awaiting its solve is saved")
-        now = time.perf_counter()
-        state = {"summary": self.summary, "rule": self.rule, "elapsed_s": now - self.t0,
-                 "peak_rss_mb": max(peak_rss_mb(), self.peak_before_mb), "key": key}
         arrays = {name: getattr(self, name) for name in _PREPARED_ARRAYS if getattr(self, name) is not None}
-        with atomic_path(path) as tmp:
-            with open(tmp, "wb") as fh:
-                np.savez(fh, state=np.frombuffer(json.dumps(state, default=json_default).encode(), np.uint8),
-                         **arrays)
+        save_npz(path, arrays, state={**self.account(), "rule": self.rule, "key": key})
 
     @classmethod
     def load(cls, path: str | Path, spec: TileSpec, key: str | None = None) -> PreparedTile:
@@ -230,15 +236,15 @@ class PreparedTile:
             ``path`` missing, damaged, or written for another tile or key.
         """
         with np.load(path) as z:
-            state = json.loads(z["state"].tobytes().decode())
+            state = npz_document(z, "state")
             arrays = {name: z[name] for name in _PREPARED_ARRAYS if name in z.files}
         if state["summary"].get("tile") != spec.name:
             raise ValueError(f"{path} holds tile {state['summary'].get('tile')!r}, not {spec.name!r}")
         if key is not None and state.get("key") != key:
             raise ValueError(f"{path} was prepared with other settings (solve key {state.get('key')!r})")
         now = time.perf_counter()
-        p = cls(spec, state["summary"], now - float(state["elapsed_s"]), now, rule=state["rule"],
-                peak_before_mb=float(state["peak_rss_mb"]), **arrays)
+        p = cls(spec, state["summary"], now, now, rule=state["rule"], **arrays)
+        p.take_account(state)
         p.local = _local_lattice(spec)
         return p
 

@@ -104,6 +104,27 @@ def dump_json(fh: IO, data: dict) -> None:
     fh.write("\n")
 
 
+def save_npz(target: str | os.PathLike, arrays: dict, **documents: dict) -> None:
+    """Write ``arrays`` atomically as ``.npz``, with each of ``documents`` as JSON in a uint8 array of its name
+    (read back by :func:`npz_document`): a file another process picks up whole, arrays and their account."""
+    import json
+
+    import numpy as np
+
+    docs = {name: np.frombuffer(json.dumps(doc, default=json_default).encode(), np.uint8)
+            for name, doc in documents.items()}
+    with atomic_path(target) as tmp:
+        with open(tmp, "wb") as fh:
+            np.savez(fh, **arrays, **docs)
+
+
+def npz_document(z, name: str) -> dict:
+    """The JSON document :func:`save_npz` stored as ``name`` in the open ``.npz`` ``z``."""
+    import json
+
+    return json.loads(z[name].tobytes().decode())
+
+
 def json_default(obj):
     """``json.dump``'s ``default``: NumPy scalars and arrays, and paths, as plain JSON values (shared by the
     job files written here and the content keys of :mod:`tiled_gridpull.resume`)."""
