@@ -62,6 +62,7 @@ def plan_job(inputs: list[str], tiling: TilingConfig, solver: SolverConfig, work
     counts = np.array([s.block_points for s in specs], dtype=np.int64)
     read = int(sum(s.n_points for s in specs))
     cores = os.cpu_count() or 1
+    # workers 0 (this process, a tile at a time on every core): estimated as that many one-thread workers
     n_workers = workers or max(1, min(cores, len(specs)))
     cpu_s = float(sum(e["time_s"] for e in est))
     wall_s = job_wall_time(est, int(scan["points"]), n_workers)
@@ -99,7 +100,8 @@ def plan_job(inputs: list[str], tiling: TilingConfig, solver: SolverConfig, work
                   "overlap_points": read - int(scan["points"]) if len(counts) else 0},
         "memory": {"peak_bytes": peak["peak"] if peak else 0.0, "peak_tile": peak["tile"] if peak else None,
                    "median_bytes": float(np.median([e["peak"] for e in est])) if est else 0.0},
-        "time": {"cpu_seconds": cpu_s, "workers": n_workers, "cores": cores, "wall_seconds": wall_s},
+        "time": {"cpu_seconds": cpu_s, "workers": n_workers, "cores": cores, "wall_seconds": wall_s,
+                 "in_process": workers == 0},
         "estimates": est, "noise_treatment": noise, "presets": preset_times,
     }
 
@@ -151,8 +153,10 @@ def format_plan(info: dict, max_memory: int | None = None) -> str:
         f"{t['below_min_points']} tile(s) below min_points)",
         f"memory:   peak per worker about {format_size(m['peak_bytes'])} (largest tile, {m['peak_tile']}); "
         f"median tile {format_size(m['median_bytes'])} (estimates are upper bounds)",
-        f"time:     roughly {_duration(tm['wall_seconds'])} with {tm['workers']} one-thread worker(s) "
-        f"({_duration(tm['cpu_seconds'])} of solving on one core), at rates measured on a 2-core Intel Xeon "
+        f"time:     roughly {_duration(tm['wall_seconds'])} "
+        + ("in this process (--workers 0: a tile at a time, on every core) " if tm.get("in_process") else
+           f"with {tm['workers']} one-thread worker(s) ")
+        + f"({_duration(tm['cpu_seconds'])} of solving on one core), at rates measured on a 2-core Intel Xeon "
         f"(2026-11-24) with nothing else running: a loaded or slower machine takes longer",
     ]
     noise = info.get("noise_treatment")

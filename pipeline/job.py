@@ -38,8 +38,8 @@ from tiled_gridpull.jobdir import JobPaths, neighbors_of
 from tiled_gridpull.mesh import Mesh
 from tiled_gridpull.tile_plan import TileSpec
 from tiled_gridpull.tile_solve import tile_summary
-from tiled_gridpull.tiled_job import (TileEvent, batch_arguments, finish_step, mesh_step, prepare_step, run_tiled_job,
-                                      solve_batch_step, solve_step, task_arguments)
+from tiled_gridpull.tiled_job import (SerialExecutor, TileEvent, batch_arguments, finish_step, mesh_step, prepare_step,
+                                      run_tiled_job, solve_batch_step, solve_step, task_arguments)
 from tiled_gridpull.tiling import TilingConfig
 
 log = logging.getLogger("tiled_gridpull")
@@ -67,9 +67,13 @@ class JobOptions:
     Attributes
     ----------
     workers : int, optional
-        Worker processes of the local cluster (default: one per core, capped by the number of tiles).
+        Worker processes of the local cluster (default: one per core, capped by the number of tiles); 0: no
+        cluster, the tiles one after the other in this process, each kernel on every core
+        (:class:`~tiled_gridpull.tiled_job.SerialExecutor`): a job of a few tiles skips the cluster's start, but a
+        tile that runs out of memory or crashes stops the whole job, and ``retries`` do not apply.
     scheduler : str, optional
-        Address of an existing Dask scheduler (``tcp://host:8786``); overrides ``workers``.
+        Address of an existing Dask scheduler (``tcp://host:8786``); overrides a ``workers`` count (0, which asks
+        for no cluster at all, is refused beside it).
     retries : int
         Times a task is retried after a failure (e.g. its worker died).
     fail_fast : bool
@@ -449,9 +453,19 @@ def mesh_task(spec: TileSpec, own: dict, neighbor_specs: list, neighbor_summarie
 
 def run_job(inputs: list[str], output: str | Path, tiling: TilingConfig, solver: SolverConfig, work_dir: str | Path,
             options: JobOptions = JobOptions(), *, frames=None, trajectory: str | Path | None = None) -> Mesh:
-    """Tiled reconstruction on Dask (:func:`tiled_gridpull.tiled_job.run_tiled_job` with a :class:`DaskExecutor`);
-    writes ``output`` and its sidecar, returns the welded mesh."""
-    return run_tiled_job(inputs, output, tiling, solver, work_dir, DaskExecutor(options, solver.device), frames=frames,
+    """Tiled reconstruction on Dask (:func:`tiled_gridpull.tiled_job.run_tiled_job` with a :class:`DaskExecutor`),
+    or in this process with ``options.workers`` 0; writes ``output`` and its sidecar, returns the welded mesh.
+
+    Raises
+    ------
+    ConfigError
+        ``options.workers`` 0 (this process) together with ``options.scheduler`` (a cluster).
+    """
+    if options.workers == 0 and options.scheduler:
+        raise ConfigError("workers 0 runs the tiles in this process and scheduler on a Dask cluster: give one")
+    # workers 0: no cluster to start (its processes, imports and kernel loads: about 2.5 CPU-s of a 2-core job)
+    executor = SerialExecutor() if options.workers == 0 else DaskExecutor(options, solver.device)
+    return run_tiled_job(inputs, output, tiling, solver, work_dir, executor, frames=frames,
                          trajectory=trajectory,
                          float32=options.float32, tile_meshes=options.tile_meshes, fail_fast=options.fail_fast,
                          max_memory=options.max_memory, progress=options.progress, tiles3d=options.tiles3d,
