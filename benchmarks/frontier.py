@@ -9,7 +9,8 @@ Scenes:
   scored by the held-out points' mean distance to each mesh (file units).
 
 Every GridPull run is ``tiled-gridpull reconstruct --config configs/scene.yaml --quality Q --voxel-size C`` on the
-default local Dask cluster (2 workers); Poisson is :mod:`benchmarks.poisson_scene` (read, normals, Poisson, 5 %
+default local Dask cluster (2 workers), or with ``--workers 0`` in the command's own process (rows "in process");
+Poisson is :mod:`benchmarks.poisson_scene` (read, normals, Poisson, 5 %
 density trim, write) in its own process. Results append to ``benchmarks/results/frontier.jsonl``; each row
 carries the run's id, so times are compared with the Poisson rows of the same run. ``report`` draws the plot
 (``benchmarks/results/frontier.png``); ``python benchmarks/report.py`` puts it and the table in BENCHMARKS.md.
@@ -18,6 +19,7 @@ Usage::
 
     python -m benchmarks.frontier wide --runs draft@0.3 draft@0.5 standard@0.3 [--depths 9 10 11]
     python -m benchmarks.frontier airborne --runs draft standard [--depths 9 10 11]   # the files' own cells
+    python -m benchmarks.frontier airborne --runs draft --depths 10 --workers 2 0   # each run on both engines
     python -m benchmarks.frontier tile        # a 1,000-point tile, each preset, in this process (no Dask)
     python -m benchmarks.frontier report
 """
@@ -39,6 +41,17 @@ WIDE = "grid of streets (synthetic)"
 #: The solver's iteration arithmetic, recorded on every GridPull row: runs of one preset are pooled only with runs
 #: of the same arithmetic (rows without the field ran the float64-promoted kernels before 2026-11-27 12:00)
 KERNELS = "float32"
+#: How the job ran, recorded on every GridPull row (``--workers N``); repeats are pooled per engine. Rows without
+#: the field ran on the default local cluster of 2 workers; three rounds of 2026-11-27 13:43-13:50 ran a trial,
+#: left out, that started the cluster while the inputs were read ("local cluster, started while the inputs are read")
+LOCAL_CLUSTER = "local cluster"
+
+
+def engine_of(workers: int) -> str:
+    """The engine label of a run with ``--workers workers``."""
+    if workers == 0:
+        return "in process (--workers 0)"
+    return LOCAL_CLUSTER if workers == 2 else f"local cluster of {workers} workers"
 
 
 def record(row: dict) -> None:
@@ -64,17 +77,20 @@ def cell_of(cell: float | str | None, own: float) -> float:
     return own * float(cell[1:]) if isinstance(cell, str) else cell
 
 
-def gridpull(src: Path, out: Path, quality: str, cell: float, extra: list[str] | None = None) -> dict:
+def gridpull(src: Path, out: Path, quality: str, cell: float, extra: list[str] | None = None,
+             workers: int = 2) -> dict:
+    """One GridPull job; ``workers`` 0: in the command's process, no cluster (``--workers 0``)."""
     from benchmarks.scenes import reconstruct
 
-    row = reconstruct(src, out, 2, ["--config", str(REPO / "configs" / "scene.yaml"), "--quality", quality,
+    row = reconstruct(src, out, workers, ["--config", str(REPO / "configs" / "scene.yaml"), "--quality", quality,
                                     "--voxel-size", str(cell), *(extra or [])])
     from tiled_gridpull.config import QUALITY_PRESETS
 
     # the preset's settings as they were: repeats of one preset are only pooled while its schedule is unchanged
     return {"wall_s": row["wall_s"], "tiles": row["tiles"], "solve_task_s": row["stages_s"]["solve_task_s"],
             "peak_rss_mb": row["peak_rss_mb"], "method": "gridpull", "setting": quality, "cell": cell,
-            "preset": QUALITY_PRESETS[quality], "kernels": KERNELS}
+            "preset": QUALITY_PRESETS[quality], "kernels": KERNELS, "workers": workers,
+            "engine": engine_of(workers)}
 
 
 def poisson(src: Path, out: Path, depth: int) -> dict:
@@ -86,7 +102,7 @@ def poisson(src: Path, out: Path, depth: int) -> dict:
 
 
 def wide(work: Path, runs: list[tuple[str, float | None]], depths: list[int], run_id: str,
-         sample_dir: Path | None = None) -> None:
+         sample_dir: Path | None = None, engines: tuple[int, ...] = (2,)) -> None:
     """``sample_dir``: a grid written earlier by ``tiled-gridpull sample street --points 1000000 --layout grid
     --origin 500000 4000000 100`` (the same seeded scene; street.laz and street_gt.ply are read)."""
     from benchmarks.scenes import evaluate
@@ -108,14 +124,15 @@ def wide(work: Path, runs: list[tuple[str, float | None]], depths: list[int], ru
         record({**base, "date": time.strftime("%Y-%m-%d %H:%M"), **row})
     for quality, cell in runs:
         cell = cell_of(cell, 0.1)
-        out = work / f"{quality}_{cell:g}.ply"
-        row = gridpull(src, out, quality, cell)
-        row.update(evaluate(out, gt, src))
-        record({**base, "date": time.strftime("%Y-%m-%d %H:%M"), **row})
+        for workers in engines:
+            out = work / f"{quality}_{cell:g}_{workers}.ply"
+            row = gridpull(src, out, quality, cell, workers=workers)
+            row.update(evaluate(out, gt, src))
+            record({**base, "date": time.strftime("%Y-%m-%d %H:%M"), **row})
 
 
 def airborne(work: Path, runs: list[tuple[str, float | None]], depths: list[int], run_id: str,
-             fraction: float = 0.1) -> None:
+             fraction: float = 0.1, engines: tuple[int, ...] = (2,)) -> None:
     import numpy as np
 
     from benchmarks.scenes import holdout_scores, shared_lidar_files
@@ -136,11 +153,13 @@ def airborne(work: Path, runs: list[tuple[str, float | None]], depths: list[int]
             record({**base, "date": time.strftime("%Y-%m-%d %H:%M"), **row})
         for quality, cell in runs:
             cell = cell_of(cell, own_cell)
-            out = work / f"{src.stem}_{quality}_{cell:g}.ply"
-            # tiles of the benchmarks' usual size in the file's units (scenes.py holdout)
-            row = gridpull(train, out, quality, cell, ["--tile-size", str(256 * cell), "--overlap", str(32 * cell)])
-            row.update(holdout_scores(out, test, kept, own_cell))
-            record({**base, "date": time.strftime("%Y-%m-%d %H:%M"), **row})
+            for workers in engines:
+                out = work / f"{src.stem}_{quality}_{cell:g}_{workers}.ply"
+                # tiles of the benchmarks' usual size in the file's units (scenes.py holdout)
+                row = gridpull(train, out, quality, cell, ["--tile-size", str(256 * cell), "--overlap",
+                                                           str(32 * cell)], workers=workers)
+                row.update(holdout_scores(out, test, kept, own_cell))
+                record({**base, "date": time.strftime("%Y-%m-%d %H:%M"), **row})
 
 
 def small_tile(work: Path, run_id: str, n_points: int = 1000, repeats: int = 3) -> None:
@@ -196,7 +215,8 @@ def _with_ratios(rows: list[dict]) -> list[dict]:
         same = {p["depth"]: p["wall_s"] for p in rows if p.get("method") == "poisson" and p["run"] == r["run"]
                 and p["scene"] == r["scene"]}
         extra = {f"x_poisson_{d}": r["wall_s"] / same[d] for d in (10, 11) if d in same}
-        out.append({**r, **extra, "what": r["setting"] + (f" @ {r['cell']:g}" if r.get("cell") else "")})
+        out.append({**r, **extra, "what": r["setting"] + (f" @ {r['cell']:g}" if r.get("cell") else "")
+                    + (" in process" if r.get("workers") == 0 else "")})
     return out
 
 
@@ -247,21 +267,24 @@ def repeats(rows: list[dict]) -> str:
         if r.get("method") == "gridpull" and r.get("preset") == QUALITY_PRESETS.get(r["setting"]):
             depth = 11 if r["scene"] == WIDE else 10
             if f"x_poisson_{depth}" in r:
-                groups.setdefault((r["scene"], r["what"], depth, r.get("kernels", "float64")), []).append(r)
+                key = (r["scene"], r["what"], depth, r.get("kernels", "float64"), r.get("engine", LOCAL_CLUSTER))
+                groups.setdefault(key, []).append(r)
     out = []
-    for (scene, what, depth, kernels), rs in sorted(groups.items()):
+    for (scene, what, depth, kernels, engine), rs in sorted(groups.items()):
         if len(rs) < 2:
             continue
         score = "chamfer_l1_m" if scene == WIDE else "holdout_mean"
         ratios = [r[f"x_poisson_{depth}"] for r in rs]
-        out.append({"scene": scene, "what": what, "kernels": kernels, "runs": len(rs), "depth": depth,
+        out.append({"scene": scene, "what": what, "kernels": kernels, "engine": engine, "runs": len(rs),
+                    "depth": depth,
                     "ratios": ", ".join(f"{x:.2f}" for x in ratios), "median": statistics.median(ratios),
                     "score": statistics.median(r[score] for r in rs),
                     "score_name": "CD-L1 m" if scene == WIDE else "held-out mean"})
     if not out:
         return ""
     return markdown_table(out, [("scene", "scene", ""), ("what", "preset @ cell", ""),
-                                ("kernels", "kernel arithmetic", ""), ("runs", "runs", ""),
+                                ("kernels", "kernel arithmetic", ""), ("engine", "engine", ""),
+                                ("runs", "runs", ""),
                                 ("depth", "beside Poisson depth", ""), ("ratios", "time / Poisson's, each run", ""),
                                 ("median", "median", ".2f"), ("score_name", "score", ""),
                                 ("score", "median score", ".4f")])
@@ -291,17 +314,24 @@ def plot(rows: list[dict], path: Path = PLOT) -> Path | None:
     axes = [axes] if len(panels) == 1 else list(axes)
     style = {"poisson": ("k", "s"), "draft": ("tab:orange", "o"), "standard": ("tab:blue", "^"),
              "fine": ("tab:green", "D")}
+
+    def series(r: dict) -> str:
+        if r["method"] == "poisson":
+            return "poisson"
+        return r["setting"] + (" in process" if r.get("workers") == 0 else "")
+
     for ax, (scene, key, label) in zip(axes, panels):
         mine = [r for r in rows if r["scene"] == scene and r.get(key) is not None]
-        for what in ("poisson", "draft", "standard", "fine"):
-            pts = sorted([r for r in mine if (r["method"] == "poisson") == (what == "poisson")
-                          and (what == "poisson" or r["setting"] == what)], key=lambda r: r["wall_s"])
+        for what in ("poisson", "draft", "draft in process", "standard", "standard in process", "fine",
+                     "fine in process"):
+            pts = sorted([r for r in mine if series(r) == what], key=lambda r: r["wall_s"])
             if not pts:
                 continue
-            colour, marker = style[what]
+            colour, marker = style[what.split()[0]]
             ax.plot([r["wall_s"] for r in pts], [r[key] for r in pts], color=colour, marker=marker,
-                    linestyle="-" if what == "poisson" else ":", label="Poisson (trimmed)" if what == "poisson"
-                    else what)
+                    linestyle="-" if what == "poisson" else "--" if what.endswith("in process") else ":",
+                    fillstyle="none" if what.endswith("in process") else "full",
+                    label="Poisson (trimmed)" if what == "poisson" else what)
             for r in pts:
                 tag = f"d{r['depth']}" if what == "poisson" else f"{r['cell']:g}"
                 ax.annotate(tag, (r["wall_s"], r[key]), textcoords="offset points", xytext=(4, 4), fontsize=7)
@@ -341,6 +371,9 @@ def main() -> None:
     ap.add_argument("--depths", type=int, nargs="+", default=[9, 10, 11], help="Poisson octree depths")
     ap.add_argument("--keep", action="store_true", help="keep the work directory (printed)")
     ap.add_argument("--sample", type=Path, help="wide: a grid of streets written before (see wide())")
+    ap.add_argument("--workers", type=int, nargs="+", default=[2],
+                    help="each GridPull run on a local cluster of this many workers; 0: in the command's process "
+                         "(--workers 0); several: each run once per engine, in the order given")
     a = ap.parse_args()
     if a.suite == "report":
         print(render(load()))
@@ -355,9 +388,9 @@ def main() -> None:
             small_tile(work, run_id)
         else:
             if a.suite == "wide":
-                wide(work, runs, a.depths, run_id, a.sample)
+                wide(work, runs, a.depths, run_id, a.sample, tuple(a.workers))
             else:
-                airborne(work, runs, a.depths, run_id)
+                airborne(work, runs, a.depths, run_id, engines=tuple(a.workers))
     finally:
         if a.keep:
             print(f"work directory: {work}")
