@@ -252,7 +252,7 @@ FRONTIER_READING = (
     "file's cell the time target is missed, by 7-11 %, while the accuracy target holds; AHN3 at 0.75 m and 1 m "
     "took 0.51-0.64x and 0.40-0.46x but held out 0.187 and 0.245 m, worse than Poisson's 0.154, so there the "
     "file's own cell in process is the trade that meets both. Three more rounds (14:56-14:59) timed Poisson's "
-    "whole process beside draft in process: Autzen at 4 ft took 1.05-1.09x Poisson's script time and 0.83-0.90x "
+    "whole process beside draft in process: Autzen at 4 ft took 1.05-1.11x Poisson's script time and 0.83-0.90x "
     "its whole process (held out 0.582 ft, 0.82x Poisson's), at its own 2 ft 1.82-1.95x the whole process; AHN3 "
     "at 0.5 m 0.77-0.92x the whole process. "
     "**The engine** (2026-11-27 13:43-14:07, six rounds, draft run "
