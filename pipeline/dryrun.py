@@ -151,7 +151,8 @@ def format_plan(info: dict, max_memory: int | None = None) -> str:
         f"points per tile: min {t['points_min']:,}, median {t['points_median']:,.0f}, max {t['points_max']:,} "
         f"({t['overlap_points']:,} copies in overlaps{' and halos' if lat.get('halo_cells') else ''}; "
         f"{t['below_min_points']} tile(s) below min_points)",
-        f"memory:   peak per worker about {format_size(m['peak_bytes'])} (largest tile, {m['peak_tile']}); "
+        f"memory:   peak per {'tile' if tm.get('in_process') else 'worker'} about {format_size(m['peak_bytes'])} "
+        f"(largest tile, {m['peak_tile']}); "
         f"median tile {format_size(m['median_bytes'])} (estimates are upper bounds)",
         f"time:     roughly {_duration(tm['wall_seconds'])} "
         + ("in this process (--workers 0: a tile at a time, on every core) " if tm.get("in_process") else

@@ -58,3 +58,17 @@ def test_workers_0_beside_a_scheduler_is_refused_through_the_api_too(tmp_path, p
         run_job([str(patch_laz)], out, TilingConfig(voxel_size=0.2, tile_size=6.4, overlap=2.0), SolverConfig(),
                 tmp_path / "o.job", JobOptions(workers=0, scheduler="tcp://127.0.0.1:9", progress=False))
     assert not out.exists() and not (tmp_path / "o.job").exists()
+
+
+def test_the_dry_run_of_workers_0_says_the_tiles_run_in_this_process(tmp_path, patch_laz, capsys):
+    out = tmp_path / "o.ply"
+    assert main(["reconstruct", str(patch_laz), "-o", str(out), *SMALL, "--workers", "0", "--dry-run"]) == 0
+    text = capsys.readouterr().out
+    time_line = next(ln for ln in text.splitlines() if ln.startswith("time:"))
+    memory_line = next(ln for ln in text.splitlines() if ln.startswith("memory:"))
+    assert "in this process (--workers 0" in time_line and "one-thread worker" not in time_line
+    assert "peak per tile" in memory_line
+    assert main(["reconstruct", str(patch_laz), "-o", str(out), *SMALL, "--dry-run"]) == 0
+    text = capsys.readouterr().out
+    assert "one-thread worker(s)" in text and "peak per worker" in text and "in this process" not in text
+    assert not out.exists() and not out.with_suffix(".job").exists()
