@@ -218,15 +218,19 @@ def _with_ratios(rows: list[dict]) -> list[dict]:
     for r in rows:
         if r.get("scene") == "machine":
             continue
-        same = {p["depth"]: p["wall_s"] for p in rows if p.get("method") == "poisson" and p["run"] == r["run"]
-                and p["scene"] == r["scene"]}
-        extra = {f"x_poisson_{d}": r["wall_s"] / same[d] for d in (10, 11) if d in same}
-        whole = {p["depth"]: p["process_s"] for p in rows if p.get("method") == "poisson" and p["run"] == r["run"]
-                 and p["scene"] == r["scene"] and p.get("process_s")}
-        extra.update({f"xp_poisson_{d}": r["wall_s"] / whole[d] for d in (10, 11) if d in whole})
+        peers = {p["depth"]: p for p in rows if p.get("method") == "poisson" and p["run"] == r["run"]
+                 and p["scene"] == r["scene"]}
+        extra = {f"x_poisson_{d}": r["wall_s"] / peers[d]["wall_s"] for d in (10, 11) if d in peers}
+        extra.update({f"xp_poisson_{d}": r["wall_s"] / peers[d]["process_s"] for d in (10, 11)
+                      if peers.get(d, {}).get("process_s")})
         out.append({**r, **extra, "what": r["setting"] + (f" @ {r['cell']:g}" if r.get("cell") else "")
-                    + (" in process" if r.get("workers") == 0 else "")})
+                    + _engine_tag(r)})
     return out
+
+
+def _engine_tag(r: dict) -> str:
+    """What a row's label adds for its engine: " in process" for a ``--workers 0`` run, else nothing."""
+    return " in process" if r.get("workers") == 0 else ""
 
 
 def render(rows: list[dict]) -> str:
@@ -333,7 +337,7 @@ def plot(rows: list[dict], path: Path = PLOT) -> Path | None:
     def series(r: dict) -> str:
         if r["method"] == "poisson":
             return "poisson"
-        return r["setting"] + (" in process" if r.get("workers") == 0 else "")
+        return r["setting"] + _engine_tag(r)
 
     for ax, (scene, key, label) in zip(axes, panels):
         mine = [r for r in rows if r["scene"] == scene and r.get(key) is not None]
