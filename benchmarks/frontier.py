@@ -20,6 +20,7 @@ Usage::
     python -m benchmarks.frontier wide --runs draft@0.3 draft@0.5 standard@0.3 [--depths 9 10 11]
     python -m benchmarks.frontier airborne --runs draft standard [--depths 9 10 11]   # the files' own cells
     python -m benchmarks.frontier airborne --runs draft --depths 10 --workers 2 0   # each run on both engines
+    python -m benchmarks.frontier airborne --runs draft draft@auto floor --depths 10 --workers 0
     python -m benchmarks.frontier tile        # a 1,000-point tile, each preset, in this process (no Dask)
     python -m benchmarks.frontier report
 """
@@ -45,6 +46,9 @@ KERNELS = "float32"
 #: the field ran on the default local cluster of 2 workers; three rounds of 2026-11-27 13:43-13:50 ran a trial,
 #: left out, that started the cluster while the inputs were read ("local cluster, started while the inputs are read")
 LOCAL_CLUSTER = "local cluster"
+#: Run ``floor``: the draft preset with one iteration per level, what a job costs at a cell whatever its schedule
+#: (reading, the noise scan, each tile's normals, level set-up and bridging, meshing, the merge and the report)
+FLOOR = {"coarse_iterations": 1, "middle_iterations": 1, "iterations": 1}
 
 
 def engine_of(workers: int) -> str:
@@ -62,35 +66,51 @@ def record(row: dict) -> None:
 
 
 def parse_run(text: str) -> tuple[str, float | str | None]:
-    """``draft@0.3`` -> ("draft", 0.3); ``draft@x2`` -> ("draft", "x2"): twice the scene's own cell; ``draft``
-    -> ("draft", None): the scene's own cell."""
+    """``draft@0.3`` -> ("draft", 0.3); ``draft@x2`` -> ("draft", "x2"): twice the scene's own cell;
+    ``draft@auto`` -> ("draft", "auto"): the cell ``--voxel-size auto`` chooses under the preset; ``draft`` ->
+    ("draft", None): the scene's own cell. ``floor`` (:data:`FLOOR`) takes the same cells."""
     quality, _, cell = text.partition("@")
-    if quality not in ("draft", "standard", "fine"):
-        raise SystemExit(f"--runs: quality must be draft, standard or fine, got {quality!r}")
-    return quality, (cell if cell.startswith("x") else float(cell)) if cell else None
+    if quality not in ("draft", "standard", "fine", "floor"):
+        raise SystemExit(f"--runs: quality must be draft, standard, fine or floor, got {quality!r}")
+    return quality, (cell if cell.startswith("x") or cell == "auto" else float(cell)) if cell else None
 
 
-def cell_of(cell: float | str | None, own: float) -> float:
-    """A run's cell: its own number, a multiple of the scene's cell (``x2``), or the scene's cell."""
+def cell_of(cell: float | str | None, own: float) -> float | str:
+    """A run's cell: its own number, a multiple of the scene's cell (``x2``), ``auto``, or the scene's cell."""
     if cell is None:
         return own
+    if cell == "auto":
+        return cell
     return own * float(cell[1:]) if isinstance(cell, str) else cell
 
 
-def gridpull(src: Path, out: Path, quality: str, cell: float, extra: list[str] | None = None,
-             workers: int = 2) -> dict:
-    """One GridPull job; ``workers`` 0: in the command's process, no cluster (``--workers 0``)."""
-    from benchmarks.scenes import reconstruct
-
-    row = reconstruct(src, out, workers, ["--config", str(REPO / "configs" / "scene.yaml"), "--quality", quality,
-                                    "--voxel-size", str(cell), *(extra or [])])
+def preset_of(setting: str) -> dict:
+    """The settings a run of ``setting`` (a preset, or ``floor``) applies, as recorded on its rows."""
     from tiled_gridpull.config import QUALITY_PRESETS
 
+    return {**QUALITY_PRESETS["draft"], **FLOOR} if setting == "floor" else QUALITY_PRESETS[setting]
+
+
+def gridpull(src: Path, out: Path, quality: str, cell: float | str, extra: list[str] | None = None,
+             workers: int = 2) -> dict:
+    """One GridPull job; ``workers`` 0: in the command's process, no cluster (``--workers 0``); ``cell``
+    ``auto``: the cell and tiles the CLI derives (recorded as ``cell``, with ``cell_auto``)."""
+    from benchmarks.scenes import reconstruct
+
+    sets = [a for k, v in FLOOR.items() for a in ("--set", f"{k}={v}")] if quality == "floor" else []
+    preset = "draft" if quality == "floor" else quality
+    row = reconstruct(src, out, workers, ["--config", str(REPO / "configs" / "scene.yaml"), "--quality", preset,
+                                    "--voxel-size", str(cell), *sets, *(extra or [])])
+    auto = cell == "auto"
+    if auto:
+        import json
+
+        cell = json.loads(out.with_suffix(".json").read_text())["tiling"]["voxel_size"]
     # the preset's settings as they were: repeats of one preset are only pooled while its schedule is unchanged
     return {"wall_s": row["wall_s"], "tiles": row["tiles"], "solve_task_s": row["stages_s"]["solve_task_s"],
             "peak_rss_mb": row["peak_rss_mb"], "method": "gridpull", "setting": quality, "cell": cell,
-            "preset": QUALITY_PRESETS[quality], "kernels": KERNELS, "workers": workers,
-            "engine": engine_of(workers)}
+            **({"cell_auto": True} if auto else {}), "preset": preset_of(quality), "kernels": KERNELS,
+            "workers": workers, "engine": engine_of(workers)}
 
 
 def poisson(src: Path, out: Path, depth: int) -> dict:
@@ -129,7 +149,7 @@ def wide(work: Path, runs: list[tuple[str, float | None]], depths: list[int], ru
     for quality, cell in runs:
         cell = cell_of(cell, 0.1)
         for workers in engines:
-            out = work / f"{quality}_{cell:g}_{workers}.ply"
+            out = work / f"{quality}_{cell}_{workers}.ply"
             row = gridpull(src, out, quality, cell, workers=workers)
             row.update(evaluate(out, gt, src))
             record({**base, "date": time.strftime("%Y-%m-%d %H:%M"), **row})
@@ -158,10 +178,11 @@ def airborne(work: Path, runs: list[tuple[str, float | None]], depths: list[int]
         for quality, cell in runs:
             cell = cell_of(cell, own_cell)
             for workers in engines:
-                out = work / f"{src.stem}_{quality}_{cell:g}_{workers}.ply"
-                # tiles of the benchmarks' usual size in the file's units (scenes.py holdout)
-                row = gridpull(train, out, quality, cell, ["--tile-size", str(256 * cell), "--overlap",
-                                                           str(32 * cell)], workers=workers)
+                out = work / f"{src.stem}_{quality}_{cell}_{workers}.ply"
+                # tiles of the benchmarks' usual size in the file's units (scenes.py holdout); an auto cell's
+                # tiles are the CLI's, 256 and 32 cells as well
+                tiles = [] if cell == "auto" else ["--tile-size", str(256 * cell), "--overlap", str(32 * cell)]
+                row = gridpull(train, out, quality, cell, tiles, workers=workers)
                 row.update(holdout_scores(out, test, kept, own_cell))
                 record({**base, "date": time.strftime("%Y-%m-%d %H:%M"), **row})
 
@@ -224,7 +245,7 @@ def _with_ratios(rows: list[dict]) -> list[dict]:
         extra.update({f"xp_poisson_{d}": r["wall_s"] / peers[d]["process_s"] for d in (10, 11)
                       if peers.get(d, {}).get("process_s")})
         out.append({**r, **extra, "what": r["setting"] + (f" @ {r['cell']:g}" if r.get("cell") else "")
-                    + _engine_tag(r)})
+                    + (" (auto)" if r.get("cell_auto") else "") + _engine_tag(r)})
     return out
 
 
@@ -269,16 +290,14 @@ def render(rows: list[dict]) -> str:
 
 
 def repeats(rows: list[dict]) -> str:
-    """The runs of each preset at today's settings (``preset`` as in :data:`QUALITY_PRESETS`) against the Poisson
-    depth of its target (11 for the synthetic scene, 10 for the real files), each beside its own run's Poisson:
-    the time ratios, their median and the median score. Empty where no preset ran at least twice."""
+    """The runs of each preset (and ``floor``) at today's settings (``preset`` as :func:`preset_of` gives) against
+    the Poisson depth of its target (11 for the synthetic scene, 10 for the real files), each beside its own run's
+    Poisson: the time ratios, their median and the median score. Empty where no preset ran at least twice."""
     import statistics
-
-    from tiled_gridpull.config import QUALITY_PRESETS
 
     groups: dict[tuple, list[dict]] = {}
     for r in rows:
-        if r.get("method") == "gridpull" and r.get("preset") == QUALITY_PRESETS.get(r["setting"]):
+        if r.get("method") == "gridpull" and r.get("preset") == preset_of(r["setting"]):
             depth = 11 if r["scene"] == WIDE else 10
             if f"x_poisson_{depth}" in r:
                 key = (r["scene"], r["what"], depth, r.get("kernels", "float64"), r.get("engine", LOCAL_CLUSTER))
