@@ -73,7 +73,8 @@ def _atan2_fit_columns():
     src = inspect.getsource(kb.fit_columns.py_func).split("\n", 1)[1]  # without the decorator
     src = src.replace("s = sector_of(nb[t, 0], nb[t, 1])",
                       "s = int((math.atan2(nb[t, 1], nb[t, 0]) + math.pi) / (2.0 * math.pi) * SECTORS) % SECTORS")
-    scope = {"math": math, "np": np, "prange": __import__("numba").prange, "SECTORS": kb.SECTORS}
+    scope = {"math": math, "np": np, "prange": __import__("numba").prange, "SECTORS": kb.SECTORS,
+             "MAX_REFITS": kb.MAX_REFITS, "_weighted_plane": kb._weighted_plane}
     exec(compile(src, "<fit_columns with atan2>", "exec"), scope)  # noqa: S102 - our own kernel's source
     return njit(parallel=True)(scope["fit_columns"])
 
@@ -93,7 +94,8 @@ def bridge_inputs(points: np.ndarray, cell: float = 0.1, n: int = 320) -> tuple:
     cols = np.stack([ii.ravel(), jj.ravel()], axis=1).astype(np.float64)
     max_gap = int(math.floor(rule.max_gap_deg / (360.0 / kb.SECTORS)))
     return (rep, float(rule.pixel), cols, float(rule.radius), float(rule.skip), max_gap, float(rule.rms_tol),
-            float(rule.step_tol), float(rule.max_slope), np.full((nx, ny, 2), np.nan), 2.0)
+            float(rule.step_tol), float(rule.max_slope), np.full((nx, ny, 2), np.nan), 2.0, float(rule.object_tol),
+            float(rule.ground_share))
 
 
 def run(repeat: int) -> list[dict]:

@@ -26,7 +26,8 @@ def _fit(rep, cols, **kw):
     a = {**ARGS, **kw}
     return fit_columns(rep, PIXEL, np.asarray(cols, np.float64), a["radius"], a["skip"], a["max_gap"],
                        a["rms_tol"], a["step_tol"], a["max_slope"],
-                       a.get("sensor", np.full((*rep.shape[:2], 2), np.nan)), a.get("far_cos", 2.0))
+                       a.get("sensor", np.full((*rep.shape[:2], 2), np.nan)), a.get("far_cos", 2.0),
+                       a.get("object_tol", 0.0), a.get("ground_share", 0.5))
 
 
 def test_bin_ground_means_the_lowest_layer_of_each_bin():
@@ -74,6 +75,76 @@ def test_densely_sampled_columns_are_left_to_the_solved_field():
     dense = [(y, flat) for y in np.arange(2.0, 60.0, 2.0)]
     assert np.isnan(_fit(_reps(dense), [(40.0, 21.0)], skip=4.0)).all()
     assert np.isfinite(_fit(_reps(dense), [(40.0, 21.0)], skip=1.0)).all()
+
+
+def _with_box(rep, lo, hi, height):
+    """``rep`` with the bins whose centres lie in the box ``lo``-``hi`` (cells) replaced by samples ``height``
+    cells up (a parked car, a hedge: a bin that holds only such a thing reads its lowest layer there)."""
+    rep = rep.copy()
+    for i in range(rep.shape[0]):
+        for j in range(rep.shape[1]):
+            cx, cy = (i + 0.5) * PIXEL, (j + 0.5) * PIXEL
+            if lo[0] <= cx <= hi[0] and lo[1] <= cy <= hi[1]:
+                rep[i, j] = (cx, cy, height)
+    return rep
+
+
+def test_things_standing_on_the_ground_leave_the_plane_fit():
+    flat = lambda x, y: np.full_like(x, 5.0)  # noqa: E731
+    # scan lines 20 cells apart, a box 4 cells high on the far side of the lower line (a car beside the road)
+    rep = _with_box(_reps([(10.0, flat), (30.0, flat)]), (30.0, 2.0), (50.0, 8.0), 9.0)
+    gap = [(40.0, 20.0), (34.0, 16.0)]
+    # every sample counted (the rule before): the box lifts the plane and its residual refuses the gap
+    assert np.isnan(_fit(rep, gap)).all()
+    # the box left out: the gap is bridged on the ground's plane
+    out = _fit(rep, gap, object_tol=1.5)
+    assert np.isfinite(out).all()
+    np.testing.assert_allclose(out[:, 0], 5.0, atol=1e-9)
+    np.testing.assert_allclose(out[:, 1:], 0.0, atol=1e-9)
+    # a column whose nearest sample is the box's (on it, beside it) stays open: the ground there is not known
+    assert np.isnan(_fit(rep, [(40.0, 5.0), (40.0, 1.0)], object_tol=1.5)).all()
+    # the ground must hold most of the weight: with its share demanded at 0.99, the box refuses the gap again
+    assert np.isnan(_fit(rep, gap, object_tol=1.5, ground_share=0.99)).all()
+
+
+def test_a_column_whose_nearest_sample_stands_on_the_ground_stays_open():
+    """A box in a gap (a car between two scan lines): the ground whose nearest sample is a line's is bridged, the
+    columns nearer the box than any ground sample are not (what lies beside and under it was not seen)."""
+    flat = lambda x, y: np.full_like(x, 5.0)  # noqa: E731
+    rep = _with_box(_reps([(10.0, flat), (30.0, flat)]), (36.0, 16.0), (44.0, 24.0), 9.0)
+    assert np.isnan(_fit(rep, [(35.0, 20.0), (31.0, 20.0), (28.0, 20.0)], object_tol=1.5)).all()
+    ground = [(24.0, 20.0), (40.0, 11.0)]
+    out = _fit(rep, ground, object_tol=1.5)
+    assert np.isfinite(out).all()
+    np.testing.assert_allclose(out[:, 0], 5.0, atol=1e-9)
+    assert np.isnan(_fit(rep, ground)).all()  # the rule before: the box's samples refuse them too
+
+
+def test_ground_on_one_side_of_tall_things_does_not_surround_a_column():
+    """Ground lines on one side, a row of poles on the other: the poles leave the fit, and the ground samples
+    left lie on one side of the columns between them, which stay open (with the poles they surrounded them)."""
+    flat = lambda x, y: np.full_like(x, 5.0)  # noqa: E731
+    rep = _reps([(4.0, flat), (10.0, flat)])
+    for i in range(0, rep.shape[0], 3):
+        rep[i, 14] = (i * PIXEL + 1.0, 29.0, 25.0)
+    assert np.isnan(_fit(rep, [(40.0, 14.0), (40.0, 16.0)], object_tol=1.5)).all()
+
+
+def test_a_height_step_stays_open_with_the_objects_left_out():
+    """A kerb, a verge or a ditch: the higher level's samples leave the fit as things standing on the ground,
+    and the lower level alone does not surround a column in the gap between them (nor does the higher)."""
+    low = lambda x, y: np.full_like(x, 5.0)  # noqa: E731
+    high = lambda x, y: np.full_like(x, 8.0)  # noqa: E731
+    stepped = _reps([(4.0, low), (10.0, low), (30.0, high), (36.0, high)])
+    cols = [(40.0, 20.0), (40.0, 14.0), (40.0, 26.0)]
+    assert np.isnan(_fit(stepped, cols, object_tol=1.5)).all()
+    # a ditch: the same with the far lines 3 cells down
+    ditch = _reps([(4.0, low), (10.0, low), (30.0, lambda x, y: np.full_like(x, 2.0)),
+                   (36.0, lambda x, y: np.full_like(x, 2.0))])
+    assert np.isnan(_fit(ditch, cols, object_tol=1.5)).all()
+    # flat lines bridge alike with and without the rule
+    flat = _reps([(4.0, low), (10.0, low), (30.0, low), (36.0, low)])
+    np.testing.assert_array_equal(_fit(flat, cols, object_tol=1.5), _fit(flat, cols))
 
 
 def _weighted_plane(rep, cx, cy, radius):

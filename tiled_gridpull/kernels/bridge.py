@@ -144,8 +144,56 @@ def sector_of(dx, dy):
     return 11 - w if dy > 0.0 else w
 
 
+@njit(cache=True, inline="always")
+def _weighted_plane(nb, k, use):
+    """Weighted least-squares plane ``z = h + gx dx + gy dy`` through the samples ``nb[:k]`` with ``use`` set
+    (offsets in columns 0-1, height 2, weight 4): ``(ok, h, gx, gy)``, ``ok`` false where the system is singular.
+
+    The symmetric 3 x 3 system is solved by its cofactors: np.linalg.det and solve cost the kernel 10 s of numba
+    compilation (LAPACK bindings), most of it."""
+    a00 = 0.0
+    a01 = 0.0
+    a02 = 0.0
+    a11 = 0.0
+    a12 = 0.0
+    a22 = 0.0
+    b0 = 0.0
+    b1 = 0.0
+    b2 = 0.0
+    for t in range(k):
+        if not use[t]:
+            continue
+        w = nb[t, 4]
+        dx, dy, zz = nb[t, 0], nb[t, 1], nb[t, 2]
+        a00 += w
+        a01 += w * dx
+        a02 += w * dy
+        a11 += w * dx * dx
+        a12 += w * dx * dy
+        a22 += w * dy * dy
+        b0 += w * zz
+        b1 += w * dx * zz
+        b2 += w * dy * zz
+    c00 = a11 * a22 - a12 * a12
+    c01 = a02 * a12 - a01 * a22
+    c02 = a01 * a12 - a02 * a11
+    det = a00 * c00 + a01 * c01 + a02 * c02
+    if not abs(det) > 1e-12 * (a00 * a11 * a22 + 1e-300):
+        return False, 0.0, 0.0, 0.0
+    c11 = a00 * a22 - a02 * a02
+    c12 = a01 * a02 - a00 * a12
+    c22 = a00 * a11 - a01 * a01
+    return (True, (c00 * b0 + c01 * b1 + c02 * b2) / det, (c01 * b0 + c11 * b1 + c12 * b2) / det,
+            (c02 * b0 + c12 * b1 + c22 * b2) / det)
+
+
+#: most refits of a column's plane as samples standing on the ground leave it (:func:`fit_columns`, ``object_tol``)
+MAX_REFITS = 10
+
+
 @njit(cache=True, parallel=True)
-def fit_columns(rep, pixel, cols, radius, skip, max_gap, rms_tol, step_tol, max_slope, sensor, far_cos):
+def fit_columns(rep, pixel, cols, radius, skip, max_gap, rms_tol, step_tol, max_slope, sensor, far_cos,
+                object_tol, ground_share):
     """Bridged height of each lattice column, or NaN where it is not bridged.
 
     Parameters
@@ -177,6 +225,15 @@ def fit_columns(rep, pixel, cols, radius, skip, max_gap, rms_tol, step_tol, max_
         line of sight, the cone widened by half a bin (a sample within half a bin of the column counts). Between
         two rings the next ring is there; in the shadow of a box, a car or a wall the ground beyond is hidden for
         as long as the shadow. 1 or more: no such test.
+    object_tol : float
+        > 0: samples more than this (cells) above the fitted plane are things standing on the ground (a car, a
+        bush, a bin's lowest layer on a hedge) and leave the fit, which is redone without them (up to
+        :data:`MAX_REFITS` times); the tests after the fit (residuals, the surround, the step) then read the
+        plane's own samples, the column's nearest sample must be one of them (a column beside a car's side, or
+        on a raised verge, stays open), and they must hold at least ``ground_share`` of the fit's weight. 0:
+        every sample is ground (the rule before 2026-11-27, bit for bit).
+    ground_share : float
+        With ``object_tol`` > 0, the least share of the weight the plane's own samples must hold.
 
     Returns
     -------
@@ -279,46 +336,68 @@ def fit_columns(rep, pixel, cols, radius, skip, max_gap, rms_tol, step_tol, max_
         # across itself
         sigma = max(1.5 * math.sqrt(nearest), 0.7 * math.sqrt(farthest), pixel)
         inv = 1.0 / (sigma * sigma)
-        A = np.zeros((3, 3))
-        b = np.zeros(3)
         for t in range(k):
-            w = math.exp(-nb[t, 3] * inv)
-            nb[t, 4] = w
-            dx, dy, zz = nb[t, 0], nb[t, 1], nb[t, 2]
-            A[0, 0] += w
-            A[0, 1] += w * dx
-            A[0, 2] += w * dy
-            A[1, 1] += w * dx * dx
-            A[1, 2] += w * dx * dy
-            A[2, 2] += w * dy * dy
-            b[0] += w * zz
-            b[1] += w * dx * zz
-            b[2] += w * dy * zz
-        # the symmetric 3 x 3 system by its cofactors: np.linalg.det and solve cost this kernel 10 s of numba
-        # compilation (LAPACK bindings), most of it
-        c00 = A[1, 1] * A[2, 2] - A[1, 2] * A[1, 2]
-        c01 = A[0, 2] * A[1, 2] - A[0, 1] * A[2, 2]
-        c02 = A[0, 1] * A[1, 2] - A[0, 2] * A[1, 1]
-        det = A[0, 0] * c00 + A[0, 1] * c01 + A[0, 2] * c02
-        if not abs(det) > 1e-12 * (A[0, 0] * A[1, 1] * A[2, 2] + 1e-300):
+            nb[t, 4] = math.exp(-nb[t, 3] * inv)
+        use = np.ones(k, np.bool_)
+        ok, h, gx, gy = _weighted_plane(nb, k, use)
+        # things standing on the ground lift a plane fit over every sample (on a KITTI frame most columns 20-45 m
+        # out were refused for the residual of that fit, a median 2.3 cells): drop the samples far above it, refit
+        refits = 0
+        while ok and object_tol > 0.0 and refits < MAX_REFITS:
+            dropped = False
+            for t in range(k):
+                if use[t] and nb[t, 2] - (h + gx * nb[t, 0] + gy * nb[t, 1]) > object_tol:
+                    use[t] = False
+                    dropped = True
+            if not dropped:
+                break
+            ok, h, gx, gy = _weighted_plane(nb, k, use)
+            refits += 1
+        if not ok:
             continue
-        c11 = A[0, 0] * A[2, 2] - A[0, 2] * A[0, 2]
-        c12 = A[0, 1] * A[0, 2] - A[0, 0] * A[1, 2]
-        c22 = A[0, 0] * A[1, 1] - A[0, 1] * A[0, 1]
-        h = (c00 * b[0] + c01 * b[1] + c02 * b[2]) / det
-        gx = (c01 * b[0] + c11 * b[1] + c12 * b[2]) / det
-        gy = (c02 * b[0] + c12 * b[1] + c22 * b[2]) / det
         if gx * gx + gy * gy > max_slope * max_slope:
             continue
         ss = 0.0
         sw = 0.0
+        total = 0.0
         for t in range(k):
             w = nb[t, 4]
-            e = nb[t, 2] - (h + gx * nb[t, 0] + gy * nb[t, 1])
-            ss += w * e * e
-            sw += w
+            total += w
+            if use[t]:
+                e = nb[t, 2] - (h + gx * nb[t, 0] + gy * nb[t, 1])
+                ss += w * e * e
+                sw += w
         if not ss <= rms_tol * rms_tol * sw:
             continue
+        if object_tol > 0.0:
+            if sw < ground_share * total:
+                continue
+            # the surround and the step below read the plane's own samples; the column's nearest must be one
+            near_all = 0
+            for t in range(k):
+                if nb[t, 3] < nb[near_all, 3]:
+                    near_all = t
+            if not use[near_all]:
+                continue
+            near_d[:] = np.inf
+            near_k[:] = -1
+            for t in range(k):
+                if use[t]:
+                    s = sector_of(nb[t, 0], nb[t, 1])
+                    if nb[t, 3] < near_d[s]:
+                        near_d[s] = nb[t, 3]
+                        near_k[s] = t
+            run = 0
+            widest = 0
+            for t in range(2 * SECTORS):
+                if near_k[t % SECTORS] < 0:
+                    run += 1
+                    if run > widest:
+                        widest = run
+                else:
+                    run = 0
+            if widest > max_gap:
+                continue
         worst = 0.0
         for s in range(SECTORS):
             t = near_k[s]
