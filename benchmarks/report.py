@@ -522,7 +522,9 @@ def main() -> None:
                   "the formulation it replaced, in the same process (medians; ratio = kernel / reference, the median "
                   "of the runs' ratios). The normals kernel fuses the gather, covariance and a 3 x 3 Jacobi "
                   "eigenvector; the bridge's columns take each ground sample's sector by comparisons instead of "
-                  "`atan2`, with the same output bit for bit.", "",
+                  "`atan2`, with the same output bit for bit. The run of 2026-11-27 16:51 has the bridge's rule "
+                  "for things standing on the ground (its refits cost more columns a fit; the machine was quiet, "
+                  "the earlier run's was not: read each run's ratio).", "",
                   phases_bench.table(phase_rows), ""]
     demo_rows = [r for r in load("demo") if r.get("suite") != "machine"]
     if demo_rows:

@@ -63,18 +63,25 @@ def numpy_normals(points: np.ndarray, k: int = 16, gaps: bool = False):
 
 
 def _atan2_fit_columns():
-    """:func:`fit_columns` compiled with the ``atan2`` sector formula in place of :func:`sector_of`."""
+    """:func:`fit_columns` compiled with the ``atan2`` sector formula in place of :func:`sector_of` (in its helper
+    :func:`_sector_nearest`, where the sectors are taken)."""
     import inspect
 
     from numba import njit
 
     from tiled_gridpull.kernels import bridge as kb
 
-    src = inspect.getsource(kb.fit_columns.py_func).split("\n", 1)[1]  # without the decorator
-    src = src.replace("s = sector_of(nb[t, 0], nb[t, 1])",
-                      "s = int((math.atan2(nb[t, 1], nb[t, 0]) + math.pi) / (2.0 * math.pi) * SECTORS) % SECTORS")
     scope = {"math": math, "np": np, "prange": __import__("numba").prange, "SECTORS": kb.SECTORS,
-             "MAX_REFITS": kb.MAX_REFITS, "_weighted_plane": kb._weighted_plane}
+             "MAX_REFITS": kb.MAX_REFITS, "_weighted_plane": kb._weighted_plane,
+             "_widest_empty_run": kb._widest_empty_run}
+    helper = inspect.getsource(kb._sector_nearest.py_func).split("\n", 1)[1]  # without the decorator
+    atan2 = "s = int((math.atan2(nb[t, 1], nb[t, 0]) + math.pi) / (2.0 * math.pi) * SECTORS) % SECTORS"
+    assert "s = sector_of(nb[t, 0], nb[t, 1])" in helper
+    exec(compile(helper.replace("s = sector_of(nb[t, 0], nb[t, 1])", atan2), "<_sector_nearest with atan2>",
+                 "exec"), scope)  # noqa: S102 - our own kernel's source
+    scope["_sector_nearest"] = njit(inline="always")(scope["_sector_nearest"])
+    src = inspect.getsource(kb.fit_columns.py_func).split("\n", 1)[1]
+    assert "sector_of" not in src
     exec(compile(src, "<fit_columns with atan2>", "exec"), scope)  # noqa: S102 - our own kernel's source
     return njit(parallel=True)(scope["fit_columns"])
 

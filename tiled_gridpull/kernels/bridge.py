@@ -191,6 +191,35 @@ def _weighted_plane(nb, k, use):
 MAX_REFITS = 10
 
 
+@njit(cache=True, inline="always")
+def _sector_nearest(nb, k, use, near_d, near_k):
+    """Fill ``near_d`` / ``near_k`` (``SECTORS``,) with the squared distance and index of the nearest of the samples
+    ``nb[:k]`` with ``use`` set in each sector (inf / -1 where a sector holds none)."""
+    near_d[:] = np.inf
+    near_k[:] = -1
+    for t in range(k):
+        if use[t]:
+            s = sector_of(nb[t, 0], nb[t, 1])
+            if nb[t, 3] < near_d[s]:
+                near_d[s] = nb[t, 3]
+                near_k[s] = t
+
+
+@njit(cache=True, inline="always")
+def _widest_empty_run(near_k):
+    """The longest run of sectors holding no sample (``near_k`` -1), wrapping around."""
+    run = 0
+    widest = 0
+    for t in range(2 * SECTORS):
+        if near_k[t % SECTORS] < 0:
+            run += 1
+            if run > widest:
+                widest = run
+        else:
+            run = 0
+    return widest
+
+
 @njit(cache=True, parallel=True)
 def fit_columns(rep, pixel, cols, radius, skip, max_gap, rms_tol, step_tol, max_slope, sensor, far_cos,
                 object_tol, ground_share):
@@ -283,14 +312,10 @@ def fit_columns(rep, pixel, cols, radius, skip, max_gap, rms_tol, step_tol, max_
                     k += 1
         if k == 0:
             continue
-        near_d = np.full(SECTORS, np.inf)
-        near_k = np.full(SECTORS, -1, np.int64)
-        for t in range(k):
-            d2 = nb[t, 3]
-            s = sector_of(nb[t, 0], nb[t, 1])
-            if d2 < near_d[s]:
-                near_d[s] = d2
-                near_k[s] = t
+        near_d = np.empty(SECTORS)
+        near_k = np.empty(SECTORS, np.int64)
+        use = np.ones(k, np.bool_)
+        _sector_nearest(nb, k, use, near_d, near_k)
         # the tests below each reject on their own, so the cheap ones come first: a densely sampled column
         farthest = 0.0
         for s in range(SECTORS):
@@ -298,17 +323,7 @@ def fit_columns(rep, pixel, cols, radius, skip, max_gap, rms_tol, step_tol, max_
                 farthest = near_d[s]
         if farthest <= skip * skip:
             continue
-        # widest run of empty sectors, wrapping around
-        run = 0
-        widest = 0
-        for t in range(2 * SECTORS):
-            if near_k[t % SECTORS] < 0:
-                run += 1
-                if run > widest:
-                    widest = run
-            else:
-                run = 0
-        if widest > max_gap:
+        if _widest_empty_run(near_k) > max_gap:
             continue
         if far_cos < 1.0:
             sx = sensor[near_i, near_j, 0]
@@ -338,7 +353,6 @@ def fit_columns(rep, pixel, cols, radius, skip, max_gap, rms_tol, step_tol, max_
         inv = 1.0 / (sigma * sigma)
         for t in range(k):
             nb[t, 4] = math.exp(-nb[t, 3] * inv)
-        use = np.ones(k, np.bool_)
         ok, h, gx, gy = _weighted_plane(nb, k, use)
         # things standing on the ground lift a plane fit over every sample (on a KITTI frame most columns 20-45 m
         # out were refused for the residual of that fit, a median 2.3 cells): drop the samples far above it, refit
@@ -379,24 +393,8 @@ def fit_columns(rep, pixel, cols, radius, skip, max_gap, rms_tol, step_tol, max_
                     near_all = t
             if not use[near_all]:
                 continue
-            near_d[:] = np.inf
-            near_k[:] = -1
-            for t in range(k):
-                if use[t]:
-                    s = sector_of(nb[t, 0], nb[t, 1])
-                    if nb[t, 3] < near_d[s]:
-                        near_d[s] = nb[t, 3]
-                        near_k[s] = t
-            run = 0
-            widest = 0
-            for t in range(2 * SECTORS):
-                if near_k[t % SECTORS] < 0:
-                    run += 1
-                    if run > widest:
-                        widest = run
-                else:
-                    run = 0
-            if widest > max_gap:
+            _sector_nearest(nb, k, use, near_d, near_k)
+            if _widest_empty_run(near_k) > max_gap:
                 continue
         worst = 0.0
         for s in range(SECTORS):
