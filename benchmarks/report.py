@@ -526,6 +526,19 @@ def main() -> None:
                   "for things standing on the ground (its refits cost more columns a fit; the machine was quiet, "
                   "the earlier run's was not: read each run's ratio).", "",
                   phases_bench.table(phase_rows), ""]
+    terrain_rows = load("bridge_terrains")
+    if terrain_rows:
+        from benchmarks import bridge_terrains as terrains_bench
+
+        parts += ["## The bridge over random terrains (`benchmarks/bridge_terrains.py`)", "",
+                  "The bridge's column kernel over seeded random terrains with known heights (steps and strips "
+                  "1.6-5 cells high, slope breaks, V-shapes, each under scan lines 8-22 cells apart at a random "
+                  "angle and beside 0-3 boxes 2-8 cells high), the scene defaults, once with every ground sample "
+                  "taken for ground (the rule before 2026-11-27) and once with the things standing on the ground "
+                  "left out of each column's plane fit (`object_tol`): columns bridged more than a cell off the "
+                  "truth (wrong: a bridge across a step, a ramp) and within half a cell (right), over the middle "
+                  "48 x 48 columns of each trial. docs/solver.md, \"Things standing on the ground\", reads them.", "",
+                  terrains_bench.table(terrain_rows), ""]
     demo_rows = [r for r in load("demo") if r.get("suite") != "machine"]
     if demo_rows:
         from benchmarks import demo as demo_bench

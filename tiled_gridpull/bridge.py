@@ -81,8 +81,10 @@ class BridgeRule:
     object_tol : float
         Ground samples more than this above the local plane are things standing on the ground (a parked car, a
         bush, a hedge: a bin holding only them reads their lowest layer) and leave the plane fit, which is redone
-        without them; the column's nearest sample must then lie on the plane, and the plane's own samples must
-        surround it. 0: every sample is ground (the rule before 2026-11-27).
+        without them; the column's nearest sample must then lie on the plane, the plane's own samples must
+        surround it and lie beyond it as the sensor saw it, and the plane may not come out steeper. A level
+        between ``step_tol`` and this off the plane is a step and keeps the gap open: twice ``step_tol``, so that
+        a kerb or a verge is never taken for a thing. 0: every sample is ground (the rule before 2026-11-27).
     ground_share : float
         The least share of the plane fit's weight the samples left on the plane must hold.
     """
@@ -102,7 +104,7 @@ class BridgeRule:
     beyond_deg: float = 15.0
     sensor_max_gap_deg: float = 150.0
     sensor_rms_tol: float = 0.5
-    object_tol: float = 1.5
+    object_tol: float = 3.0
     ground_share: float = 0.5
 
 

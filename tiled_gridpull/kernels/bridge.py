@@ -189,6 +189,8 @@ def _weighted_plane(nb, k, use):
 
 #: most refits of a column's plane as samples standing on the ground leave it (:func:`fit_columns`, ``object_tol``)
 MAX_REFITS = 10
+#: how much steeper (rise over run) leaving things out may make a column's plane before the column is refused
+STEEPER = 0.02
 
 
 @njit(cache=True, inline="always")
@@ -203,6 +205,33 @@ def _sector_nearest(nb, k, use, near_d, near_k):
             if nb[t, 3] < near_d[s]:
                 near_d[s] = nb[t, 3]
                 near_k[s] = t
+
+
+@njit(cache=True, inline="always")
+def _seen_beyond(nb, k, use, sx, sy, cx, cy, pixel, slope):
+    """The shadow test: whether one of the samples ``nb[:k]`` with ``use`` set lies beyond the column ``(cx, cy)``
+    as the sensor at ``(sx, sy)`` sees it (true where that sensor is unknown, NaN).
+
+    Within the cone of half-width ``slope`` x distance along the line of sight, widened by half a bin: a bin's
+    sample lies up to that far beside the line of sight even where its ring crosses it (the last ring, a few cells
+    beyond the column), and a sample within half a bin of the column itself counts (the column lies on a ring,
+    not in a shadow)."""
+    if math.isnan(sx):
+        return True
+    ax = cx - sx
+    ay = cy - sy
+    an = math.sqrt(ax * ax + ay * ay)
+    if an == 0.0:
+        return True
+    for t in range(k):
+        if not use[t]:
+            continue
+        along = (nb[t, 0] * ax + nb[t, 1] * ay) / an
+        if along > -0.5 * pixel:
+            side = math.sqrt(max(nb[t, 3] - along * along, 0.0))
+            if side <= slope * max(along, 0.0) + 0.5 * pixel:
+                return True
+    return False
 
 
 @njit(cache=True, inline="always")
@@ -325,26 +354,9 @@ def fit_columns(rep, pixel, cols, radius, skip, max_gap, rms_tol, step_tol, max_
             continue
         if _widest_empty_run(near_k) > max_gap:
             continue
-        if far_cos < 1.0:
-            sx = sensor[near_i, near_j, 0]
-            sy = sensor[near_i, near_j, 1]
-            if not math.isnan(sx):
-                ax = cx - sx
-                ay = cy - sy
-                an = math.sqrt(ax * ax + ay * ay)
-                beyond = an == 0.0
-                # within the cone, widened by half a bin: a bin's sample lies up to that far beside the line of
-                # sight even where its ring crosses it (the last ring, a few cells beyond the column), and a sample
-                # within half a bin of the column itself counts (the column lies on a ring, not in a shadow)
-                for t in range(k):
-                    along = (nb[t, 0] * ax + nb[t, 1] * ay) / an if an > 0.0 else 0.0
-                    if along > -0.5 * pixel:
-                        side = math.sqrt(max(nb[t, 3] - along * along, 0.0))
-                        if side <= slope * max(along, 0.0) + 0.5 * pixel:
-                            beyond = True
-                            break
-                if not beyond:
-                    continue
+        if far_cos < 1.0 and not _seen_beyond(nb, k, use, sensor[near_i, near_j, 0], sensor[near_i, near_j, 1], cx,
+                                              cy, pixel, slope):
+            continue
         # weighted plane z = h + gx (x - cx) + gy (y - cy): Gaussian weights as wide as the gap, so the nearest
         # samples on every side shape the plane and far ones only steady it; at least as wide as the farthest
         # side's nearest sample, or a column on a scan line would see only its own line, which has no slope
@@ -356,19 +368,31 @@ def fit_columns(rep, pixel, cols, radius, skip, max_gap, rms_tol, step_tol, max_
         ok, h, gx, gy = _weighted_plane(nb, k, use)
         # things standing on the ground lift a plane fit over every sample (on a KITTI frame most columns 20-45 m
         # out were refused for the residual of that fit, a median 2.3 cells): drop the samples far above it, refit
+        first_slope2 = gx * gx + gy * gy
+        dropped = False
         refits = 0
-        while ok and object_tol > 0.0 and refits < MAX_REFITS:
-            dropped = False
+        while ok and object_tol > 0.0:
+            more = False
             for t in range(k):
                 if use[t] and nb[t, 2] - (h + gx * nb[t, 0] + gy * nb[t, 1]) > object_tol:
                     use[t] = False
-                    dropped = True
-            if not dropped:
+                    more = True
+            if not more:
+                break
+            dropped = True
+            refits += 1
+            if refits > MAX_REFITS:  # not settled: refuse rather than take an unsettled plane
+                ok = False
                 break
             ok, h, gx, gy = _weighted_plane(nb, k, use)
-            refits += 1
         if not ok:
             continue
+        if dropped:
+            # refuse a plane that leaving things out made steeper: a first fit tilted towards tall things can leave
+            # ground above it as well, and a ramp up to a wall's top or across a raised strip follows (taking out
+            # what stands on the ground flattens the ground's plane, it does not tilt it)
+            if math.sqrt(gx * gx + gy * gy) > math.sqrt(first_slope2) + STEEPER:
+                continue
         if gx * gx + gy * gy > max_slope * max_slope:
             continue
         ss = 0.0
@@ -383,10 +407,10 @@ def fit_columns(rep, pixel, cols, radius, skip, max_gap, rms_tol, step_tol, max_
                 sw += w
         if not ss <= rms_tol * rms_tol * sw:
             continue
-        if object_tol > 0.0:
+        if dropped:
             if sw < ground_share * total:
                 continue
-            # the surround and the step below read the plane's own samples; the column's nearest must be one
+            # the column's nearest sample must be on the plane, and the plane's own samples must surround it
             near_all = 0
             for t in range(k):
                 if nb[t, 3] < nb[near_all, 3]:
@@ -395,6 +419,11 @@ def fit_columns(rep, pixel, cols, radius, skip, max_gap, rms_tol, step_tol, max_
                 continue
             _sector_nearest(nb, k, use, near_d, near_k)
             if _widest_empty_run(near_k) > max_gap:
+                continue
+            # and the shadow test again, over the ground's samples (a hedge beyond a car's shadow is not ground
+            # beyond it)
+            if far_cos < 1.0 and not _seen_beyond(nb, k, use, sensor[near_i, near_j, 0], sensor[near_i, near_j, 1],
+                                                   cx, cy, pixel, slope):
                 continue
         worst = 0.0
         for s in range(SECTORS):
