@@ -285,11 +285,13 @@ def fit_columns(rep, pixel, cols, radius, skip, max_gap, rms_tol, step_tol, max_
         as long as the shadow. 1 or more: no such test.
     object_tol : float
         > 0: samples more than this (cells) above the fitted plane are things standing on the ground (a car, a
-        bush, a bin's lowest layer on a hedge) and leave the fit, which is redone without them (up to
-        :data:`MAX_REFITS` times); the tests after the fit (residuals, the surround, the step) then read the
-        plane's own samples, the column's nearest sample must be one of them (a column beside a car's side, or
-        on a raised verge, stays open), and they must hold at least ``ground_share`` of the fit's weight. 0:
-        every sample is ground (the rule before 2026-11-27, bit for bit).
+        bush, a bin's lowest layer on a hedge) and leave the fit, which is redone without them (a plane not
+        settled after :data:`MAX_REFITS` refits is refused). Where any left, the plane may not have come out
+        steeper (by :data:`STEEPER`), the samples left must hold at least ``ground_share`` of the fit's weight,
+        the column's nearest sample must be one of them (a column nearer a car than any ground stays open), and
+        the surround, shadow and step tests are asked again over them. It should exceed ``step_tol`` well
+        (:class:`tiled_gridpull.bridge.BridgeRule` takes twice it), or a kerb counts as a thing. 0: every sample
+        is ground (the rule before 2026-11-27, bit for bit).
     ground_share : float
         With ``object_tol`` > 0, the least share of the weight the plane's own samples must hold.
 
