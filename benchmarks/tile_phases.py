@@ -63,25 +63,17 @@ def numpy_normals(points: np.ndarray, k: int = 16, gaps: bool = False):
 
 
 def _atan2_fit_columns():
-    """:func:`fit_columns` compiled with the ``atan2`` sector formula in place of :func:`sector_of` (in its helper
-    :func:`_sector_nearest`, where the sectors are taken)."""
+    """:func:`fit_columns` compiled with the ``atan2`` sector formula in place of :func:`sector_of`."""
     import inspect
 
     from numba import njit
 
     from tiled_gridpull.kernels import bridge as kb
 
-    scope = {"math": math, "np": np, "prange": __import__("numba").prange, "SECTORS": kb.SECTORS,
-             "MAX_REFITS": kb.MAX_REFITS, "_weighted_plane": kb._weighted_plane,
-             "_widest_empty_run": kb._widest_empty_run}
-    helper = inspect.getsource(kb._sector_nearest.py_func).split("\n", 1)[1]  # without the decorator
-    atan2 = "s = int((math.atan2(nb[t, 1], nb[t, 0]) + math.pi) / (2.0 * math.pi) * SECTORS) % SECTORS"
-    assert "s = sector_of(nb[t, 0], nb[t, 1])" in helper
-    exec(compile(helper.replace("s = sector_of(nb[t, 0], nb[t, 1])", atan2), "<_sector_nearest with atan2>",
-                 "exec"), scope)  # noqa: S102 - our own kernel's source
-    scope["_sector_nearest"] = njit(inline="always")(scope["_sector_nearest"])
-    src = inspect.getsource(kb.fit_columns.py_func).split("\n", 1)[1]
-    assert "sector_of" not in src
+    src = inspect.getsource(kb.fit_columns.py_func).split("\n", 1)[1]  # without the decorator
+    src = src.replace("s = sector_of(nb[t, 0], nb[t, 1])",
+                      "s = int((math.atan2(nb[t, 1], nb[t, 0]) + math.pi) / (2.0 * math.pi) * SECTORS) % SECTORS")
+    scope = {"math": math, "np": np, "prange": __import__("numba").prange, "SECTORS": kb.SECTORS}
     exec(compile(src, "<fit_columns with atan2>", "exec"), scope)  # noqa: S102 - our own kernel's source
     return njit(parallel=True)(scope["fit_columns"])
 
@@ -101,8 +93,7 @@ def bridge_inputs(points: np.ndarray, cell: float = 0.1, n: int = 320) -> tuple:
     cols = np.stack([ii.ravel(), jj.ravel()], axis=1).astype(np.float64)
     max_gap = int(math.floor(rule.max_gap_deg / (360.0 / kb.SECTORS)))
     return (rep, float(rule.pixel), cols, float(rule.radius), float(rule.skip), max_gap, float(rule.rms_tol),
-            float(rule.step_tol), float(rule.max_slope), np.full((nx, ny, 2), np.nan), 2.0, float(rule.object_tol),
-            float(rule.ground_share))
+            float(rule.step_tol), float(rule.max_slope), np.full((nx, ny, 2), np.nan), 2.0)
 
 
 def run(repeat: int) -> list[dict]:

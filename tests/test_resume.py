@@ -143,21 +143,6 @@ def test_solve_key_follows_the_settings_a_solve_reads(tmp_path, ground):
     assert mesh_key(s, "a" * 64, [("tile_1_0_0", "c" * 64)], TILING, np.zeros(3, np.int64)) != k  # a neighbour
 
 
-def test_solve_key_names_the_bridge_rule_where_a_tile_bridges(tmp_path, ground, monkeypatch):
-    """A job directory solved under another rule for things standing on the ground is solved again; the keys of
-    jobs that do not bridge stay what they were."""
-    from tiled_gridpull import resume
-
-    _, specs, _ = prepare_job([str(ground)], TILING, JobPaths(tmp_path / "job"))
-    s = specs[0]
-    bridging = TilingConfig(voxel_size=0.2, tile_size=6.4, overlap=1.6, bridge=8)
-    plain = TilingConfig(voxel_size=0.2, tile_size=6.4, overlap=1.6, bridge=0)
-    keys = solve_key(s, bridging, SOLVER), solve_key(s, plain, SOLVER)
-    monkeypatch.setattr(resume, "_BRIDGE_OBJECTS", [1.5, 0.5])  # the first form of the rule
-    assert solve_key(s, bridging, SOLVER) != keys[0]
-    assert solve_key(s, plain, SOLVER) == keys[1]
-
-
 def test_solve_result_reused_only_while_its_field_is_intact(tmp_path, ground):
     paths = JobPaths(tmp_path / "job")
     _, specs, _ = prepare_job([str(ground)], TILING, paths)

@@ -78,15 +78,6 @@ class BridgeRule:
         ``max_gap_deg`` and ``rms_tol`` where the ``beyond_deg`` test applies: it keeps shadows open, which the
         surround test and a tight plane fit did only in part, so both may let more sampling gaps close (beside
         a shadow's edge, on gently curved ground); the step test still keeps kerbs and walls' feet open.
-    object_tol : float
-        Ground samples more than this above the local plane are things standing on the ground (a parked car, a
-        bush, a hedge: a bin holding only them reads their lowest layer) and leave the plane fit, which is redone
-        without them; the column's nearest sample must then lie on the plane, the plane's own samples must
-        surround it and lie beyond it as the sensor saw it, and the plane may not come out steeper. A level
-        between ``step_tol`` and this off the plane is a step and keeps the gap open: twice ``step_tol``, so that
-        a kerb or a verge is never taken for a thing. 0: every sample is ground (the rule before 2026-11-27).
-    ground_share : float
-        The least share of the plane fit's weight the samples left on the plane must hold.
     """
 
     radius: float = 24.0
@@ -104,8 +95,6 @@ class BridgeRule:
     beyond_deg: float = 15.0
     sensor_max_gap_deg: float = 150.0
     sensor_rms_tol: float = 0.5
-    object_tol: float = 3.0
-    ground_share: float = 0.5
 
 
 def _opened(mask: np.ndarray, width: int) -> np.ndarray:
@@ -218,8 +207,7 @@ def bridge_field(fld: Field, points: np.ndarray, rule: BridgeRule,
     else:
         seen_from, far_cos = np.full((nx, ny, 2), np.nan), 2.0
     fit = kb.fit_columns(rep, float(rule.pixel), cols, float(rule.radius), float(rule.skip), max_gap,
-                         float(rms_tol), float(rule.step_tol), float(rule.max_slope), seen_from, far_cos,
-                         float(rule.object_tol), float(rule.ground_share))
+                         float(rms_tol), float(rule.step_tol), float(rule.max_slope), seen_from, far_cos)
     mask = np.isfinite(fit[:, 0]).reshape(X, Y)
     if rule.open_width > 0:
         mask = _opened(mask, rule.open_width)

@@ -206,8 +206,6 @@ def scan_record(scan: dict) -> dict:
 
 #: the settings of the shadow test (bridging with sensor origins) that a solve's key names
 _BRIDGE_SEEN = [BridgeRule.beyond_deg, BridgeRule.sensor_max_gap_deg, BridgeRule.sensor_rms_tol]
-#: the settings of the plane fit's objects (things standing on the ground, left out since 2026-11-27)
-_BRIDGE_OBJECTS = [BridgeRule.object_tol, BridgeRule.ground_share]
 
 
 def solve_key(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig, centre=None) -> str:
@@ -225,8 +223,7 @@ def solve_key(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig, centre
                    # only when on: keys of jobs that do not bridge stay those they were
                    **({"bridge": tiling.bridge} if tiling.bridge else {}),
                    # bridges of tiles with sensor origins keep shadows open since 2026-11-26
-                   **({"bridge_seen": _BRIDGE_SEEN} if tiling.bridge and spec.has_sensor else {}),
-                   **({"bridge_objects": _BRIDGE_OBJECTS} if tiling.bridge and BridgeRule.object_tol > 0 else {})})
+                   **({"bridge_seen": _BRIDGE_SEEN} if tiling.bridge and spec.has_sensor else {})})
 
 
 def mesh_key(spec: TileSpec, field_sha: str, neighbors: list[tuple[str, str]], tiling: TilingConfig,

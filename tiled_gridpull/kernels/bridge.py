@@ -144,114 +144,8 @@ def sector_of(dx, dy):
     return 11 - w if dy > 0.0 else w
 
 
-@njit(cache=True, inline="always")
-def _weighted_plane(nb, k, use):
-    """Weighted least-squares plane ``z = h + gx dx + gy dy`` through the samples ``nb[:k]`` with ``use`` set
-    (offsets in columns 0-1, height 2, weight 4): ``(ok, h, gx, gy)``, ``ok`` false where the system is singular.
-
-    The symmetric 3 x 3 system is solved by its cofactors: np.linalg.det and solve cost the kernel 10 s of numba
-    compilation (LAPACK bindings), most of it."""
-    a00 = 0.0
-    a01 = 0.0
-    a02 = 0.0
-    a11 = 0.0
-    a12 = 0.0
-    a22 = 0.0
-    b0 = 0.0
-    b1 = 0.0
-    b2 = 0.0
-    for t in range(k):
-        if not use[t]:
-            continue
-        w = nb[t, 4]
-        dx, dy, zz = nb[t, 0], nb[t, 1], nb[t, 2]
-        a00 += w
-        a01 += w * dx
-        a02 += w * dy
-        a11 += w * dx * dx
-        a12 += w * dx * dy
-        a22 += w * dy * dy
-        b0 += w * zz
-        b1 += w * dx * zz
-        b2 += w * dy * zz
-    c00 = a11 * a22 - a12 * a12
-    c01 = a02 * a12 - a01 * a22
-    c02 = a01 * a12 - a02 * a11
-    det = a00 * c00 + a01 * c01 + a02 * c02
-    if not abs(det) > 1e-12 * (a00 * a11 * a22 + 1e-300):
-        return False, 0.0, 0.0, 0.0
-    c11 = a00 * a22 - a02 * a02
-    c12 = a01 * a02 - a00 * a12
-    c22 = a00 * a11 - a01 * a01
-    return (True, (c00 * b0 + c01 * b1 + c02 * b2) / det, (c01 * b0 + c11 * b1 + c12 * b2) / det,
-            (c02 * b0 + c12 * b1 + c22 * b2) / det)
-
-
-#: most refits of a column's plane as samples standing on the ground leave it (:func:`fit_columns`, ``object_tol``)
-MAX_REFITS = 10
-#: how much steeper (rise over run) leaving things out may make a column's plane before the column is refused
-STEEPER = 0.02
-
-
-@njit(cache=True, inline="always")
-def _sector_nearest(nb, k, use, near_d, near_k):
-    """Fill ``near_d`` / ``near_k`` (``SECTORS``,) with the squared distance and index of the nearest of the samples
-    ``nb[:k]`` with ``use`` set in each sector (inf / -1 where a sector holds none)."""
-    near_d[:] = np.inf
-    near_k[:] = -1
-    for t in range(k):
-        if use[t]:
-            s = sector_of(nb[t, 0], nb[t, 1])
-            if nb[t, 3] < near_d[s]:
-                near_d[s] = nb[t, 3]
-                near_k[s] = t
-
-
-@njit(cache=True, inline="always")
-def _seen_beyond(nb, k, use, sx, sy, cx, cy, pixel, slope):
-    """The shadow test: whether one of the samples ``nb[:k]`` with ``use`` set lies beyond the column ``(cx, cy)``
-    as the sensor at ``(sx, sy)`` sees it (true where that sensor is unknown, NaN).
-
-    Within the cone of half-width ``slope`` x distance along the line of sight, widened by half a bin: a bin's
-    sample lies up to that far beside the line of sight even where its ring crosses it (the last ring, a few cells
-    beyond the column), and a sample within half a bin of the column itself counts (the column lies on a ring,
-    not in a shadow)."""
-    if math.isnan(sx):
-        return True
-    ax = cx - sx
-    ay = cy - sy
-    an = math.sqrt(ax * ax + ay * ay)
-    if an == 0.0:
-        return True
-    for t in range(k):
-        if not use[t]:
-            continue
-        along = (nb[t, 0] * ax + nb[t, 1] * ay) / an
-        if along > -0.5 * pixel:
-            side = math.sqrt(max(nb[t, 3] - along * along, 0.0))
-            if side <= slope * max(along, 0.0) + 0.5 * pixel:
-                return True
-    return False
-
-
-@njit(cache=True, inline="always")
-def _widest_empty_run(near_k):
-    """The longest run of sectors holding no sample (``near_k`` -1), wrapping around."""
-    run = 0
-    widest = 0
-    for t in range(2 * SECTORS):
-        if near_k[t % SECTORS] < 0:
-            run += 1
-            if run > widest:
-                widest = run
-        else:
-            run = 0
-    return widest
-
-
 @njit(cache=True, parallel=True)
-def fit_columns(rep, pixel, cols, radius, skip, max_gap, rms_tol, step_tol, max_slope, sensor, far_cos,
-                object_tol, ground_share):
+def fit_columns(rep, pixel, cols, radius, skip, max_gap, rms_tol, step_tol, max_slope, sensor, far_cos):
     """Bridged height of each lattice column, or NaN where it is not bridged.
 
     Parameters
@@ -283,17 +177,6 @@ def fit_columns(rep, pixel, cols, radius, skip, max_gap, rms_tol, step_tol, max_
         line of sight, the cone widened by half a bin (a sample within half a bin of the column counts). Between
         two rings the next ring is there; in the shadow of a box, a car or a wall the ground beyond is hidden for
         as long as the shadow. 1 or more: no such test.
-    object_tol : float
-        > 0: samples more than this (cells) above the fitted plane are things standing on the ground (a car, a
-        bush, a bin's lowest layer on a hedge) and leave the fit, which is redone without them (a plane not
-        settled after :data:`MAX_REFITS` refits is refused). Where any left, the plane may not have come out
-        steeper (by :data:`STEEPER`), the samples left must hold at least ``ground_share`` of the fit's weight,
-        the column's nearest sample must be one of them (a column nearer a car than any ground stays open), and
-        the surround, shadow and step tests are asked again over them. It should exceed ``step_tol`` well
-        (:class:`tiled_gridpull.bridge.BridgeRule` takes twice it), or a kerb counts as a thing. 0: every sample
-        is ground (the rule before 2026-11-27, bit for bit).
-    ground_share : float
-        With ``object_tol`` > 0, the least share of the weight the plane's own samples must hold.
 
     Returns
     -------
@@ -343,10 +226,14 @@ def fit_columns(rep, pixel, cols, radius, skip, max_gap, rms_tol, step_tol, max_
                     k += 1
         if k == 0:
             continue
-        near_d = np.empty(SECTORS)
-        near_k = np.empty(SECTORS, np.int64)
-        use = np.ones(k, np.bool_)
-        _sector_nearest(nb, k, use, near_d, near_k)
+        near_d = np.full(SECTORS, np.inf)
+        near_k = np.full(SECTORS, -1, np.int64)
+        for t in range(k):
+            d2 = nb[t, 3]
+            s = sector_of(nb[t, 0], nb[t, 1])
+            if d2 < near_d[s]:
+                near_d[s] = d2
+                near_k[s] = t
         # the tests below each reject on their own, so the cheap ones come first: a densely sampled column
         farthest = 0.0
         for s in range(SECTORS):
@@ -354,79 +241,84 @@ def fit_columns(rep, pixel, cols, radius, skip, max_gap, rms_tol, step_tol, max_
                 farthest = near_d[s]
         if farthest <= skip * skip:
             continue
-        if _widest_empty_run(near_k) > max_gap:
+        # widest run of empty sectors, wrapping around
+        run = 0
+        widest = 0
+        for t in range(2 * SECTORS):
+            if near_k[t % SECTORS] < 0:
+                run += 1
+                if run > widest:
+                    widest = run
+            else:
+                run = 0
+        if widest > max_gap:
             continue
-        if far_cos < 1.0 and not _seen_beyond(nb, k, use, sensor[near_i, near_j, 0], sensor[near_i, near_j, 1], cx,
-                                              cy, pixel, slope):
-            continue
+        if far_cos < 1.0:
+            sx = sensor[near_i, near_j, 0]
+            sy = sensor[near_i, near_j, 1]
+            if not math.isnan(sx):
+                ax = cx - sx
+                ay = cy - sy
+                an = math.sqrt(ax * ax + ay * ay)
+                beyond = an == 0.0
+                # within the cone, widened by half a bin: a bin's sample lies up to that far beside the line of
+                # sight even where its ring crosses it (the last ring, a few cells beyond the column), and a sample
+                # within half a bin of the column itself counts (the column lies on a ring, not in a shadow)
+                for t in range(k):
+                    along = (nb[t, 0] * ax + nb[t, 1] * ay) / an if an > 0.0 else 0.0
+                    if along > -0.5 * pixel:
+                        side = math.sqrt(max(nb[t, 3] - along * along, 0.0))
+                        if side <= slope * max(along, 0.0) + 0.5 * pixel:
+                            beyond = True
+                            break
+                if not beyond:
+                    continue
         # weighted plane z = h + gx (x - cx) + gy (y - cy): Gaussian weights as wide as the gap, so the nearest
         # samples on every side shape the plane and far ones only steady it; at least as wide as the farthest
         # side's nearest sample, or a column on a scan line would see only its own line, which has no slope
         # across itself
         sigma = max(1.5 * math.sqrt(nearest), 0.7 * math.sqrt(farthest), pixel)
         inv = 1.0 / (sigma * sigma)
+        A = np.zeros((3, 3))
+        b = np.zeros(3)
         for t in range(k):
-            nb[t, 4] = math.exp(-nb[t, 3] * inv)
-        ok, h, gx, gy = _weighted_plane(nb, k, use)
-        # things standing on the ground lift a plane fit over every sample (on a KITTI frame most columns 20-45 m
-        # out were refused for the residual of that fit, a median 2.3 cells): drop the samples far above it, refit
-        first_slope2 = gx * gx + gy * gy
-        dropped = False
-        refits = 0
-        while ok and object_tol > 0.0:
-            more = False
-            for t in range(k):
-                if use[t] and nb[t, 2] - (h + gx * nb[t, 0] + gy * nb[t, 1]) > object_tol:
-                    use[t] = False
-                    more = True
-            if not more:
-                break
-            dropped = True
-            refits += 1
-            if refits > MAX_REFITS:  # not settled: refuse rather than take an unsettled plane
-                ok = False
-                break
-            ok, h, gx, gy = _weighted_plane(nb, k, use)
-        if not ok:
+            w = math.exp(-nb[t, 3] * inv)
+            nb[t, 4] = w
+            dx, dy, zz = nb[t, 0], nb[t, 1], nb[t, 2]
+            A[0, 0] += w
+            A[0, 1] += w * dx
+            A[0, 2] += w * dy
+            A[1, 1] += w * dx * dx
+            A[1, 2] += w * dx * dy
+            A[2, 2] += w * dy * dy
+            b[0] += w * zz
+            b[1] += w * dx * zz
+            b[2] += w * dy * zz
+        # the symmetric 3 x 3 system by its cofactors: np.linalg.det and solve cost this kernel 10 s of numba
+        # compilation (LAPACK bindings), most of it
+        c00 = A[1, 1] * A[2, 2] - A[1, 2] * A[1, 2]
+        c01 = A[0, 2] * A[1, 2] - A[0, 1] * A[2, 2]
+        c02 = A[0, 1] * A[1, 2] - A[0, 2] * A[1, 1]
+        det = A[0, 0] * c00 + A[0, 1] * c01 + A[0, 2] * c02
+        if not abs(det) > 1e-12 * (A[0, 0] * A[1, 1] * A[2, 2] + 1e-300):
             continue
-        if dropped:
-            # refuse a plane that leaving things out made steeper: a first fit tilted towards tall things can leave
-            # ground above it as well, and a ramp up to a wall's top or across a raised strip follows (taking out
-            # what stands on the ground flattens the ground's plane, it does not tilt it)
-            if math.sqrt(gx * gx + gy * gy) > math.sqrt(first_slope2) + STEEPER:
-                continue
+        c11 = A[0, 0] * A[2, 2] - A[0, 2] * A[0, 2]
+        c12 = A[0, 1] * A[0, 2] - A[0, 0] * A[1, 2]
+        c22 = A[0, 0] * A[1, 1] - A[0, 1] * A[0, 1]
+        h = (c00 * b[0] + c01 * b[1] + c02 * b[2]) / det
+        gx = (c01 * b[0] + c11 * b[1] + c12 * b[2]) / det
+        gy = (c02 * b[0] + c12 * b[1] + c22 * b[2]) / det
         if gx * gx + gy * gy > max_slope * max_slope:
             continue
         ss = 0.0
         sw = 0.0
-        total = 0.0
         for t in range(k):
             w = nb[t, 4]
-            total += w
-            if use[t]:
-                e = nb[t, 2] - (h + gx * nb[t, 0] + gy * nb[t, 1])
-                ss += w * e * e
-                sw += w
+            e = nb[t, 2] - (h + gx * nb[t, 0] + gy * nb[t, 1])
+            ss += w * e * e
+            sw += w
         if not ss <= rms_tol * rms_tol * sw:
             continue
-        if dropped:
-            if sw < ground_share * total:
-                continue
-            # the column's nearest sample must be on the plane, and the plane's own samples must surround it
-            near_all = 0
-            for t in range(k):
-                if nb[t, 3] < nb[near_all, 3]:
-                    near_all = t
-            if not use[near_all]:
-                continue
-            _sector_nearest(nb, k, use, near_d, near_k)
-            if _widest_empty_run(near_k) > max_gap:
-                continue
-            # and the shadow test again, over the ground's samples (a hedge beyond a car's shadow is not ground
-            # beyond it)
-            if far_cos < 1.0 and not _seen_beyond(nb, k, use, sensor[near_i, near_j, 0], sensor[near_i, near_j, 1],
-                                                   cx, cy, pixel, slope):
-                continue
         worst = 0.0
         for s in range(SECTORS):
             t = near_k[s]
