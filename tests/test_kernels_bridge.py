@@ -120,20 +120,15 @@ def test_a_tall_line_beyond_the_ground_is_not_ramped_up_to():
     assert not (np.abs(out[:, 0] - 5.0) > 0.5).any()
 
 
-def _kerb_reps(height, angle_deg, lines=(10.0, 30.0), n=40):
+def _kerb_reps(height, angle_deg, lines=(10.0, 30.0)):
     """Scan lines y = const over ground 5 cells up with a kerb ``height`` cells high crossing them at
-    ``angle_deg`` through (40, 20); the height function too."""
+    ``angle_deg`` through (40, 20), binned; the height function too."""
     a = math.radians(angle_deg)
 
     def z(x, y):
         return 5.0 + height * (((x - 40.0) * math.sin(a) - (y - 20.0) * math.cos(a)) < 0)
 
-    pts = []
-    for y in lines:
-        x = np.arange(0.0, n * PIXEL, 0.5)
-        pts.append(np.stack([x, np.full_like(x, y), z(x, np.full_like(x, y))], axis=1))
-    p = np.concatenate(pts)
-    return bin_ground(p[:, 0].copy(), p[:, 1].copy(), p[:, 2].copy(), PIXEL, n, n, 1.0), z
+    return _reps([(y, z) for y in lines]), z
 
 
 def test_a_kerb_across_the_scan_lines_is_not_bridged_as_a_ramp():
@@ -147,6 +142,7 @@ def test_a_kerb_across_the_scan_lines_is_not_bridged_as_a_ramp():
             out = _fit(rep, cols, skip=4.0)
             off = np.abs(out[:, 0] - z(cols[:, 0], cols[:, 1]))
             assert not (off > 1.0).any(), (height, angle)
+
 
 def test_a_raised_strip_between_road_lines_keeps_its_gaps_open():
     """A raised strip (a median, a terrace) between road lines, 8 and 15 cells up: the road is not bridged
