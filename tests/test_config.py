@@ -97,7 +97,8 @@ def test_settings_are_checked_before_the_input_is_read(tmp_path, capsys):
 @pytest.mark.parametrize("kw", [dict(tile_size=-1.0), dict(tile_size=0.0), dict(overlap=-0.1),
                                 dict(trim_distance=-1.0), dict(min_points=0), dict(normal_neighbors=0),
                                 dict(voxel_size=0.0), dict(voxel_size=float("inf")), dict(tile_size=True),
-                                dict(tile_size="25"), dict(voxel_size=1e-9, tile_size=25.6), dict(min_points=1 << 70)])
+                                dict(tile_size="25"), dict(voxel_size=1e-9, tile_size=25.6), dict(min_points=1 << 70),
+                                dict(bridge_objects=-1.0), dict(bridge_objects=float("nan"))])
 def test_tiling_config_refuses(kw):
     with pytest.raises(ConfigError):
         TilingConfig(**kw)

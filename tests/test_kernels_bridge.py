@@ -208,7 +208,7 @@ def test_bin_sensor_takes_the_sensor_whose_rings_lie_densest():
     sy = np.zeros(4)
     sz = np.array([18.0, 18.0, 24.0, 5.0])
     out = bin_sensor(x, y, z, sx, sy, sz, 2.0, 3, 3, 1.0)
-    assert np.allclose(out[0, 0], [10.0, 0.0])
+    assert np.allclose(out[0, 0], [10.0, 0.0, 18.0])
     assert np.isnan(out[1, 1]).all() and np.isnan(out[2, 2]).all()
 
 

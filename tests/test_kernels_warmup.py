@@ -67,8 +67,9 @@ def test_split_balances_the_compile_time():
 
 @pytest.mark.slow
 def test_a_street_job_calls_the_kernels_with_the_tables_signatures(tmp_path):
-    """A tiled street job (bridging on, so every step of a scene tile runs) calls no kernel with argument types
-    the table lacks: such a kernel would be compiled again at its first call, after the warm-up."""
+    """A tiled street job (bridging on, with sensor origins, so every step of a scene tile runs) calls no kernel
+    with argument types the table lacks: such a kernel would be compiled again at its first call, after the
+    warm-up."""
     code = f"""
         import importlib, json, pkgutil
         import numpy as np
@@ -81,11 +82,15 @@ def test_a_street_job_calls_the_kernels_with_the_tables_signatures(tmp_path):
         from tiled_gridpull.tiling import TilingConfig
 
         scene = StreetScene(seed=1, length_m=30.0, width_m=30.0, origin=(500000.0, 4000000.0, 100.0))
+        from tiled_gridpull.synthetic.lidar_files import write_las, write_trajectory
         scan = scan_street(scene, build_street(scene), 2, azimuth_steps=400, max_range=15.0)
-        np.save({str(tmp_path / "pts.npy")!r}, scan.xyz)
+        # LAS with GPS time and the scanner's trajectory: the sensor's kernels run too
+        write_las({str(tmp_path / "pts.las")!r}, scan.xyz, gps_time=100.0 + scan.frame)
+        write_trajectory({str(tmp_path / "traj.csv")!r}, 100.0 + np.arange(len(scan.poses)), scan.poses[:, :3, 3])
         tiling = TilingConfig(voxel_size=0.2, tile_size=12.8, overlap=3.2, trim_distance=3.0, bridge=12)
         solver = SolverConfig(m2=8, coarse_iterations=60, middle_iterations=30, iterations=30)
-        reconstruct_scene([{str(tmp_path / "pts.npy")!r}], None, tiling, solver, {str(tmp_path / "job")!r})
+        reconstruct_scene([{str(tmp_path / "pts.las")!r}], None, tiling, solver, {str(tmp_path / "job")!r},
+                          trajectory={str(tmp_path / "traj.csv")!r})
         called = {{}}
         for info in pkgutil.iter_modules(K.__path__):
             mod = importlib.import_module("tiled_gridpull.kernels." + info.name)

@@ -4,9 +4,9 @@
 dependents -- are in ``test_reliability.py``.)
 """
 
+import dataclasses
 import hashlib
 import json
-import dataclasses
 import os
 
 from pathlib import Path
@@ -141,6 +141,20 @@ def test_solve_key_follows_the_settings_a_solve_reads(tmp_path, ground):
     k = mesh_key(s, "a" * 64, [("tile_1_0_0", "b" * 64)], TILING, np.zeros(3, np.int64))
     assert mesh_key(s, "a" * 64, [("tile_1_0_0", "b" * 64)], up, np.zeros(3, np.int64)) != k  # trim distance
     assert mesh_key(s, "a" * 64, [("tile_1_0_0", "c" * 64)], TILING, np.zeros(3, np.int64)) != k  # a neighbour
+
+
+def test_the_rule_for_things_on_the_ground_keys_bridging_tiles_with_sensor_origins_only(tmp_path, ground):
+    """``bridge_objects`` changes what a tile with sensor origins bridges, so its solve key; a tile without them
+    (or a job that does not bridge) keeps its key whatever the setting."""
+    _, specs, _ = prepare_job([str(ground)], TILING, JobPaths(tmp_path / "job"))
+    s = specs[0]
+    bridging = TilingConfig(voxel_size=0.2, tile_size=6.4, overlap=1.6, bridge=8)
+    others = TilingConfig(voxel_size=0.2, tile_size=6.4, overlap=1.6, bridge=8, bridge_objects=0)
+    seen = dataclasses.replace(s, has_sensor=True)
+    assert solve_key(seen, bridging, SOLVER) != solve_key(seen, others, SOLVER)
+    assert solve_key(s, bridging, SOLVER) == solve_key(s, others, SOLVER)
+    off = TilingConfig(voxel_size=0.2, tile_size=6.4, overlap=1.6)
+    assert solve_key(seen, off, SOLVER) == solve_key(seen, dataclasses.replace(off, bridge_objects=0), SOLVER)
 
 
 def test_solve_result_reused_only_while_its_field_is_intact(tmp_path, ground):

@@ -33,7 +33,7 @@ from .kernels import bridge as kb
 from .kernels.band import brick_neighbors
 from .nearest import distances_to_cloud
 
-__all__ = ["BRIDGE", "BridgeRule", "bridge_field", "bridged_cells"]
+__all__ = ["BRIDGE", "BridgeRule", "bridge_columns", "bridge_field", "bridged_cells"]
 
 # Cell flag: all 8 corners of the cell hold bridged values; the trim keeps faces drawn there.
 BRIDGE = 16
@@ -78,6 +78,21 @@ class BridgeRule:
         ``max_gap_deg`` and ``rms_tol`` where the ``beyond_deg`` test applies: it keeps shadows open, which the
         surround test and a tight plane fit did only in part, so both may let more sampling gaps close (beside
         a shadow's edge, on gently curved ground); the step test still keeps kerbs and walls' feet open.
+    object_width, object_tol : float
+        With sensor origins: a ground sample more than ``object_tol`` above the ground opened over a window
+        ``object_width`` wide (:func:`~tiled_gridpull.kernels.bridge.object_bins`) stands on a thing narrower
+        than the window (a car, a bush, a hedge): it leaves the plane fits and the beyond test, which it would
+        otherwise lift, tilt and refuse. Levels wider than the window (both sides of a kerb, a terrace) stay
+        ground, so the step test still sees them. 0: no such samples.
+    object_margin : int
+        Columns within this many bins of such a thing are not bridged (where it stands is known to a bin).
+    shadow_tol, min_facing : float
+        With sensor origins: a column is not bridged where the line of sight from its sensor to the bridged
+        ground passes, within ``radius``, under the highest point of a bin by more than ``shadow_tol``, or meets
+        the plane less than ``min_facing`` times as squarely as level ground (sines) or from below
+        (:func:`~tiled_gridpull.kernels.bridge.hidden_from_sensor`): the ground there was hidden, not missed
+        between rings (below a drop-off, a plane from its edge to the low ground beyond is a ramp no sensor on
+        the high side could have seen).
     """
 
     radius: float = 24.0
@@ -95,22 +110,32 @@ class BridgeRule:
     beyond_deg: float = 15.0
     sensor_max_gap_deg: float = 150.0
     sensor_rms_tol: float = 0.5
+    object_width: float = 24.0
+    object_tol: float = 1.5
+    object_margin: int = 1
+    shadow_tol: float = 1.0
+    shadow_reach: float = 48.0
+    min_facing: float = 0.5
+
+
+def _morph(mask: np.ndarray, width: int, grow: bool) -> np.ndarray:
+    """A 2D mask dilated (``grow``) or eroded by a square of side ``2 width + 1``; outside the mask counts as set
+    when eroding (the tile's edge does not erode what a neighbour's overlap continues) and as unset when growing."""
+    out = mask
+    for _ in range(width):
+        pad = np.pad(out, 1, constant_values=not grow)
+        acc = pad[1:-1, 1:-1].copy()
+        for dx in (-1, 0, 1):
+            for dy in (-1, 0, 1):
+                view = pad[1 + dx:pad.shape[0] - 1 + dx, 1 + dy:pad.shape[1] - 1 + dy]
+                acc = (acc | view) if grow else (acc & view)
+        out = acc
+    return out
 
 
 def _opened(mask: np.ndarray, width: int) -> np.ndarray:
-    """Morphological opening of a 2D mask by a square of side ``2 width + 1`` (outside the mask counts as set,
-    so the tile's edge does not erode what a neighbour's overlap continues)."""
-    out = mask
-    for grow in (False, True):
-        for _ in range(width):
-            pad = np.pad(out, 1, constant_values=not grow)
-            acc = pad[1:-1, 1:-1].copy()
-            for dx in (-1, 0, 1):
-                for dy in (-1, 0, 1):
-                    view = pad[1 + dx:pad.shape[0] - 1 + dx, 1 + dy:pad.shape[1] - 1 + dy]
-                    acc = (acc | view) if grow else (acc & view)
-            out = acc
-    return out
+    """Morphological opening of a 2D mask by a square of side ``2 width + 1`` (outside the mask counts as set)."""
+    return _morph(_morph(mask, width, False), width, True)
 
 
 def unique_rows(rows: np.ndarray) -> np.ndarray:
@@ -162,6 +187,68 @@ def bridged_cells(fld: Field, cells: np.ndarray) -> np.ndarray:
     return out
 
 
+def bridge_columns(cells: np.ndarray, X: int, Y: int, rule: BridgeRule,
+                   sensor: np.ndarray | None = None) -> np.ndarray:
+    """Which lattice columns are bridged, at what height and slope.
+
+    Parameters
+    ----------
+    cells : (N, 3) float64
+        The tile's points in cells of its lattice (block-local coordinates).
+    X, Y : int
+        Lattice columns per axis.
+    rule : BridgeRule
+    sensor : (N, 3) float64, optional
+        Each point's sensor origin, in cells of the same lattice.
+
+    Returns
+    -------
+    (X * Y, 3) float64
+        Per column (x-major, as ``np.meshgrid(..., indexing="ij")``): the plane's height at the column (cells)
+        and its slopes dz/dx, dz/dy; NaN rows where the column is not bridged.
+    """
+    nx, ny = int(math.ceil(X / rule.pixel)), int(math.ceil(Y / rule.pixel))
+    rep = kb.bin_ground(cells[:, 0].copy(), cells[:, 1].copy(), cells[:, 2].copy(), float(rule.pixel), nx, ny,
+                        float(rule.layer))
+    ii, jj = np.meshgrid(np.arange(X), np.arange(Y), indexing="ij")
+    cols = np.stack([ii.ravel(), jj.ravel()], axis=1).astype(np.float64)
+    seen = sensor is not None and rule.beyond_deg > 0
+    max_gap = int(math.floor((rule.sensor_max_gap_deg if seen else rule.max_gap_deg) / (360.0 / kb.SECTORS)))
+    rms_tol = rule.sensor_rms_tol if seen else rule.rms_tol
+    if seen:
+        seen_from = kb.bin_sensor(cells[:, 0].copy(), cells[:, 1].copy(), cells[:, 2].copy(), sensor[:, 0].copy(),
+                                  sensor[:, 1].copy(), sensor[:, 2].copy(),
+                                  float(rule.pixel), nx, ny, float(rule.layer))
+        far_cos = math.cos(math.radians(rule.beyond_deg))
+    else:
+        seen_from, far_cos = np.full((nx, ny, 3), np.nan), 2.0
+    objects = seen and rule.object_width > 0
+    if objects:
+        # things standing on the ground leave the ground samples (a car's bin read its lowest layer half a metre to
+        # two metres above the road, and refused the plane fit of every column that reached it)
+        half = max(1, int(math.ceil(rule.object_width / (2.0 * rule.pixel))))
+        thing = kb.object_bins(np.ascontiguousarray(rep[..., 2]), half, float(rule.object_tol))
+        rep, seen_from = rep.copy(), seen_from.copy()
+        rep[thing] = np.nan
+        seen_from[thing] = np.nan
+    fit = kb.fit_columns(rep, float(rule.pixel), cols, float(rule.radius), float(rule.skip), max_gap,
+                         float(rms_tol), float(rule.step_tol), float(rule.max_slope), seen_from, far_cos)
+    if objects:
+        near = _morph(thing, rule.object_margin, True)
+        bins = np.floor(cols / rule.pixel).astype(np.int64)
+        fit[near[bins[:, 0], bins[:, 1]]] = np.nan
+    if seen:
+        top = kb.bin_top(cells[:, 0].copy(), cells[:, 1].copy(), cells[:, 2].copy(), float(rule.pixel), nx, ny)
+        hidden = kb.hidden_from_sensor(cols, fit, rep, seen_from, top, float(rule.pixel), float(rule.radius),
+                                       float(rule.shadow_reach), float(rule.shadow_tol), float(rule.min_facing))
+        fit[hidden] = np.nan
+    mask = np.isfinite(fit[:, 0]).reshape(X, Y)
+    if rule.open_width > 0:
+        mask = _opened(mask, rule.open_width)
+    fit[~mask.reshape(-1)] = np.nan
+    return fit
+
+
 def bridge_field(fld: Field, points: np.ndarray, rule: BridgeRule,
                  sensor: np.ndarray | None = None) -> tuple[Field, dict]:
     """The field with the ground's sampling gaps bridged.
@@ -190,28 +277,14 @@ def bridge_field(fld: Field, points: np.ndarray, rule: BridgeRule,
         return fld, {"bridged_columns": 0, "bridged_cells": 0}
     X, Y, Z = (int(v) for v in lat.shape)
     cells = (np.asarray(points, np.float64) - np.asarray(lat.origin, np.float64)) / lat.cell_size
-    nx, ny = int(math.ceil(X / rule.pixel)), int(math.ceil(Y / rule.pixel))
-    rep = kb.bin_ground(cells[:, 0].copy(), cells[:, 1].copy(), cells[:, 2].copy(), float(rule.pixel), nx, ny,
-                        float(rule.layer))
-    ii, jj = np.meshgrid(np.arange(X), np.arange(Y), indexing="ij")
-    cols = np.stack([ii.ravel(), jj.ravel()], axis=1).astype(np.float64)
-    seen = sensor is not None and rule.beyond_deg > 0
-    max_gap = int(math.floor((rule.sensor_max_gap_deg if seen else rule.max_gap_deg) / (360.0 / kb.SECTORS)))
-    rms_tol = rule.sensor_rms_tol if seen else rule.rms_tol
-    if seen:
+    sc = None
+    if sensor is not None:
         # one float64 column at a time: a tile's sensor origins come as float32 (N, 3)
-        sc = [(np.asarray(sensor[:, a], np.float64) - float(lat.origin[a])) / lat.cell_size for a in range(3)]
-        seen_from = kb.bin_sensor(cells[:, 0].copy(), cells[:, 1].copy(), cells[:, 2].copy(), sc[0], sc[1], sc[2],
-                                  float(rule.pixel), nx, ny, float(rule.layer))
-        far_cos = math.cos(math.radians(rule.beyond_deg))
-    else:
-        seen_from, far_cos = np.full((nx, ny, 2), np.nan), 2.0
-    fit = kb.fit_columns(rep, float(rule.pixel), cols, float(rule.radius), float(rule.skip), max_gap,
-                         float(rms_tol), float(rule.step_tol), float(rule.max_slope), seen_from, far_cos)
-    mask = np.isfinite(fit[:, 0]).reshape(X, Y)
-    if rule.open_width > 0:
-        mask = _opened(mask, rule.open_width)
-    hit = np.flatnonzero(mask.reshape(-1))
+        sc = np.stack([(np.asarray(sensor[:, a], np.float64) - float(lat.origin[a])) / lat.cell_size
+                       for a in range(3)], axis=1)
+    fit = bridge_columns(cells, X, Y, rule, sc)
+    cols = np.stack([c.ravel() for c in np.meshgrid(np.arange(X), np.arange(Y), indexing="ij")], axis=1)
+    hit = np.flatnonzero(np.isfinite(fit[:, 0]))
     if len(hit) == 0:
         return fld, {"bridged_columns": 0, "bridged_cells": 0}
     h, gx, gy = fit[hit, 0], fit[hit, 1], fit[hit, 2]

@@ -206,6 +206,10 @@ def scan_record(scan: dict) -> dict:
 
 #: the settings of the shadow test (bridging with sensor origins) that a solve's key names
 _BRIDGE_SEEN = [BridgeRule.beyond_deg, BridgeRule.sensor_max_gap_deg, BridgeRule.sensor_rms_tol]
+#: what else bridging with sensor origins reads since 2026-11-27: ground the sensor could not have seen stays
+#: open, and things standing on the ground leave the plane fits (the width is the ``bridge_objects`` setting)
+_BRIDGE_HIDDEN = [BridgeRule.shadow_tol, BridgeRule.shadow_reach, BridgeRule.min_facing, BridgeRule.object_tol,
+                  BridgeRule.object_margin]
 
 
 def solve_key(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig, centre=None) -> str:
@@ -223,7 +227,8 @@ def solve_key(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig, centre
                    # only when on: keys of jobs that do not bridge stay those they were
                    **({"bridge": tiling.bridge} if tiling.bridge else {}),
                    # bridges of tiles with sensor origins keep shadows open since 2026-11-26
-                   **({"bridge_seen": _BRIDGE_SEEN} if tiling.bridge and spec.has_sensor else {})})
+                   **({"bridge_seen": _BRIDGE_SEEN, "bridge_hidden": [tiling.bridge_objects, *_BRIDGE_HIDDEN]}
+                      if tiling.bridge and spec.has_sensor else {})})
 
 
 def mesh_key(spec: TileSpec, field_sha: str, neighbors: list[tuple[str, str]], tiling: TilingConfig,

@@ -339,7 +339,8 @@ def _finish(p: PreparedTile, fld, tiling: TilingConfig, field_path: str | Path) 
         if tiling.bridge > 0 and p.rule in ("up", "sensor"):
             # ground is bridged where outside is up; a closed object cut into tiles ("outward") has no ground
             # with sensor origins the ground in a shadow stays open (nothing lies beyond it as the sensor sees it)
-            fld, bridged = bridge_field(fld, xyz, BridgeRule(radius=tiling.bridge), p.sensor32)
+            rule = BridgeRule(radius=tiling.bridge, object_width=tiling.bridge_objects)
+            fld, bridged = bridge_field(fld, xyz, rule, p.sensor32)
             summary.update(bridged)
         p.lap("orient_and_bridge")
         off_bricks = np.asarray(spec.block.offset, np.int64) // BRICK

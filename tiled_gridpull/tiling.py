@@ -77,6 +77,11 @@ class TilingConfig:
         surround a column on one gently sloping plane (:mod:`tiled_gridpull.bridge`): gaps up to about twice
         this wide close; 0 keeps the surface to the data alone. At most the overlap, so that every tiling
         decides each column alike.
+    bridge_objects : float
+        With sensor origins (``orientation`` sensor): ground samples on things narrower than this many cells
+        standing on the ground (cars, bushes, hedges) leave the bridge's plane fits, and the ground hidden behind
+        them as the sensor saw it stays open (:class:`tiled_gridpull.bridge.BridgeRule`, ``object_width``);
+        0: every ground sample counts.
     orientation : {"auto", "sensor", "up", "outward", "sphere"}
         Which side is outside: facing the sensor (per-point sensor origins, e.g. KITTI), facing up (airborne
         LAS), facing away from the centre of the whole input (one closed, roughly star-shaped object cut into
@@ -113,6 +118,7 @@ class TilingConfig:
     min_points: int = 100
     trim_distance: float = 3.0
     bridge: float = 0.0
+    bridge_objects: float = 24.0
     orientation: str = "auto"
     normal_neighbors: int = 16
     drop_outliers: bool = False
@@ -210,6 +216,10 @@ class TilingConfig:
         object.__setattr__(self, "bridge", finite_number("bridge", self.bridge))
         if self.bridge < 0:
             raise ConfigError(f"bridge must be >= 0 (cells; 0: no bridging), got {self.bridge!r}")
+        object.__setattr__(self, "bridge_objects", finite_number("bridge_objects", self.bridge_objects))
+        if self.bridge_objects < 0:
+            raise ConfigError(f"bridge_objects must be >= 0 (cells; 0: every ground sample counts), got "
+                              f"{self.bridge_objects!r}")
         for name in ("min_points", "normal_neighbors"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1 or v >= 1 << 62:

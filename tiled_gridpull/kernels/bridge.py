@@ -96,12 +96,12 @@ def bin_sensor(x, y, z, sx, sy, sz, pixel, nx, ny, layer):
 
     Returns
     -------
-    sensor : (nx, ny, 2) float64
-        x, y of that sensor; NaN where a bin holds no point, or no sensor above its lowest layer's points.
+    sensor : (nx, ny, 3) float64
+        x, y, z of that sensor; NaN where a bin holds no point, or no sensor above its lowest layer's points.
     """
     low = _lowest(x, y, z, pixel, nx, ny)
     best = np.full((nx, ny), np.inf)
-    sensor = np.full((nx, ny, 2), np.nan)
+    sensor = np.full((nx, ny, 3), np.nan)
     for n in range(x.shape[0]):
         i = int(math.floor(x[n] / pixel))
         j = int(math.floor(y[n] / pixel))
@@ -115,7 +115,174 @@ def bin_sensor(x, y, z, sx, sy, sz, pixel, nx, ny, layer):
                     best[i, j] = s
                     sensor[i, j, 0] = sx[n]
                     sensor[i, j, 1] = sy[n]
+                    sensor[i, j, 2] = sz[n]
     return sensor
+
+
+@njit(cache=True)
+def bin_top(x, y, z, pixel, nx, ny):
+    """(nx, ny) float64: the highest z of the points in each ``pixel``-wide bin; -inf where a bin holds none."""
+    top = np.full((nx, ny), -np.inf)
+    for n in range(x.shape[0]):
+        i = int(math.floor(x[n] / pixel))
+        j = int(math.floor(y[n] / pixel))
+        if 0 <= i < nx and 0 <= j < ny and z[n] > top[i, j]:
+            top[i, j] = z[n]
+    return top
+
+
+@njit(cache=True)
+def _window_extreme(a, half, axis, lowest):
+    """The least (``lowest``) or greatest value of ``a`` (nx, ny) within ``half`` bins along ``axis``."""
+    nx, ny = a.shape
+    out = np.empty_like(a)
+    for i in range(nx):
+        for j in range(ny):
+            best = a[i, j]
+            for d in range(-half, half + 1):
+                u, v = (i + d, j) if axis == 0 else (i, j + d)
+                if 0 <= u < nx and 0 <= v < ny:
+                    w = a[u, v]
+                    if (w < best) if lowest else (w > best):
+                        best = w
+            out[i, j] = best
+    return out
+
+
+@njit(cache=True)
+def object_bins(ground, half, tol):
+    """Bins whose ground sample stands on something narrower than the window: a car, a bush, a hedge, a pole.
+
+    The samples' heights are opened (the least height within ``half`` bins, then the greatest of those within
+    ``half`` bins; a square window, bins without a sample and beyond the raster left out: a thing is found where
+    the windows over it hold ground samples too). Opening keeps any plane and any level wider
+    than the window (a road, a raised pavement, both sides of a kerb or a terrace) where it is, and lowers
+    whatever is narrower to the ground around it: a sample more than ``tol`` above its opened height stands on
+    a thing, not on the ground. Each bin is decided by the samples within ``2 half`` bins of it.
+
+    Parameters
+    ----------
+    ground : (nx, ny) float64
+        Each bin's ground sample height (:func:`bin_ground`'s z, cells); NaN where a bin holds none.
+    half : int
+        Half-width of the window in bins (a thing up to ``2 half`` bins wide is found).
+    tol : float
+        Height above the opened ground (cells) that makes an object.
+
+    Returns
+    -------
+    (nx, ny) bool
+    """
+    nx, ny = ground.shape
+    # windows may reach past the raster (samples there unknown): a window over the raster's corner then holds the
+    # corner's own samples, and a plane rising towards a corner keeps its height there
+    low = np.full((nx + 2 * half, ny + 2 * half), np.inf)
+    for i in range(nx):
+        for j in range(ny):
+            if not math.isnan(ground[i, j]):
+                low[i + half, j + half] = ground[i, j]
+    eroded = _window_extreme(_window_extreme(low, half, 0, True), half, 1, True)
+    for i in range(eroded.shape[0]):
+        for j in range(eroded.shape[1]):
+            if eroded[i, j] == np.inf:
+                eroded[i, j] = -np.inf  # no sample within the window: left out of the dilation
+    opened = _window_extreme(_window_extreme(eroded, half, 0, False), half, 1, False)
+    out = np.zeros((nx, ny), np.bool_)
+    for i in range(nx):
+        for j in range(ny):
+            out[i, j] = not math.isnan(ground[i, j]) and ground[i, j] - opened[i + half, j + half] > tol
+    return out
+
+
+@njit(cache=True, parallel=True)
+def hidden_from_sensor(cols, fit, rep, sensor, top, pixel, radius, reach_along, tol, min_facing):
+    """Whether each bridged column's plane is ground its sensor could not have seen: it faces away from the
+    sensor, or something stood between them.
+
+    The sensor is that of the column's nearest ground sample (as in :func:`fit_columns`' beyond test). Two
+    ways the ground at a column is hidden rather than missed between two rings:
+
+    * the plane faces the sensor less than ``min_facing`` times as squarely as level ground there would (the
+      sines of their angles with the line of sight), or faces away: below a drop-off (a kerb, a terrace's edge,
+      an embankment, seen from its top) the ground is hidden for metres, and a plane through the edge's samples
+      and the low ground beyond is a ramp the line of sight only grazes (measured: under a degree, where level
+      ground met it at 4-9 degrees), along which rings would lie many times farther apart than on the ground
+      around it;
+    * the line of sight from the sensor to the plane at the column passes, within ``reach_along`` of the
+      column, under the highest point of a bin by more than ``tol``: a car, a box, a wall or the edge of a drop
+      stood between them.
+
+    Parameters
+    ----------
+    cols : (M, 2) float64
+        Column positions (cells).
+    fit : (M, 3) float64
+        Each column's plane (:func:`fit_columns`: height, dz/dx, dz/dy); NaN rows are not looked at (False).
+    rep, sensor : (nx, ny, 3) float64
+        Ground samples (NaN where none) and their sensors' x, y, z (:func:`bin_sensor`).
+    top : (nx, ny) float64
+        Highest point of each bin (:func:`bin_top`).
+    pixel, radius : float
+        Bin size, and how far the column's nearest ground sample may lie (cells).
+    reach_along : float
+        How far along the line of sight from the column anything is looked for (cells).
+    tol : float
+        The height above the line of sight that hides (cells).
+    min_facing : float
+        Least ratio of the sine of the plane's angle with the line of sight to level ground's.
+
+    Returns
+    -------
+    (M,) bool
+    """
+    nx, ny = rep.shape[0], rep.shape[1]
+    m = cols.shape[0]
+    out = np.zeros(m, np.bool_)
+    reach = int(math.ceil(radius / pixel)) + 1
+    for c in prange(m):
+        h = fit[c, 0]
+        if math.isnan(h):
+            continue
+        cx, cy = cols[c, 0], cols[c, 1]
+        ic = int(math.floor(cx / pixel))
+        jc = int(math.floor(cy / pixel))
+        nearest = np.inf
+        sx, sy, sz = np.nan, np.nan, np.nan
+        for i in range(max(0, ic - reach), min(nx, ic + reach + 1)):
+            for j in range(max(0, jc - reach), min(ny, jc + reach + 1)):
+                if math.isnan(rep[i, j, 2]) or math.isnan(sensor[i, j, 0]):
+                    continue
+                dx = rep[i, j, 0] - cx
+                dy = rep[i, j, 1] - cy
+                d2 = dx * dx + dy * dy
+                if d2 < nearest:
+                    nearest = d2
+                    sx, sy, sz = sensor[i, j, 0], sensor[i, j, 1], sensor[i, j, 2]
+        if math.isnan(sx):
+            continue
+        ux, uy, uz = sx - cx, sy - cy, sz - h
+        gx, gy = fit[c, 1], fit[c, 2]
+        # the plane's upward normal (-gx, -gy, 1) against the line of sight
+        norm = math.sqrt(ux * ux + uy * uy + uz * uz)
+        facing = (-gx * ux - gy * uy + uz) / (math.sqrt(gx * gx + gy * gy + 1.0) * norm)
+        if not (facing > 0.0 and facing >= min_facing * uz / norm):
+            out[c] = True
+            continue
+        dist = math.sqrt(ux * ux + uy * uy)
+        if dist == 0.0:
+            continue
+        ux /= dist
+        uy /= dist
+        step = 0.5 * pixel
+        t = step
+        while t <= min(reach_along, dist):
+            i = int(math.floor((cx + t * ux) / pixel))
+            j = int(math.floor((cy + t * uy) / pixel))
+            if 0 <= i < nx and 0 <= j < ny and top[i, j] > h + uz * t / dist + tol:
+                out[c] = True
+                break
+            t += step
+    return out
 
 
 _ROOT3 = math.sqrt(3.0)
@@ -169,8 +336,8 @@ def fit_columns(rep, pixel, cols, radius, skip, max_gap, rms_tol, step_tol, max_
         any sector (cells): more means a height step (a kerb, a car, a wall's foot) within reach.
     max_slope : float
         Largest gradient of the fitted plane (rise over run).
-    sensor : (nx, ny, 2) float64
-        The sensor x, y of each representative (:func:`bin_sensor`); NaN: unknown.
+    sensor : (nx, ny, 2 or 3) float64
+        The sensor x, y (and z, not used here) of each representative (:func:`bin_sensor`); NaN: unknown.
     far_cos : float
         Where the nearest representative's sensor is known and ``far_cos`` < 1, the column is bridged only if a
         representative within ``radius`` lies beyond it as that sensor sees it: within ``acos(far_cos)`` of the

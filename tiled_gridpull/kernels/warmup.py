@@ -46,6 +46,10 @@ KERNELS: dict[str, tuple[tuple, float]] = {
                            4.6),
     "bridge.flag_bridged_cells": ((_c(_U8, 1), _c(_U8, 1), _TABLE, _c(_I64, 2), _c(_I64, 1), _I64, _I64, _I64), 0.8),
     "bridge.bin_sensor": ((_c(_F64, 1),) * 6 + (_F64, _I64, _I64, _F64), 0.7),
+    "bridge.bin_top": ((_c(_F64, 1),) * 3 + (_F64, _I64, _I64), 0.9),
+    "bridge.object_bins": ((_c(_F64, 2), _I64, _F64), 2.6),
+    "bridge.hidden_from_sensor": ((_c(_F64, 2), _c(_F64, 2), _c(_F64, 3), _c(_F64, 3), _c(_F64, 2), _F64, _F64, _F64,
+                                   _F64, _F64), 1.8),
     "graph.vertex_components": ((_I64, _c(_I64, 2)), 0.6),
     "interp.sample_field": ((_F, _TABLE, _c(_I64, 1), _c(_F32, 2), _F32), 2.0),
     "losses.query_losses": ((_F, _c(_U8, 1), _TABLE, _c(_I64, 1), _c(_F32, 2), _c(_F32, 2), _c(_I32, 1),
@@ -68,7 +72,7 @@ KERNELS: dict[str, tuple[tuple, float]] = {
 
 #: the kernels only a tiled job calls (blending tiles, bridging scan-line gaps); one-shape mode calls the others
 TILED_ONLY = ("blend.blend_bricks", "bridge.bin_ground", "bridge.fit_columns", "bridge.bin_sensor",
-              "bridge.flag_bridged_cells")
+              "bridge.flag_bridged_cells", "bridge.bin_top", "bridge.object_bins", "bridge.hidden_from_sensor")
 
 
 def kernel(name: str):
