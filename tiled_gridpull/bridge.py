@@ -83,9 +83,8 @@ class BridgeRule:
         ``object_width`` wide (:func:`~tiled_gridpull.kernels.bridge.object_bins`) stands on a thing narrower
         than the window (a car, a bush, a hedge): it leaves the plane fits and the beyond test, which it would
         otherwise lift, tilt and refuse. Levels wider than the window (both sides of a kerb, a terrace) stay
-        ground, so the step test still sees them. 0: no such samples.
-    object_margin : int
-        Columns within this many bins of such a thing are not bridged (where it stands is known to a bin).
+        ground, so the step test still sees them. The ground under and behind such a thing is left to the
+        ``shadow_tol`` test below. 0: every sample counts.
     shadow_tol, min_facing : float
         With sensor origins: a column is not bridged where the line of sight from its sensor to the bridged
         ground passes, within ``radius``, under the highest point of a bin by more than ``shadow_tol``, or meets
@@ -112,30 +111,25 @@ class BridgeRule:
     sensor_rms_tol: float = 0.5
     object_width: float = 24.0
     object_tol: float = 1.5
-    object_margin: int = 1
     shadow_tol: float = 1.0
     shadow_reach: float = 48.0
-    min_facing: float = 0.5
-
-
-def _morph(mask: np.ndarray, width: int, grow: bool) -> np.ndarray:
-    """A 2D mask dilated (``grow``) or eroded by a square of side ``2 width + 1``; outside the mask counts as set
-    when eroding (the tile's edge does not erode what a neighbour's overlap continues) and as unset when growing."""
-    out = mask
-    for _ in range(width):
-        pad = np.pad(out, 1, constant_values=not grow)
-        acc = pad[1:-1, 1:-1].copy()
-        for dx in (-1, 0, 1):
-            for dy in (-1, 0, 1):
-                view = pad[1 + dx:pad.shape[0] - 1 + dx, 1 + dy:pad.shape[1] - 1 + dy]
-                acc = (acc | view) if grow else (acc & view)
-        out = acc
-    return out
+    min_facing: float = 0.35
 
 
 def _opened(mask: np.ndarray, width: int) -> np.ndarray:
-    """Morphological opening of a 2D mask by a square of side ``2 width + 1`` (outside the mask counts as set)."""
-    return _morph(_morph(mask, width, False), width, True)
+    """Morphological opening of a 2D mask by a square of side ``2 width + 1`` (outside the mask counts as set,
+    so the tile's edge does not erode what a neighbour's overlap continues)."""
+    out = mask
+    for grow in (False, True):
+        for _ in range(width):
+            pad = np.pad(out, 1, constant_values=not grow)
+            acc = pad[1:-1, 1:-1].copy()
+            for dx in (-1, 0, 1):
+                for dy in (-1, 0, 1):
+                    view = pad[1 + dx:pad.shape[0] - 1 + dx, 1 + dy:pad.shape[1] - 1 + dy]
+                    acc = (acc | view) if grow else (acc & view)
+            out = acc
+    return out
 
 
 def unique_rows(rows: np.ndarray) -> np.ndarray:
@@ -228,15 +222,10 @@ def bridge_columns(cells: np.ndarray, X: int, Y: int, rule: BridgeRule,
         # two metres above the road, and refused the plane fit of every column that reached it)
         half = max(1, int(math.ceil(rule.object_width / (2.0 * rule.pixel))))
         thing = kb.object_bins(np.ascontiguousarray(rep[..., 2]), half, float(rule.object_tol))
-        rep, seen_from = rep.copy(), seen_from.copy()
-        rep[thing] = np.nan
-        seen_from[thing] = np.nan
+        rep = rep.copy()
+        rep[thing] = np.nan  # so too for the beyond test and the sensor of each column (both read samples only)
     fit = kb.fit_columns(rep, float(rule.pixel), cols, float(rule.radius), float(rule.skip), max_gap,
                          float(rms_tol), float(rule.step_tol), float(rule.max_slope), seen_from, far_cos)
-    if objects:
-        near = _morph(thing, rule.object_margin, True)
-        bins = np.floor(cols / rule.pixel).astype(np.int64)
-        fit[near[bins[:, 0], bins[:, 1]]] = np.nan
     if seen:
         top = kb.bin_top(cells[:, 0].copy(), cells[:, 1].copy(), cells[:, 2].copy(), float(rule.pixel), nx, ny)
         hidden = kb.hidden_from_sensor(cols, fit, rep, seen_from, top, float(rule.pixel), float(rule.radius),
