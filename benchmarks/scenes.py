@@ -195,7 +195,8 @@ TODAY = {"queries_per_point": 0, "iterations": 800, "coarse_iterations": 800, "m
          "lr_step": 400, "refine_lr_step": 200, "m2": 25}
 #: Tiled denoising as measured on the noisy demo street (docs/solver.md, "Denoising tiles").
 DENOISE = {"denoise": 2, "denoise_neighbors": 32, "denoise_radius": 2.0}
-VARIANTS = {"default": {}, "today": TODAY, "denoise": DENOISE, "no bridge": {"bridge": 0}}
+VARIANTS = {"default": {}, "today": TODAY, "denoise": DENOISE, "no bridge": {"bridge": 0},
+            "objects 0": {"bridge_objects": 0}}
 
 
 def variant_settings(variant: str) -> str:
@@ -358,7 +359,7 @@ def footprint(workers: int, work: Path, grid: bool = False, synthetic_only: bool
         poisson = poisson_scene(sample["laz"], pout, 11)
         traj = sample.get("trajectory")
         record(poisson_row(base, poisson, 11, **footprint_scores_of(pout, sample["gt_mesh"], sample["laz"], traj)))
-        for v in ("default", "no bridge"):
+        for v in ("default", "objects 0", "no bridge"):
             out = d / f"gridpull_{v.replace(' ', '_')}.ply"
             row = reconstruct(sample["laz"], out, workers,
                               [*scene_args(VARIANTS[v]), *(["--trajectory", str(traj)] if traj else [])])
@@ -379,7 +380,7 @@ def footprint(workers: int, work: Path, grid: bool = False, synthetic_only: bool
         pout = work / "kitti" / "poisson.ply"
         poisson = poisson_scene(train, pout, 10, sensor=[0.0, 0.0, 0.0])
         record(poisson_row(base, poisson, 10, **holdout_scores(pout, test, read_points(train).xyz, 0.3)))
-        for v in ("default", "no bridge"):
+        for v in ("default", "objects 0", "no bridge"):
             out = work / "kitti" / f"gridpull_{v.replace(' ', '_')}.ply"
             row = reconstruct(train, out, workers, ["--config", str(REPO / "configs" / "kitti.yaml"),
                                                     "--voxel-size", "0.3",
