@@ -467,7 +467,11 @@ def main() -> None:
                   " in two forms; it was withdrawn before release, after reviews found it bridged steps over 3 "
                   "cells high as ramps and closed the sides of cars' shadows (docs/solver.md, \"Things standing on"
                   " the ground: a rule tried and withdrawn\"). Their GridPull default rows are not the shipped "
-                  "rule, which is the 15:31-15:49 run's.", "",
+                  "rule. The run of 2026-11-27 19:24-19:36 is the rule shipped since: with sensor origins, things "
+                  "standing on the ground leave the plane fits and ground the sensor could not have seen stays open"
+                  " (docs/solver.md, \"With the sensor known: things on the ground, and ground nobody saw\"); its "
+                  "`objects 0` rows set `bridge_objects: 0` (the hidden-ground tests stay on). The 15:31-15:49 run "
+                  "of 2026-11-26 is the rule before.", "",
                   footprint_table, ""]
     classes_table = scenes.render_classes(load("scenes"))
     if classes_table:
