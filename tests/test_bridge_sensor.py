@@ -1,7 +1,8 @@
 """Bridging with the sensor known, on scenes scanned by the synthetic LiDAR: things standing on the ground leave
 the plane fits, and ground the sensor could not have seen (below a drop-off, behind a car) stays open.
 
-Each scene is a height field 40 m across, scanned once by a 64-beam spinning LiDAR 1.73 m above the origin; the
+Each scene is a height field 40 m across, scanned once by a 64-beam spinning LiDAR 1.73 m above the ground at the
+origin; the
 columns are decided at 0.3 m cells (a KITTI frame's cell in the benchmarks). A column bridged more than a cell
 off the truth (the truth within a cell of the column, so a column beside a kerb's line may take either level)
 is a wrong bridge. Ground within 4 m of the sensor lies below its lowest beam: unseen, but not hidden by anything
@@ -20,7 +21,7 @@ from tiled_gridpull.synthetic.lidar import _RayCaster, hdl64_directions, visible
 
 CELL = 0.3
 HALF = 20.0
-SENSOR = np.array([0.0, 0.0, 1.73])
+HEIGHT = 1.73  # the scanner above the ground under it
 
 
 def _heightfield(fn, res=0.1):
@@ -33,9 +34,9 @@ def _heightfield(fn, res=0.1):
     return Mesh(np.stack([X.ravel(), Y.ravel(), fn(X, Y).ravel()], 1), faces)
 
 
-def _scan(mesh):
+def _scan(mesh, sensor):
     pose = np.eye(4)[None].copy()
-    pose[0, :3, 3] = SENSOR
+    pose[0, :3, 3] = sensor
     return _RayCaster(mesh.vertices, mesh.faces).cast(pose, hdl64_directions(64, 700), 0.5, 80.0)[1]
 
 
@@ -43,11 +44,12 @@ def _bridged(fn, **rule):
     """Bridged columns of the scene ``fn(x, y)`` (metres): their (x, y), height and distance to the truth (cells),
     and whether the sensor sees the truth there."""
     mesh = _heightfield(fn)
-    xyz = _scan(mesh)
+    sensor = np.array([0.0, 0.0, float(fn(np.zeros(1), np.zeros(1))[0]) + HEIGHT])
+    xyz = _scan(mesh, sensor)
     lo = np.array([-HALF, -HALF, -3.0])
     cells = (xyz - lo) / CELL
     n = int(2 * HALF / CELL)
-    fit = bridge_columns(cells, n, n, BridgeRule(**rule), np.broadcast_to((SENSOR - lo) / CELL, cells.shape).copy())
+    fit = bridge_columns(cells, n, n, BridgeRule(**rule), np.broadcast_to((sensor - lo) / CELL, cells.shape).copy())
     ii, jj = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
     xy = np.stack([ii.ravel(), jj.ravel()], 1) * CELL + lo[:2]
     ok = np.isfinite(fit[:, 0])
@@ -55,7 +57,7 @@ def _bridged(fn, **rule):
     steps = (-CELL, -CELL / 2, 0.0, CELL / 2, CELL)
     near = [fn(xy[:, 0] + dx, xy[:, 1] + dy) for dx in steps for dy in steps]
     off = np.min([np.abs(z - t) for t in near], axis=0) / CELL
-    seen = visible_from(mesh, np.c_[xy, fn(xy[:, 0], xy[:, 1]) + 0.02], SENSOR[None], stop_short=0.05)
+    seen = visible_from(mesh, np.c_[xy, fn(xy[:, 0], xy[:, 1]) + 0.02], sensor[None], stop_short=0.05)
     return xy, off, seen | (np.hypot(xy[:, 0], xy[:, 1]) < 4.0)
 
 
@@ -69,14 +71,37 @@ def _drop(height, angle=0.7, at=10.0):
 
 
 @pytest.mark.parametrize("height", [0.6, 1.0, 2.0])
-def test_the_ground_below_a_drop_off_seen_from_its_top_is_not_ramped_down_to(height):
-    """Seen from the high side, the ground below a drop-off (a kerb, a terrace's edge, an embankment) is hidden for
-    metres. A plane from the edge's samples to the low ground beyond is a ramp the line of sight only grazes: the
-    rule before bridged hundreds of columns here more than a cell off the truth, up to the drop's full height. A
-    drop of 2 cells (0.6 m) is within the step test's reach: its bridges stay within that test's 1.5 cells."""
+def test_a_slanted_drop_off_seen_from_its_top_is_not_ramped_down_to(height):
+    """A drop-off crossing the scan at a slant, the sensor on its high side: no column more than a cell off the
+    truth; a drop of 2 cells (0.6 m) is within the step test's reach, and its bridges stay within that test's 1.5
+    cells."""
     _, off, _ = _bridged(_drop(height))
     worst = BridgeRule.step_tol if height / CELL <= 2 * BridgeRule.step_tol else 1.0
     assert not (off > worst).any(), (height, int((off > worst).sum()), float(off.max()))
+
+
+def _square_drop(height, at=10.0):
+    """The ground ``height`` lower beyond ``x = at``: an edge square to the line of sight, seen from its top."""
+    return lambda x, y: np.where(x > at, -height, 0.0)
+
+
+def test_the_grazing_test_cuts_the_ramps_below_a_drop_off_seen_from_its_top():
+    """Seen from the top of a drop-off square to the line of sight, the low ground beyond the edge is hidden for
+    metres, and a plane from the edge's samples to the low ground farther on is a ramp the line of sight only
+    grazes. A 1.2 m (4-cell) drop 10 m ahead: 1,690 columns more than a cell off the truth without the
+    hidden-ground tests, 151 with them (measured 2026-11-27)."""
+    _, off_without, _ = _bridged(_square_drop(1.2), min_facing=-1e9, shadow_tol=1e9)
+    _, off, _ = _bridged(_square_drop(1.2))
+    assert (off > 1.0).sum() < 0.2 * (off_without > 1.0).sum()
+
+
+@pytest.mark.xfail(strict=True, reason="known open failure (docs/solver.md, 'With the sensor known'): below a drop "
+                                       "of 3-4 cells seen from its top, ramps as gentle as the ground's own slope "
+                                       "pass both hidden-ground tests")
+@pytest.mark.parametrize("height", [0.9, 1.2])
+def test_no_ramp_at_all_below_a_drop_off_seen_from_its_top(height):
+    _, off, _ = _bridged(_square_drop(height))
+    assert not (off > 1.0).any()
 
 
 def test_cars_leave_the_plane_fits_and_the_ground_around_them_closes():
@@ -155,16 +180,25 @@ def test_hidden_from_sensor_sees_a_line_of_sight_blocked_and_a_plane_it_only_gra
     top[10, 15] = 12.0  # a car's bin, 2 bins before the column as the sensor sees it
     cols = np.array([[25.0, 31.0], [25.0, 11.0], [17.0, 31.0]])  # behind the car, beside it, the car's far side
     level = np.array([[5.0, 0.0, 0.0]] * 3)
-    out = hidden_from_sensor(cols, level, rep, sensor, top, 2.0, 24.0, 24.0, 1.0, 0.5)
+    none = np.zeros((n, n), bool)
+    out = hidden_from_sensor(cols, level, rep, sensor, top, none, 2.0, 24.0, 24.0, 1.0, 0.5)
     assert out.tolist() == [True, False, False]
     # the car beyond the reach: not looked at
-    assert not hidden_from_sensor(cols[:1], level[:1], rep, sensor, top, 2.0, 24.0, 3.0, 1.0, 0.5)[0]
+    assert not hidden_from_sensor(cols[:1], level[:1], rep, sensor, top, none, 2.0, 24.0, 3.0, 1.0, 0.5)[0]
+    # a low thing (a median's top) half a cell above the line of sight: within the tolerance of ground, above it as
+    # a thing standing on the ground
+    low = np.full((n, n), 5.2)
+    low[10, 15] = 5.0 + 10.0 * 4.0 / 65.0 + 0.5
+    assert not hidden_from_sensor(cols[:1], level[:1], rep, sensor, low, none, 2.0, 24.0, 24.0, 1.0, 0.5)[0]
+    thing = none.copy()
+    thing[10, 15] = True
+    assert hidden_from_sensor(cols[:1], level[:1], rep, sensor, low, thing, 2.0, 24.0, 24.0, 1.0, 0.5)[0]
     # a plane descending away from the sensor almost as steeply as the line of sight (a ramp below a drop-off)
     col = np.array([[40.0, 11.0]])
     sight = 10.0 / 80.0  # the line of sight's descent there
     for slope, hidden in ((0.0, False), (0.3 * sight, False), (0.7 * sight, True), (2.0 * sight, True)):
         plane = np.array([[5.0, -slope, 0.0]])
-        assert hidden_from_sensor(col, plane, rep, sensor, np.full((n, n), -np.inf), 2.0, 24.0, 24.0, 1.0,
+        assert hidden_from_sensor(col, plane, rep, sensor, np.full((n, n), -np.inf), none, 2.0, 24.0, 24.0, 1.0,
                                   0.5)[0] == hidden, slope
 
 
@@ -174,3 +208,14 @@ def test_bin_top_is_the_highest_point_of_each_bin():
     z = np.array([1.0, 1.5, 6.5, 7.0])
     top = bin_top(x, y, z, 2.0, 3, 3)
     assert top[0, 0] == 6.5 and top[1, 1] == 7.0 and top[2, 2] == -np.inf
+
+
+def test_a_window_wider_than_the_tile_is_the_whole_tile():
+    """``bridge_objects`` far beyond the tile (1e30 cells) decides as a window over the whole tile does, without
+    a raster that size."""
+    rng = np.random.default_rng(0)
+    cells = np.c_[rng.uniform(0, 40, 4000), rng.uniform(0, 40, 4000), 5.0 + 0.1 * rng.standard_normal(4000)]
+    sensor = np.broadcast_to([20.0, -30.0, 20.0], cells.shape).copy()
+    huge = bridge_columns(cells, 40, 40, BridgeRule(object_width=1e30), sensor)
+    whole = bridge_columns(cells, 40, 40, BridgeRule(object_width=160.0), sensor)
+    np.testing.assert_array_equal(huge, whole)

@@ -85,9 +85,10 @@ class BridgeRule:
         otherwise lift, tilt and refuse. Levels wider than the window (both sides of a kerb, a terrace) stay
         ground, so the step test still sees them. The ground under and behind such a thing is left to the
         ``shadow_tol`` test below. 0: every sample counts.
-    shadow_tol, min_facing : float
+    shadow_tol, shadow_reach, min_facing : float
         With sensor origins: a column is not bridged where the line of sight from its sensor to the bridged
-        ground passes, within ``radius``, under the highest point of a bin by more than ``shadow_tol``, or meets
+        ground passes, within ``shadow_reach`` cells of the column, under the highest point of a bin by more than
+        ``shadow_tol`` (under any point of a bin holding a thing standing on the ground), or meets
         the plane less than ``min_facing`` times as squarely as level ground (sines) or from below
         (:func:`~tiled_gridpull.kernels.bridge.hidden_from_sensor`): the ground there was hidden, not missed
         between rings (below a drop-off, a plane from its edge to the low ground beyond is a ramp no sensor on
@@ -220,7 +221,8 @@ def bridge_columns(cells: np.ndarray, X: int, Y: int, rule: BridgeRule,
     if objects:
         # things standing on the ground leave the ground samples (a car's bin read its lowest layer half a metre to
         # two metres above the road, and refused the plane fit of every column that reached it)
-        half = max(1, int(math.ceil(rule.object_width / (2.0 * rule.pixel))))
+        # a window wider than the tile is the whole tile (and a huge setting no huge raster)
+        half = max(1, min(int(math.ceil(min(rule.object_width, 4.0 * (X + Y)) / (2.0 * rule.pixel))), nx + ny))
         thing = kb.object_bins(np.ascontiguousarray(rep[..., 2]), half, float(rule.object_tol))
         rep = rep.copy()
         rep[thing] = np.nan  # so too for the beyond test and the sensor of each column (both read samples only)
@@ -228,7 +230,9 @@ def bridge_columns(cells: np.ndarray, X: int, Y: int, rule: BridgeRule,
                          float(rms_tol), float(rule.step_tol), float(rule.max_slope), seen_from, far_cos)
     if seen:
         top = kb.bin_top(cells[:, 0].copy(), cells[:, 1].copy(), cells[:, 2].copy(), float(rule.pixel), nx, ny)
-        hidden = kb.hidden_from_sensor(cols, fit, rep, seen_from, top, float(rule.pixel), float(rule.radius),
+        if not objects:
+            thing = np.zeros((nx, ny), np.bool_)
+        hidden = kb.hidden_from_sensor(cols, fit, rep, seen_from, top, thing, float(rule.pixel), float(rule.radius),
                                        float(rule.shadow_reach), float(rule.shadow_tol), float(rule.min_facing))
         fit[hidden] = np.nan
     mask = np.isfinite(fit[:, 0]).reshape(X, Y)

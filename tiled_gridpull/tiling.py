@@ -76,7 +76,8 @@ class TilingConfig:
         Gaps between scan lines on the ground are bridged where the upward-facing points within this many cells
         surround a column on one gently sloping plane (:mod:`tiled_gridpull.bridge`): gaps up to about twice
         this wide close; 0 keeps the surface to the data alone. At most the overlap, so that every tiling
-        decides each column alike.
+        decides each column alike (with sensor origins a column also reads the points up to 48 cells away, more
+        than the default overlap: docs/solver.md, "With the sensor known").
     bridge_objects : float
         With sensor origins (``orientation`` sensor): ground samples on things narrower than this many cells
         standing on the ground (cars, bushes, hedges) leave the bridge's plane fits, and the ground hidden behind

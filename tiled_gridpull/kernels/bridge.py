@@ -195,12 +195,12 @@ def object_bins(ground, half, tol):
 
 
 @njit(cache=True, parallel=True)
-def hidden_from_sensor(cols, fit, rep, sensor, top, pixel, radius, reach_along, tol, min_facing):
+def hidden_from_sensor(cols, fit, rep, sensor, top, thing, pixel, radius, reach_along, tol, min_facing):
     """Whether each bridged column's plane is ground its sensor could not have seen: it faces away from the
     sensor, or something stood between them.
 
-    The sensor is that of the column's nearest ground sample (as in :func:`fit_columns`' beyond test). Two
-    ways the ground at a column is hidden rather than missed between two rings:
+    The sensor is that of the column's nearest ground sample whose sensor is known. Two ways the ground at a
+    column is hidden rather than missed between two rings:
 
     * the plane faces the sensor less than ``min_facing`` times as squarely as level ground there would (the
       sines of their angles with the line of sight), or faces away: below a drop-off (a kerb, a terrace's edge,
@@ -209,8 +209,9 @@ def hidden_from_sensor(cols, fit, rep, sensor, top, pixel, radius, reach_along, 
       ground met it at 4-9 degrees), along which rings would lie many times farther apart than on the ground
       around it;
     * the line of sight from the sensor to the plane at the column passes, within ``reach_along`` of the
-      column, under the highest point of a bin by more than ``tol``: a car, a box, a wall or the edge of a drop
-      stood between them.
+      column, under the highest point of a bin by more than ``tol`` (under any point of a bin that holds a thing
+      standing on the ground: a low median's or planter's top lies less than a cell above the line over most of
+      its shadow): a car, a box, a wall or the edge of a drop stood between them.
 
     Parameters
     ----------
@@ -222,6 +223,8 @@ def hidden_from_sensor(cols, fit, rep, sensor, top, pixel, radius, reach_along, 
         Ground samples (NaN where none) and their sensors' x, y, z (:func:`bin_sensor`).
     top : (nx, ny) float64
         Highest point of each bin (:func:`bin_top`).
+    thing : (nx, ny) bool
+        Bins holding a thing standing on the ground (:func:`object_bins`).
     pixel, radius : float
         Bin size, and how far the column's nearest ground sample may lie (cells).
     reach_along : float
@@ -278,7 +281,7 @@ def hidden_from_sensor(cols, fit, rep, sensor, top, pixel, radius, reach_along, 
         while t <= min(reach_along, dist):
             i = int(math.floor((cx + t * ux) / pixel))
             j = int(math.floor((cy + t * uy) / pixel))
-            if 0 <= i < nx and 0 <= j < ny and top[i, j] > h + uz * t / dist + tol:
+            if 0 <= i < nx and 0 <= j < ny and top[i, j] > h + uz * t / dist + (0.0 if thing[i, j] else tol):
                 out[c] = True
                 break
             t += step
