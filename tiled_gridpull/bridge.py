@@ -15,8 +15,11 @@ with no returns wider than ``2 * radius``), a gap across a height step (the plan
 ground, and anything farther than ``radius`` from the points. Where the points' sensor origins are known
 (a trajectory, KITTI), a gap must also have ground beyond it as the sensor sees it: the next ring lies there,
 while the ground in the shadow of a car, a box or a wall is hidden for as long as the shadow, however near
-its sides. Each column is decided from the points within
-``radius`` of it alone; with ``radius`` at most a tile's overlap, every tiling decides it the same way.
+its sides. With the sensor known, samples on things standing on the ground (cars, bushes) also leave the plane
+fits, and ground the sensor could not have seen stays open: behind or under a thing, and where a plane would only
+graze the line of sight. Without sensor origins each column is decided from the points within ``radius`` of it
+alone, and with ``radius`` at most a tile's overlap every tiling decides it the same way; with them it also reads
+the points up to ``shadow_reach`` (48 cells) away.
 """
 
 from __future__ import annotations
