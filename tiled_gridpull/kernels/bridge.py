@@ -205,9 +205,9 @@ def hidden_from_sensor(cols, fit, rep, sensor, top, thing, pixel, radius, reach_
     * the plane faces the sensor less than ``min_facing`` times as squarely as level ground there would (the
       sines of their angles with the line of sight), or faces away: below a drop-off (a kerb, a terrace's edge,
       an embankment, seen from its top) the ground is hidden for metres, and a plane through the edge's samples
-      and the low ground beyond is a ramp the line of sight only grazes (measured: under a degree, where level
-      ground met it at 4-9 degrees), along which rings would lie many times farther apart than on the ground
-      around it;
+      and the low ground beyond is a ramp the line of sight only grazes, along which rings would lie many times
+      farther apart than on the ground around it (a ramp as gentle as the line of sight's own slope over the
+      ground beyond passes: docs/solver.md, "What still breaks the promise");
     * the line of sight from the sensor to the plane at the column passes, within ``reach_along`` of the
       column, under the highest point of a bin by more than ``tol`` (under any point of a bin that holds a thing
       standing on the ground: a low median's or planter's top lies less than a cell above the line over most of
