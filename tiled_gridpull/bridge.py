@@ -16,10 +16,10 @@ ground, and anything farther than ``radius`` from the points. Where the points' 
 (a trajectory, KITTI), a gap must also have ground beyond it as the sensor sees it: the next ring lies there,
 while the ground in the shadow of a car, a box or a wall is hidden for as long as the shadow, however near
 its sides. With the sensor known, samples on things standing on the ground (cars, bushes) also leave the plane
-fits, and ground the sensor could not have seen stays open: behind or under a thing, and where a plane would only
-graze the line of sight. Without sensor origins each column is decided from the points within ``radius`` of it
-alone, and with ``radius`` at most a tile's overlap every tiling decides it the same way; with them it also reads
-the points up to ``shadow_reach`` (48 cells) away.
+fits, and ground the sensor could not have seen stays open: behind or under a thing, where a plane would only
+graze the line of sight, and where a beam passed under the plane (across a ditch). Without sensor origins each
+column is decided from the points within ``radius`` of it alone, and with ``radius`` at most a tile's overlap
+every tiling decides it the same way; with them it also reads the points up to ``shadow_reach`` (48 cells) away.
 """
 
 from __future__ import annotations
@@ -96,6 +96,14 @@ class BridgeRule:
         (:func:`~tiled_gridpull.kernels.bridge.hidden_from_sensor`): the ground there was hidden, not missed
         between rings (below a drop-off, a plane from its edge to the low ground beyond is a ramp no sensor on
         the high side could have seen).
+    pierce_tol, pierce_beams, pierce_skip : float, int, float
+        With sensor origins: a bridged column that ``pierce_beams`` beams passed more than ``pierce_tol`` under,
+        each followed back ``shadow_reach`` cells from its point but not over the last ``pierce_skip`` (where a
+        beam meets its own ground at a grazing angle, within the plane fit's error of it), is no sampling gap: the
+        ground there is lower than the plane, as across a ditch whose far wall the beams reached
+        (:func:`~tiled_gridpull.kernels.bridge.pierced_columns`). The stretch of empty bins it lies in along that
+        beam stays open as a whole (:func:`~tiled_gridpull.kernels.bridge.clear_pierced_gaps`): its near part
+        lies in the near rim's shadow, where no beam could pass under the plane. 0 beams: no such test.
     """
 
     radius: float = 24.0
@@ -118,6 +126,9 @@ class BridgeRule:
     shadow_tol: float = 1.0
     shadow_reach: float = 48.0
     min_facing: float = 0.35
+    pierce_tol: float = 1.0
+    pierce_beams: int = 1
+    pierce_skip: float = 2.0
 
 
 def _opened(mask: np.ndarray, width: int) -> np.ndarray:
@@ -239,6 +250,18 @@ def bridge_columns(cells: np.ndarray, X: int, Y: int, rule: BridgeRule,
                                        float(rule.shadow_reach), float(rule.shadow_tol), float(rule.min_facing))
         fit[hidden] = np.nan
     mask = np.isfinite(fit[:, 0]).reshape(X, Y)
+    if seen and rule.pierce_beams > 0:
+        plane = fit.reshape(X, Y, 3)
+        count, along = kb.pierced_columns(cells[:, 0].copy(), cells[:, 1].copy(), cells[:, 2].copy(),
+                                          sensor[:, 0].copy(), sensor[:, 1].copy(), sensor[:, 2].copy(),
+                                          np.ascontiguousarray(plane[..., 0]), np.ascontiguousarray(plane[..., 1]),
+                                          np.ascontiguousarray(plane[..., 2]),
+                                          kb.bin_low(cells[:, 0].copy(), cells[:, 1].copy(), cells[:, 2].copy(),
+                                                     float(rule.pixel), nx, ny),
+                                          float(rule.pixel), float(rule.layer), float(rule.pierce_skip),
+                                          float(rule.shadow_reach), float(rule.pierce_tol))
+        mask = kb.clear_pierced_gaps(mask, count, along, int(rule.pierce_beams), top, float(rule.pixel),
+                                     float(rule.shadow_reach))
     if rule.open_width > 0:
         mask = _opened(mask, rule.open_width)
     fit[~mask.reshape(-1)] = np.nan

@@ -208,7 +208,9 @@ def scan_record(scan: dict) -> dict:
 _BRIDGE_SEEN = [BridgeRule.beyond_deg, BridgeRule.sensor_max_gap_deg, BridgeRule.sensor_rms_tol]
 #: what else bridging with sensor origins reads since 2026-11-27: ground the sensor could not have seen stays
 #: open, and things standing on the ground leave the plane fits (the width is the ``bridge_objects`` setting)
-_BRIDGE_HIDDEN = [BridgeRule.shadow_tol, BridgeRule.shadow_reach, BridgeRule.min_facing, BridgeRule.object_tol]
+_BRIDGE_HIDDEN = [BridgeRule.shadow_tol, BridgeRule.shadow_reach, BridgeRule.min_facing, BridgeRule.object_tol,
+                  # and, since 2026-11-27 (night), a plane a beam passed under is not there
+                  BridgeRule.pierce_tol, BridgeRule.pierce_beams, BridgeRule.pierce_skip]
 
 
 def solve_key(spec: TileSpec, tiling: TilingConfig, solver: SolverConfig, centre=None) -> str:

@@ -7,7 +7,9 @@ lowest layer of points there). For a lattice column, the representatives within 
 representative of each sector below tolerances) and that plane is not steep. Every column is decided from the
 representatives within ``radius`` alone, so two tiles that both hold them decide it alike. Where the points'
 sensor origins are known, the column must also have a representative beyond it as the sensor sees it
-(:func:`bin_sensor`): the next ring lies there, the ground in a shadow has none.
+(:func:`bin_sensor`): the next ring lies there, the ground in a shadow has none; ground hidden from the sensor
+stays open (:func:`hidden_from_sensor`), and so does a gap a beam passed under (:func:`pierced_columns`,
+:func:`clear_pierced_gaps`).
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ SECTORS = 12
 
 
 @njit(cache=True)
-def _lowest(x, y, z, pixel, nx, ny):
+def bin_low(x, y, z, pixel, nx, ny):
     """(nx, ny) float64: the lowest z of the points in each ``pixel``-wide bin; inf where a bin holds none."""
     low = np.full((nx, ny), np.inf)
     for n in range(x.shape[0]):
@@ -57,7 +59,7 @@ def bin_ground(x, y, z, pixel, nx, ny, layer):
     rep : (nx, ny, 3) float64
         Mean x, y, z of each bin's lowest layer; NaN where a bin holds no point.
     """
-    low = _lowest(x, y, z, pixel, nx, ny)
+    low = bin_low(x, y, z, pixel, nx, ny)
     acc = np.zeros((nx, ny, 4))
     for n in range(x.shape[0]):
         i = int(math.floor(x[n] / pixel))
@@ -99,7 +101,7 @@ def bin_sensor(x, y, z, sx, sy, sz, pixel, nx, ny, layer):
     sensor : (nx, ny, 3) float64
         x, y, z of that sensor; NaN where a bin holds no point, or no sensor above its lowest layer's points.
     """
-    low = _lowest(x, y, z, pixel, nx, ny)
+    low = bin_low(x, y, z, pixel, nx, ny)
     best = np.full((nx, ny), np.inf)
     sensor = np.full((nx, ny, 3), np.nan)
     for n in range(x.shape[0]):
@@ -122,13 +124,7 @@ def bin_sensor(x, y, z, sx, sy, sz, pixel, nx, ny, layer):
 @njit(cache=True)
 def bin_top(x, y, z, pixel, nx, ny):
     """(nx, ny) float64: the highest z of the points in each ``pixel``-wide bin; -inf where a bin holds none."""
-    top = np.full((nx, ny), -np.inf)
-    for n in range(x.shape[0]):
-        i = int(math.floor(x[n] / pixel))
-        j = int(math.floor(y[n] / pixel))
-        if 0 <= i < nx and 0 <= j < ny and z[n] > top[i, j]:
-            top[i, j] = z[n]
-    return top
+    return -bin_low(x, y, -z, pixel, nx, ny)
 
 
 @njit(cache=True)
@@ -285,6 +281,133 @@ def hidden_from_sensor(cols, fit, rep, sensor, top, thing, pixel, radius, reach_
                 out[c] = True
                 break
             t += step
+    return out
+
+
+@njit(cache=True)
+def pierced_columns(x, y, z, sx, sy, sz, height, gx, gy, low, pixel, layer, skip, reach, tol):
+    """How many beams pass under each bridged column's plane: the plane is not there.
+
+    A beam travels through empty space from its sensor to its point, so the ground along it lies below it. A beam
+    that crosses a column more than ``tol`` under the plane bridged there shows the ground lower than the plane:
+    across a ditch the beams that reach its far wall pass under the plane over its rims. A point that the points
+    of fewer than two neighbouring bins reach down to (within ``layer``) is left out: KITTI frames hold clusters
+    of a few points metres under the road (reflections), whose beams would pierce every plane over metres of road.
+
+    Parameters
+    ----------
+    x, y, z, sx, sy, sz : (N,) float64
+        Points and their sensor origins, in cells.
+    height, gx, gy : (X, Y) float64
+        Each lattice column's plane (height at the column, dz/dx, dz/dy; cells); NaN height where not bridged.
+        Column ``(i, j)`` stands at ``(i, j)`` and holds the positions nearest it.
+    low : (nx, ny) float64
+        The lowest point of each ``pixel``-wide bin (inf where a bin holds none).
+    pixel, layer : float
+        Bin size, and how far above a point the lowest point of a neighbouring bin may lie for it to count.
+    skip : float
+        The last ``skip`` cells of each beam (in plan) are not looked at: there it meets its own point's ground at a
+        grazing angle, within the plane fit's own error of it.
+    reach : float
+        How far back from its point each beam is followed (cells, in plan).
+    tol : float
+        Depth under the plane that counts (cells).
+
+    Returns
+    -------
+    count : (X, Y) int32
+        Beams that passed under each column's plane.
+    along : (X, Y, 2) float64
+        The unit direction (in plan, towards the sensor) of the last such beam; NaN where none.
+    """
+    nx, ny = height.shape
+    count = np.zeros((nx, ny), np.int32)
+    along = np.full((nx, ny, 2), np.nan)
+    bx, by = low.shape
+    step = 0.5
+    for n in range(x.shape[0]):
+        a = int(math.floor(x[n] / pixel))
+        b = int(math.floor(y[n] / pixel))
+        held = 0
+        for u in range(max(0, a - 1), min(bx, a + 2)):
+            for v in range(max(0, b - 1), min(by, b + 2)):
+                if (u != a or v != b) and low[u, v] <= z[n] + layer:
+                    held += 1
+        if held < 2:
+            continue
+        dx = sx[n] - x[n]
+        dy = sy[n] - y[n]
+        dist = math.sqrt(dx * dx + dy * dy)
+        if not dist > 0.0:
+            continue
+        ux, uy = dx / dist, dy / dist
+        rise = (sz[n] - z[n]) / dist
+        last_i, last_j = -1, -1
+        t = skip
+        while t <= min(reach, dist):
+            px, py = x[n] + t * ux, y[n] + t * uy
+            i = int(math.floor(px + 0.5))
+            j = int(math.floor(py + 0.5))
+            if 0 <= i < nx and 0 <= j < ny and (i != last_i or j != last_j):
+                h = height[i, j]
+                if not math.isnan(h) and z[n] + t * rise < h + gx[i, j] * (px - i) + gy[i, j] * (py - j) - tol:
+                    count[i, j] += 1
+                    along[i, j, 0] = ux
+                    along[i, j, 1] = uy
+                    last_i, last_j = i, j
+            t += step
+    return count, along
+
+
+@njit(cache=True)
+def clear_pierced_gaps(mask, count, along, min_beams, top, pixel, reach):
+    """The bridged columns left once every gap a beam pierced is opened along that beam's line to its ends.
+
+    A gap between two rings is one stretch of bins without a point along the line of sight. Where beams show the
+    plane over part of it to be too high (:func:`pierced_columns`), the stretch is no sampling gap: the part nearer
+    the sensor lies in the shadow of the near edge, where no beam could reach below the plane, so the whole stretch
+    stays open, up to the bins holding points on either side (or ``reach`` cells).
+
+    Parameters
+    ----------
+    mask : (X, Y) bool
+        Bridged columns.
+    count, along : (X, Y) int32, (X, Y, 2) float64
+        :func:`pierced_columns`' output.
+    min_beams : int
+        Beams needed to open a column's gap.
+    top : (nx, ny) float64
+        Highest point of each ``pixel``-wide bin (:func:`bin_top`; -inf where a bin holds none).
+    pixel, reach : float
+        Bin size and the longest stretch opened on either side (cells).
+
+    Returns
+    -------
+    (X, Y) bool
+    """
+    nx, ny = mask.shape
+    bx, by = top.shape
+    out = mask.copy()
+    step = 0.5
+    for i in range(nx):
+        for j in range(ny):
+            if not mask[i, j] or count[i, j] < min_beams:
+                continue
+            out[i, j] = False
+            for sign in (-1.0, 1.0):
+                ux, uy = sign * along[i, j, 0], sign * along[i, j, 1]
+                t = step
+                while t <= reach:
+                    px, py = i + t * ux, j + t * uy
+                    a = int(math.floor(px / pixel))
+                    b = int(math.floor(py / pixel))
+                    if not (0 <= a < bx and 0 <= b < by) or top[a, b] > -np.inf:
+                        break
+                    u = int(math.floor(px + 0.5))
+                    v = int(math.floor(py + 0.5))
+                    if 0 <= u < nx and 0 <= v < ny:
+                        out[u, v] = False
+                    t += step
     return out
 
 

@@ -46,7 +46,11 @@ KERNELS: dict[str, tuple[tuple, float]] = {
                            4.6),
     "bridge.flag_bridged_cells": ((_c(_U8, 1), _c(_U8, 1), _TABLE, _c(_I64, 2), _c(_I64, 1), _I64, _I64, _I64), 0.8),
     "bridge.bin_sensor": ((_c(_F64, 1),) * 6 + (_F64, _I64, _I64, _F64), 0.7),
-    "bridge.bin_top": ((_c(_F64, 1),) * 3 + (_F64, _I64, _I64), 0.9),
+    "bridge.bin_top": ((_c(_F64, 1),) * 3 + (_F64, _I64, _I64), 0.3),
+    "bridge.bin_low": ((_c(_F64, 1),) * 3 + (_F64, _I64, _I64), 0.7),
+    "bridge.pierced_columns": ((_c(_F64, 1),) * 6 + (_c(_F64, 2),) * 4 + (_F64,) * 5, 1.0),
+    "bridge.clear_pierced_gaps": ((_c(types.boolean, 2), _c(_I32, 2), _c(_F64, 3), _I64, _c(_F64, 2), _F64, _F64),
+                                  0.3),
     "bridge.object_bins": ((_c(_F64, 2), _I64, _F64), 2.6),
     "bridge.hidden_from_sensor": ((_c(_F64, 2), _c(_F64, 2), _c(_F64, 3), _c(_F64, 3), _c(_F64, 2),
                                    _c(types.boolean, 2), _F64, _F64, _F64, _F64, _F64), 1.8),
@@ -72,7 +76,8 @@ KERNELS: dict[str, tuple[tuple, float]] = {
 
 #: the kernels only a tiled job calls (blending tiles, bridging scan-line gaps); one-shape mode calls the others
 TILED_ONLY = ("blend.blend_bricks", "bridge.bin_ground", "bridge.fit_columns", "bridge.bin_sensor",
-              "bridge.flag_bridged_cells", "bridge.bin_top", "bridge.object_bins", "bridge.hidden_from_sensor")
+              "bridge.flag_bridged_cells", "bridge.bin_top", "bridge.object_bins", "bridge.hidden_from_sensor",
+              "bridge.bin_low", "bridge.pierced_columns", "bridge.clear_pierced_gaps")
 
 
 def kernel(name: str):
