@@ -18,7 +18,7 @@ Usage::
     python -m benchmarks.scenes classes --points 300000 --variants default
         # the demo street scored per kind of object (poles, cars, ...), beside Poisson in the same run
     python -m benchmarks.scenes thin                               # a wall 0.05-0.3 m thick seen from both sides
-    python -m benchmarks.scenes footprint [--grid]                 # bridging scan-line gaps: footprint recall
+    python -m benchmarks.scenes footprint [--grid | --grid-only]   # bridging scan-line gaps: footprint recall
         # and precision on synthetic streets, held-out points on a KITTI frame and the airborne files, beside
         # trimmed Poisson, GridPull with and without bridging, same run
 
@@ -333,7 +333,8 @@ def footprint_scores_of(mesh: Path, gt: Path, laz: Path, trajectory: Path | None
     return {**evaluate(mesh, gt, laz), **{k: v for k, v in fp.items() if k != "tau"}}
 
 
-def footprint(workers: int, work: Path, grid: bool = False, synthetic_only: bool = False) -> None:
+def footprint(workers: int, work: Path, grid: bool = False, synthetic_only: bool = False,
+              grid_only: bool = False) -> None:
     """Gaps between scan lines (issue 36): on synthetic streets the footprint recall (truth within 1.5 and 3 m of
     a point, hits within 0.1 m), the mesh's precision, boundary edges and pieces, the observed-region scores; on
     a real KITTI frame (sensor at the origin, 0.3 m cells) and the airborne files the held-out points' distance.
@@ -348,8 +349,10 @@ def footprint(workers: int, work: Path, grid: bool = False, synthetic_only: bool
 
     scenes = [("demo street (4 frames)", {"n_points": 300_000}), ("drive (16 frames 1 m apart)",
                                                                    {"n_points": 300_000, "frames": 16})]
-    if grid:
+    if grid or grid_only:
         scenes.append(("grid of streets", {"n_points": 1_000_000, "layout": "grid"}))
+    if grid_only:
+        scenes, synthetic_only = scenes[-1:], True
     for name, kw in scenes:
         d = work / name.split()[0]
         sample = make_street_sample(d, origin=(500000.0, 4000000.0, 100.0), **kw)
@@ -454,6 +457,7 @@ def main() -> None:
     ap.add_argument("suite", choices=("street", "workers", "lidar", "tiles", "wide", "holdout", "classes", "thin",
                                       "footprint"))
     ap.add_argument("--grid", action="store_true", help="footprint: also the 1M-point grid of streets")
+    ap.add_argument("--grid-only", action="store_true", help="footprint: the 1M-point grid of streets alone")
     ap.add_argument("--synthetic-only", action="store_true", help="footprint: the synthetic streets alone")
     ap.add_argument("--variants", nargs="+", choices=sorted(VARIANTS), default=["today", "default"],
                     help="wide: GridPull settings to run beside Poisson")
@@ -486,7 +490,7 @@ def main() -> None:
         elif a.suite == "thin":
             thin_walls(a.workers, work)
         elif a.suite == "footprint":
-            footprint(a.workers, work, a.grid, a.synthetic_only)
+            footprint(a.workers, work, a.grid, a.synthetic_only, a.grid_only)
         elif a.suite == "classes":
             classes(a.points[0], a.workers, work, a.variants, a.depth or 11)
         elif a.suite == "wide":

@@ -292,7 +292,8 @@ def pierced_columns(x, y, z, sx, sy, sz, height, gx, gy, low, pixel, layer, skip
     that crosses a column more than ``tol`` under the plane bridged there shows the ground lower than the plane:
     across a ditch the beams that reach its far wall pass under the plane over its rims. A point that the points
     of fewer than two neighbouring bins reach down to (within ``layer``) is left out: KITTI frames hold clusters
-    of a few points metres under the road (reflections), whose beams would pierce every plane over metres of road.
+    of a few points metres under the road (reflections), whose beams would pierce every plane over metres of road,
+    and so is a point whose sensor is not above it.
 
     Parameters
     ----------
@@ -326,6 +327,8 @@ def pierced_columns(x, y, z, sx, sy, sz, height, gx, gy, low, pixel, layer, skip
     bx, by = low.shape
     step = 0.5
     for n in range(x.shape[0]):
+        if not sz[n] > z[n]:
+            continue  # no sensor below its point saw it (a datum error, a trajectory's glitch)
         a = int(math.floor(x[n] / pixel))
         b = int(math.floor(y[n] / pixel))
         held = 0
