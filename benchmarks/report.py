@@ -476,7 +476,9 @@ def main() -> None:
                   "of 2026-11-26 is the rule before. The run of 2026-11-27 22:04-22:18 (beside probe runs: read its "
                   "accuracy, not its times) adds the test that keeps a gap open where a beam passed under its plane "
                   "(docs/solver.md, \"A beam under the plane: ditches\"): every figure equals the 20:28 run's, as "
-                  "these scenes hold no ditch.", "",
+                  "these scenes hold no ditch. The grid of streets (1M points, its trajectory) was run by itself, with "
+                  "`--grid-only`, on 2026-11-27 22:59-23:57 with the shipped rule (two beams a column), the first "
+                  "part of it beside a CI run: read its accuracy, not its times.", "",
                   footprint_table, ""]
     classes_table = scenes.render_classes(load("scenes"))
     if classes_table:

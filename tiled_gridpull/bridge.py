@@ -98,13 +98,13 @@ class BridgeRule:
         the high side could have seen).
     pierce_tol, pierce_beams, pierce_skip : float, int, float
         With sensor origins: a bridged column that ``pierce_beams`` beams passed more than ``pierce_tol`` under
-        (one beam: single noisy returns 12-14 cm low cut correct roads at 0.1 m cells),
-        each followed back ``shadow_reach`` cells from its point but not over the last ``pierce_skip`` (where a
-        beam meets its own ground at a grazing angle, within the plane fit's error of it), is no sampling gap: the
-        ground there is lower than the plane, as across a ditch whose far wall the beams reached
-        (:func:`~tiled_gridpull.kernels.bridge.pierced_columns`). The stretch of empty bins it lies in along that
-        beam stays open as a whole (:func:`~tiled_gridpull.kernels.bridge.clear_pierced_gaps`): its near part
-        lies in the near rim's shadow, where no beam could pass under the plane. 0 beams: no such test.
+        is no sampling gap: the ground there is lower than the plane, as across a ditch whose far wall the beams
+        reached (:func:`~tiled_gridpull.kernels.bridge.pierced_columns`). Each beam is followed back
+        ``shadow_reach`` cells from its point, but not over its last ``pierce_skip`` cells, where it meets its own
+        ground at a grazing angle, within the plane fit's error of it. The stretch of empty bins the column lies
+        in along that beam stays open as a whole (:func:`~tiled_gridpull.kernels.bridge.clear_pierced_gaps`):
+        its near part lies in the near rim's shadow, where no beam could pass under the plane. Two beams, not
+        one: single noisy returns 12-14 cm low cut correct roads at 0.1 m cells. 0 beams: no such test.
     """
 
     radius: float = 24.0
