@@ -19,7 +19,8 @@ its sides. With the sensor known, samples on things standing on the ground (cars
 fits, and ground the sensor could not have seen stays open: behind or under a thing, where a plane would only
 graze the line of sight, and where a beam passed under the plane (across a ditch). Without sensor origins each
 column is decided from the points within ``radius`` of it alone, and with ``radius`` at most a tile's overlap
-every tiling decides it the same way; with them it also reads the points up to ``shadow_reach`` (48 cells) away.
+every tiling decides it the same way; with them it also reads the points up to ``shadow_reach`` (48 cells) away,
+and a beam under the plane opens a gap up to twice that far from its point.
 """
 
 from __future__ import annotations
@@ -218,17 +219,17 @@ def bridge_columns(cells: np.ndarray, X: int, Y: int, rule: BridgeRule,
         and its slopes dz/dx, dz/dy; NaN rows where the column is not bridged.
     """
     nx, ny = int(math.ceil(X / rule.pixel)), int(math.ceil(Y / rule.pixel))
-    rep = kb.bin_ground(cells[:, 0].copy(), cells[:, 1].copy(), cells[:, 2].copy(), float(rule.pixel), nx, ny,
-                        float(rule.layer))
+    # contiguous columns, once: every kernel below reads them
+    x, y, z = (np.ascontiguousarray(cells[:, a], np.float64) for a in range(3))
+    rep = kb.bin_ground(x, y, z, float(rule.pixel), nx, ny, float(rule.layer))
     ii, jj = np.meshgrid(np.arange(X), np.arange(Y), indexing="ij")
     cols = np.stack([ii.ravel(), jj.ravel()], axis=1).astype(np.float64)
     seen = sensor is not None and rule.beyond_deg > 0
     max_gap = int(math.floor((rule.sensor_max_gap_deg if seen else rule.max_gap_deg) / (360.0 / kb.SECTORS)))
     rms_tol = rule.sensor_rms_tol if seen else rule.rms_tol
     if seen:
-        seen_from = kb.bin_sensor(cells[:, 0].copy(), cells[:, 1].copy(), cells[:, 2].copy(), sensor[:, 0].copy(),
-                                  sensor[:, 1].copy(), sensor[:, 2].copy(),
-                                  float(rule.pixel), nx, ny, float(rule.layer))
+        sx, sy, sz = (np.ascontiguousarray(sensor[:, a], np.float64) for a in range(3))
+        seen_from = kb.bin_sensor(x, y, z, sx, sy, sz, float(rule.pixel), nx, ny, float(rule.layer))
         far_cos = math.cos(math.radians(rule.beyond_deg))
     else:
         seen_from, far_cos = np.full((nx, ny, 3), np.nan), 2.0
@@ -244,7 +245,7 @@ def bridge_columns(cells: np.ndarray, X: int, Y: int, rule: BridgeRule,
     fit = kb.fit_columns(rep, float(rule.pixel), cols, float(rule.radius), float(rule.skip), max_gap,
                          float(rms_tol), float(rule.step_tol), float(rule.max_slope), seen_from, far_cos)
     if seen:
-        top = kb.bin_top(cells[:, 0].copy(), cells[:, 1].copy(), cells[:, 2].copy(), float(rule.pixel), nx, ny)
+        top = kb.bin_top(x, y, z, float(rule.pixel), nx, ny)
         if not objects:
             thing = np.zeros((nx, ny), np.bool_)
         hidden = kb.hidden_from_sensor(cols, fit, rep, seen_from, top, thing, float(rule.pixel), float(rule.radius),
@@ -253,14 +254,10 @@ def bridge_columns(cells: np.ndarray, X: int, Y: int, rule: BridgeRule,
     mask = np.isfinite(fit[:, 0]).reshape(X, Y)
     if seen and rule.pierce_beams > 0:
         plane = fit.reshape(X, Y, 3)
-        count, along = kb.pierced_columns(cells[:, 0].copy(), cells[:, 1].copy(), cells[:, 2].copy(),
-                                          sensor[:, 0].copy(), sensor[:, 1].copy(), sensor[:, 2].copy(),
-                                          np.ascontiguousarray(plane[..., 0]), np.ascontiguousarray(plane[..., 1]),
-                                          np.ascontiguousarray(plane[..., 2]),
-                                          kb.bin_low(cells[:, 0].copy(), cells[:, 1].copy(), cells[:, 2].copy(),
-                                                     float(rule.pixel), nx, ny),
-                                          float(rule.pixel), float(rule.layer), float(rule.pierce_skip),
-                                          float(rule.shadow_reach), float(rule.pierce_tol))
+        count, along = kb.pierced_columns(x, y, z, sx, sy, sz, *(np.ascontiguousarray(plane[..., a]) for a in range(3)),
+                                          kb.bin_low(x, y, z, float(rule.pixel), nx, ny), float(rule.pixel),
+                                          float(rule.layer), float(rule.pierce_skip), float(rule.shadow_reach),
+                                          float(rule.pierce_tol))
         mask = kb.clear_pierced_gaps(mask, count, along, int(rule.pierce_beams), top, float(rule.pixel),
                                      float(rule.shadow_reach))
     if rule.open_width > 0:
