@@ -349,10 +349,11 @@ def footprint(workers: int, work: Path, grid: bool = False, synthetic_only: bool
 
     scenes = [("demo street (4 frames)", {"n_points": 300_000}), ("drive (16 frames 1 m apart)",
                                                                    {"n_points": 300_000, "frames": 16})]
-    if grid or grid_only:
-        scenes.append(("grid of streets", {"n_points": 1_000_000, "layout": "grid"}))
+    grid_scene = ("grid of streets", {"n_points": 1_000_000, "layout": "grid"})
     if grid_only:
-        scenes, synthetic_only = scenes[-1:], True
+        scenes = [grid_scene]
+    elif grid:
+        scenes.append(grid_scene)
     for name, kw in scenes:
         d = work / name.split()[0]
         sample = make_street_sample(d, origin=(500000.0, 4000000.0, 100.0), **kw)
@@ -368,7 +369,7 @@ def footprint(workers: int, work: Path, grid: bool = False, synthetic_only: bool
                               [*scene_args(VARIANTS[v]), *(["--trajectory", str(traj)] if traj else [])])
             record(gridpull_row(row, base, poisson, v,
                                 **footprint_scores_of(out, sample["gt_mesh"], sample["laz"], traj)))
-    if synthetic_only:
+    if synthetic_only or grid_only:
         return
     kitti = REPO.parent / "shared" / "data" / "kitti" / "000000.bin"
     if kitti.exists():

@@ -76,8 +76,9 @@ class TilingConfig:
         Gaps between scan lines on the ground are bridged where the upward-facing points within this many cells
         surround a column on one gently sloping plane (:mod:`tiled_gridpull.bridge`): gaps up to about twice
         this wide close; 0 keeps the surface to the data alone. At most the overlap, so that every tiling
-        decides each column alike (with sensor origins a column also reads the points up to 48 cells away, more
-        than the default overlap: docs/solver.md, "With the sensor known").
+        decides each column alike (with sensor origins a column also reads the points up to 48 cells away, and
+        a beam under the bridge's plane opens a gap up to 96 cells from its point, more than the default overlap:
+        docs/solver.md, "With the sensor known" and "A beam under the plane").
     bridge_objects : float
         With sensor origins (``orientation`` sensor): ground samples on things narrower than this many cells
         standing on the ground (cars, bushes, hedges) leave the bridge's plane fits, and the ground hidden behind
