@@ -98,7 +98,9 @@ def test_settings_are_checked_before_the_input_is_read(tmp_path, capsys):
                                 dict(trim_distance=-1.0), dict(min_points=0), dict(normal_neighbors=0),
                                 dict(voxel_size=0.0), dict(voxel_size=float("inf")), dict(tile_size=True),
                                 dict(tile_size="25"), dict(voxel_size=1e-9, tile_size=25.6), dict(min_points=1 << 70),
-                                dict(bridge_objects=-1.0), dict(bridge_objects=float("nan"))])
+                                dict(bridge_objects=-1.0), dict(bridge_objects=float("nan")),
+                                dict(min_component_cells=-1.0), dict(min_component_cells=float("inf")),
+                                dict(min_component_cells="2")])
 def test_tiling_config_refuses(kw):
     with pytest.raises(ConfigError):
         TilingConfig(**kw)

@@ -13,7 +13,7 @@ from tiled_gridpull.lattice import Lattice
 from tiled_gridpull.mesh import Mesh
 from tiled_gridpull.metrics import evaluate
 from tiled_gridpull.partition import partition, read_tile_points
-from tiled_gridpull.stitch import MeshPiece, weld_pieces
+from tiled_gridpull.stitch import MeshPiece, drop_small_components, weld_pieces
 from tiled_gridpull.synthetic import sample_shape, sphere
 from tiled_gridpull.tile_plan import plan_tiles
 from tiled_gridpull.tiled_job import reconstruct_scene
@@ -217,3 +217,38 @@ def test_blend_kernel_matches_the_numpy_blend_bit_for_bit(rng, overlap):
         n_new = blend_into(new, [copy(t) for t in others], region_lo, region_hi)
         assert n_new == n_ref and n_ref > 0
         assert np.array_equal(new.values.view(np.uint32), ref.values.view(np.uint32))
+
+
+def _strip(x0: float, x1: float, key0: int, n: int = 4) -> MeshPiece:
+    """A strip of ``2 n`` triangles from x0 to x1 (0.2 wide in y); border vertices keyed by their x index."""
+    xs = np.linspace(x0, x1, n + 1)
+    v = np.array([(x, y, 0.0) for x in xs for y in (0.0, 0.2)])
+    f = np.array([t for i in range(n) for t in ((2 * i, 2 * i + 2, 2 * i + 1), (2 * i + 1, 2 * i + 2, 2 * i + 3))])
+    keys = np.arange(len(v)) + key0
+    return MeshPiece(v, f, keys, attributes={"intensity": np.arange(len(v), dtype=np.float32) + key0})
+
+
+def test_small_components_are_judged_whole_across_tiles():
+    """A strip cut by a tile border, 1.0 of it in each tile, is 2.0 long: kept at a minimum of 1.5 (either half
+    alone would be dropped); a speck 0.1 across in the second tile goes, with its vertices, and what is left of
+    the piece keeps its keys and attributes aligned."""
+    a = _strip(0.0, 1.0, 0)
+    b = _strip(1.0, 2.0, 8)  # its first two vertices are a's last two (keys 8 and 9)
+    speck = MeshPiece(np.array([[1.5, 1.0, 0.0], [1.6, 1.0, 0.0], [1.5, 1.1, 0.0]]), np.array([[0, 1, 2]]),
+                      np.array([-1, -2, -3]), attributes={"intensity": np.full(3, 99.0, np.float32)})
+    with_speck = MeshPiece(np.concatenate([speck.vertices, b.vertices]), np.concatenate([speck.faces, b.faces + 3]),
+                           np.concatenate([speck.keys, b.keys]),
+                           attributes={"intensity": np.concatenate([speck.attributes["intensity"],
+                                                                    b.attributes["intensity"]])})
+    kept, removed = drop_small_components([a, with_speck], 1.5)
+    assert removed == 1 and kept[0] is a
+    assert len(kept[1].faces) == len(b.faces)
+    assert np.array_equal(kept[1].vertices, b.vertices) and np.array_equal(kept[1].keys, b.keys)
+    assert np.array_equal(kept[1].attributes["intensity"], b.attributes["intensity"])
+    assert np.array_equal(kept[1].vertices[kept[1].faces], b.vertices[b.faces])
+    whole = weld_pieces(kept)
+    assert whole.n_faces == 16 and len(np.unique(whole.components())) == 1
+    # a minimum over the whole strip's length drops it too; 0 keeps everything as given
+    assert drop_small_components([a, with_speck], 2.5)[1] == 2
+    same, none = drop_small_components([a, with_speck], 0.0)
+    assert none == 0 and same[0] is a and same[1] is with_speck

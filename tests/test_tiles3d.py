@@ -436,3 +436,37 @@ def test_cli_takes_the_crs_of_a_las_input(tmp_path):
     # a rerun replaces its own tileset
     assert main(args) == 0
     assert json.loads((tmp_path / "ts" / "tileset.json").read_text())["root"] == doc["root"]
+
+
+def test_specks_leave_the_mesh_the_tile_meshes_and_the_tileset_alike(tmp_path):
+    """Two small balls of points float over the ground: the smaller one's bubble (and the scraps at the data's
+    edge) are parts under ``min_component_cells`` (2) cells along every axis and go from the mesh, the tile
+    meshes and the finest 3D Tiles alike; the larger one (3 cells across) stays; 0 keeps them all, the same
+    solves reused."""
+    rng = np.random.default_rng(1)
+    u = rng.normal(size=(300, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    base = np.array([500000.0, 4000000.0, 50.0])
+    balls = [base + c + 0.12 * u for c in ([4.1, 4.3, 3.0], [8.0, 6.35, 2.5])]
+    np.save(tmp_path / "g.npy", np.concatenate([terrain(12.8, 40, seed=3), *balls]))
+    out = {}
+    for cells in (2.0, 0.0):
+        tiling = TilingConfig(voxel_size=0.2, tile_size=3.2, overlap=1.6, trim_distance=2.0, min_component_cells=cells)
+        mesh = reconstruct_scene([str(tmp_path / "g.npy")], tmp_path / f"m{cells}.ply", tiling, SOLVER,
+                                 tmp_path / "job", tile_meshes=tmp_path / f"tiles{cells}",
+                                 tiles3d=tmp_path / f"ts{cells}", tiles3d_crs=UTM)
+        doc = json.loads((tmp_path / f"ts{cells}" / "tileset.json").read_text())
+        finest = sum(len(read_glb(tmp_path / f"ts{cells}" / n["content"]["uri"])["faces"]) for n in _leaves(doc))
+        pieces = sum(read_mesh(p).n_faces for p in (tmp_path / f"tiles{cells}").glob("*.ply"))
+        assert finest == pieces == read_mesh(tmp_path / f"m{cells}.ply").n_faces == mesh.n_faces
+        out[cells] = mesh
+    kept, every = out[2.0], out[0.0]
+    labels = every.components()
+    tri = every.vertices[every.faces]
+    extent = np.array([np.ptp(tri[labels == c].reshape(-1, 3), axis=0).max() for c in range(labels.max() + 1)])
+    small = extent < 0.4
+    assert small.sum() == kept.metadata["mesh"]["small_components_dropped"] > 0
+    assert kept.n_faces == every.n_faces - np.isin(labels, np.flatnonzero(small)).sum()
+    assert kept.metadata["mesh"]["components"] == (~small).sum() >= 2  # the ground and the larger ball
+    assert every.metadata["mesh"]["small_components_dropped"] == 0
+    assert every.metadata["reused"]["solves"] == every.metadata["tiles"]["solved"]

@@ -125,7 +125,8 @@ def test_resolving_the_cell_size_keeps_every_other_setting():
     from tiled_gridpull.tiling import _RESOLVED
 
     given = {"trim_distance": 5.0, "min_points": 7, "orientation": "up", "normal_neighbors": 9,
-             "drop_outliers": True, "halo": 3, "bridge": 12.0, "bridge_objects": 16.0, "attributes": "rgb"}
+             "drop_outliers": True, "halo": 3, "bridge": 12.0, "bridge_objects": 16.0, "attributes": "rgb",
+             "min_component_cells": 4.5}
     assert set(given) | set(_RESOLVED) == {f.name for f in fields(TilingConfig)}, "a new setting needs a value here"
     for t in (TilingConfig(voxel_size="0.1 m", **given), TilingConfig(voxel_size="auto", **given)):
         out = t.with_cell_size(0.25, "test")

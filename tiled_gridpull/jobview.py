@@ -96,7 +96,8 @@ class JobView:
         return [n for n in out if not meshed or self.paths.piece(self.specs[n]).is_file()]
 
     def tile_mesh(self, name: str) -> Mesh:
-        """The piece of the final mesh a tile produced (its core, blended with its neighbours)."""
+        """The piece a tile meshed (its core, blended with its neighbours), before the job drops the mesh's small
+        parts (``min_component_cells``, judged across tiles)."""
         p = self.paths.piece(self._spec(name))
         if not p.is_file():
             raise InputError(f"{name}: no mesh piece ({p} missing: tile not solved or not meshed yet)")
@@ -104,7 +105,8 @@ class JobView:
         return piece.mesh({"tile": name})
 
     def welded(self, names: list[str]) -> Mesh:
-        """The pieces of several tiles welded by edge key, as the job does (shared border vertices merged)."""
+        """The pieces of several tiles welded by edge key, as the job does (shared border vertices merged; its
+        small parts kept)."""
         return weld_pieces([load_piece(self.paths.piece(self._spec(n))) for n in names])
 
     def shared_vertices(self, a: str, b: str) -> int:

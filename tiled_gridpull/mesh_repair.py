@@ -8,7 +8,7 @@ from .attributes import mean_attributes
 from .kernels import graph as kg
 from .mesh import Mesh, edge_groups
 
-__all__ = ["remove_small_components", "remove_pinched_fans", "boundary_edges", "boundary_loops",
+__all__ = ["remove_small_components", "small_component_faces", "remove_pinched_fans", "boundary_edges", "boundary_loops",
            "close_holes"]
 
 
@@ -22,9 +22,25 @@ def remove_small_components(mesh: Mesh, min_extent: float) -> tuple[Mesh, int]:
     removed : int
         Number of pieces dropped.
     """
+    small, removed = small_component_faces(mesh, min_extent)
+    if not removed:
+        return mesh, 0
+    return mesh.submesh(~small), removed
+
+
+def small_component_faces(mesh: Mesh, min_extent: float) -> tuple[np.ndarray, int]:
+    """Which faces lie on connected pieces whose bounding box is smaller than ``min_extent`` along every axis.
+
+    Returns
+    -------
+    small : (F,) bool
+        True on the faces of such pieces.
+    pieces : int
+        How many pieces that is.
+    """
     labels = mesh.components()
     if len(labels) == 0:
-        return mesh, 0
+        return np.zeros(0, bool), 0
     n = int(labels.max()) + 1
     tri = mesh.vertices[mesh.faces]
     lo = np.full((n, 3), np.inf)
@@ -33,9 +49,7 @@ def remove_small_components(mesh: Mesh, min_extent: float) -> tuple[Mesh, int]:
     np.maximum.at(hi, labels, tri.max(axis=1))
     present = np.isfinite(lo[:, 0])
     small = present & np.all(hi - lo < min_extent, axis=1)
-    if not small.any():
-        return mesh, 0
-    return mesh.submesh(~small[labels]), int(small.sum())
+    return small[labels], int(small.sum())
 
 
 def remove_pinched_fans(mesh: Mesh, max_rounds: int = 4) -> tuple[Mesh, int]:

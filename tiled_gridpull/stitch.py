@@ -27,12 +27,12 @@ from .kernels.band import brick_neighbors
 from .kernels.graph import vertex_components
 from .memory import peak_rss_mb, reset_peak_rss
 from .mesh import Mesh, take_attributes
-from .mesh_repair import boundary_edges
+from .mesh_repair import boundary_edges, small_component_faces
 from .nearest import distances_to_cloud
 from .partition import read_tile_attributes, read_tile_points
 from .tile_field import load_tile_field
 
-__all__ = ["MeshPiece", "trim_faces", "save_piece", "load_piece", "weld_pieces"]
+__all__ = ["MeshPiece", "trim_faces", "save_piece", "load_piece", "weld_pieces", "drop_small_components"]
 
 
 @dataclass(eq=False)
@@ -127,14 +127,19 @@ def weld_pieces(pieces: list[MeshPiece]) -> Mesh:
     points, its overlap included, so a shared vertex's values agree up to the float32 rounding of the tiles'
     spill coordinates). Attributes that some piece with vertices lacks are dropped.
     """
-    verts, faces, keys = [], [], []
+    return _weld(pieces)[0]
+
+
+def _weld(pieces: list[MeshPiece]) -> tuple[Mesh, np.ndarray]:
+    """:func:`weld_pieces`, and the index of the piece each face of the welded mesh comes from, (F,) int64."""
+    verts, faces, keys, owner = [], [], [], []
     with_vertices = [p for p in pieces if len(p.vertices)]
     names = [n for n in (with_vertices[0].attributes if with_vertices else {})
              if all(n in p.attributes for p in with_vertices)]
     attrs: dict = {n: [] for n in names}
     base = 0
     private = 0
-    for p in pieces:
+    for i, p in enumerate(pieces):
         k = p.keys.copy()
         neg = k < 0
         # private vertices get ids no other piece uses
@@ -144,15 +149,51 @@ def weld_pieces(pieces: list[MeshPiece]) -> Mesh:
         for n in names:
             attrs[n].append(p.attributes[n] if len(p.vertices) else np.zeros(0, with_vertices[0].attributes[n].dtype))
         faces.append(p.faces + base)
+        owner.append(np.full(len(p.faces), i, np.int64))
         keys.append(k)
         base += len(p.vertices)
     if not verts:
-        return Mesh(np.zeros((0, 3)), np.zeros((0, 3), np.int64))
+        return Mesh(np.zeros((0, 3)), np.zeros((0, 3), np.int64)), np.zeros(0, np.int64)
     V = np.concatenate(verts)
     F = np.concatenate(faces)
     K = np.concatenate(keys)
     uniq, first, inverse = np.unique(K, return_index=True, return_inverse=True)
-    return Mesh(V[first], inverse[F], {}, {n: np.concatenate(parts)[first] for n, parts in attrs.items()})
+    return (Mesh(V[first], inverse[F], {}, {n: np.concatenate(parts)[first] for n, parts in attrs.items()}),
+            np.concatenate(owner))
+
+
+def drop_small_components(pieces: list[MeshPiece], min_extent: float) -> tuple[list[MeshPiece], int]:
+    """Drop, from every tile's piece, the faces of the welded mesh's connected parts that are smaller than
+    ``min_extent`` (world units) along every axis: specks, each the bubble of a few stray points.
+
+    Each part is judged whole, across the tiles it spans, so the welded mesh, the tile meshes and the 3D Tiles
+    cut from the returned pieces agree, and a part cut by a tile border is never taken for two small ones.
+
+    Returns
+    -------
+    pieces : list of MeshPiece
+        The pieces without those faces (and their vertices), in order; a piece that loses nothing is returned
+        as it was.
+    removed : int
+        How many parts were dropped.
+    """
+    if min_extent <= 0:
+        return list(pieces), 0
+    welded, owner = _weld(pieces)
+    small, removed = small_component_faces(welded, min_extent)
+    if not removed:
+        return list(pieces), 0
+    out = []
+    for i, p in enumerate(pieces):
+        drop = small[owner == i]
+        if not drop.any():
+            out.append(p)
+            continue
+        faces = p.faces[~drop]
+        used, inverse = np.unique(faces, return_inverse=True)
+        out.append(MeshPiece(p.vertices[used], inverse.reshape(-1, 3).astype(np.int64), p.keys[used], dict(p.info),
+                             take_attributes(p.attributes, used)))
+    return out, removed
 
 
 def mesh_tile(spec, neighbors: list, tiling, key_ref: np.ndarray, field_path: str | Path,

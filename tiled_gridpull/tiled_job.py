@@ -38,7 +38,7 @@ from .prepare import check_registered, check_remote, prepare_job, resolve_units,
 from .report import write_report
 from .resume import (finish_tile_resumable, mesh_tile_resumable, prepare_tile_resumable, solve_batch_resumable,
                      solve_tile_resumable)
-from .stitch import load_piece, mesh_tile, weld_pieces
+from .stitch import MeshPiece, drop_small_components, load_piece, mesh_tile, weld_pieces
 from .tile_plan import TilePlan, TileSpec
 from .tile_solve import solve_tile
 from .tiling import TilingConfig, check_compatible, with_halo
@@ -438,7 +438,8 @@ def _run(inputs, output, tiling: TilingConfig, solver: SolverConfig, paths: JobP
                                     for m in mesh_summaries if m.get("status") == "failed"]
     meta["reused"] = {"partition": bool(scan.get("partition_reused")), "solves": n_solve, "meshes": n_mesh}
     pieces = [paths.piece(by_index[tuple(m["index"])]) for m in mesh_summaries if m.get("status") == "meshed"]
-    mesh = finish_job(pieces, meta, float32=float32, tile_meshes=tile_meshes)
+    mesh, pieces = finish_job(pieces, meta, float32=float32, tile_meshes=tile_meshes,
+                              min_extent=tiling.min_component_cells * plan.lattice.cell_size)
     mesh.metadata["timings_s"]["merge"] = time.perf_counter() - t_mesh
     if tileset is not None:
         from .tiles3d import job_tiles, write_tileset
@@ -446,7 +447,7 @@ def _run(inputs, output, tiling: TilingConfig, solver: SolverConfig, paths: JobP
         t_tiles = time.perf_counter()
         out_dir, crs, crs_source = tileset
         meshed = [by_index[tuple(m["index"])] for m in mesh_summaries if m.get("status") == "meshed"]
-        summary = write_tileset(job_tiles([(s.name, s.index, paths.piece(s)) for s in meshed]), out_dir, crs,
+        summary = write_tileset(job_tiles([(s.name, s.index, p) for s, p in zip(meshed, pieces)]), out_dir, crs,
                                 metadata=mesh.metadata, crs_source=crs_source)
         mesh.metadata["tiles3d"] = {"dir": str(out_dir), **summary}
         mesh.metadata["timings_s"]["tiles3d"] = time.perf_counter() - t_tiles
@@ -507,24 +508,34 @@ def key_reference(plan: TilePlan) -> np.ndarray:
 
 
 def finish_job(pieces: Iterable[Path], metadata: dict, *, float32: bool = False,
-               tile_meshes: str | Path | None = None) -> Mesh:
+               tile_meshes: str | Path | None = None, min_extent: float = 0.0) -> tuple[Mesh, list[MeshPiece]]:
     """Weld the tile pieces into one mesh carrying ``metadata``. The caller writes it, once its timings are in,
     with its sidecar as one commit (:func:`~tiled_gridpull.io.write_mesh_and_sidecar`).
 
+    ``min_extent``: connected parts smaller than this (world units) along every axis are dropped first, each
+    judged whole across the tiles it spans (:func:`~tiled_gridpull.stitch.drop_small_components`); their count
+    goes to ``metadata["mesh"]["small_components_dropped"]``.
     ``tile_meshes``: also write each tile's piece as ``<dir>/<tile>.ply`` (input coordinates; pieces share their
     border vertices exactly, so they fit together without gaps).
+
+    Returns
+    -------
+    mesh : Mesh
+    pieces : list of MeshPiece
+        The tiles' pieces as welded (in the order of ``pieces``): what 3D Tiles are cut from.
     """
-    loaded = [(Path(p), load_piece(p)) for p in pieces]
+    paths = [Path(p) for p in pieces]
+    kept, dropped = drop_small_components([load_piece(p) for p in paths], min_extent)
     if tile_meshes is not None:
         out_dir = Path(tile_meshes)
         out_dir.mkdir(parents=True, exist_ok=True)
-        for p, piece in loaded:
+        for p, piece in zip(paths, kept):
             if len(piece.faces):
                 write_mesh(piece.mesh(), out_dir / f"{p.stem}.ply", float32=float32)
-    mesh = weld_pieces([piece for _, piece in loaded])
+    mesh = weld_pieces(kept)
     mesh.metadata.update(metadata)
-    mesh.metadata["mesh"] = mesh.topology.to_dict()
-    return mesh
+    mesh.metadata["mesh"] = {**mesh.topology.to_dict(), "small_components_dropped": dropped}
+    return mesh, kept
 
 
 def check_some_tile_solvable(specs: list[TileSpec], tiling: TilingConfig) -> None:

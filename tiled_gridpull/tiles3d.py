@@ -725,19 +725,21 @@ def resolve_tileset_crs(inputs: Sequence[str], crs_option: str | None = None) ->
     return crs, "input"
 
 
-def job_tiles(pieces: Sequence[tuple[str, Sequence[int], str | Path]]) -> list[TileMesh]:
+def job_tiles(pieces: Sequence[tuple[str, Sequence[int], object]]) -> list[TileMesh]:
     """The tiles of a finished job from its mesh pieces.
 
     Parameters
     ----------
-    pieces : sequence of (name, index, path)
-        Each tile's name, index and piece file (:func:`tiled_gridpull.stitch.save_piece`).
+    pieces : sequence of (name, index, piece)
+        Each tile's name, index and piece: a :class:`~tiled_gridpull.stitch.MeshPiece` or its file
+        (:func:`tiled_gridpull.stitch.save_piece`).
     """
     from .stitch import load_piece
 
     out = []
-    for name, index, path in pieces:
-        piece = load_piece(path)
+    for name, index, piece in pieces:
+        if isinstance(piece, (str, Path)):
+            piece = load_piece(piece)
         mesh = Mesh(piece.vertices, piece.faces)
         # the piece's per-vertex values, under either name (MeshPiece.attributes, Mesh.vertex_attributes)
         attrs = getattr(piece, "attributes", None) or getattr(piece, "vertex_attributes", None)

@@ -79,6 +79,10 @@ class TilingConfig:
         decides each column alike (with sensor origins a column also reads the points up to 48 cells away, and
         a beam under the bridge's plane opens a gap up to 96 cells from its point, more than the default overlap:
         docs/solver.md, "With the sensor known" and "A beam under the plane").
+    min_component_cells : float
+        Connected parts of the mesh smaller than this many cells along every axis are dropped: specks, each the
+        bubble of a few stray points (the one-shape mode's ``min_component_cells``). Each part is judged whole,
+        across the tiles it spans; the mesh, ``--tile-meshes`` and ``--3d-tiles`` agree. 0 keeps every part.
     bridge_objects : float
         With sensor origins (``orientation`` sensor): ground samples on things narrower than this many cells
         standing on the ground (cars, bushes, hedges) leave the bridge's plane fits, and the ground hidden behind
@@ -121,6 +125,7 @@ class TilingConfig:
     trim_distance: float = 3.0
     bridge: float = 0.0
     bridge_objects: float = 24.0
+    min_component_cells: float = 2.0
     orientation: str = "auto"
     normal_neighbors: int = 16
     drop_outliers: bool = False
@@ -222,6 +227,11 @@ class TilingConfig:
         if self.bridge_objects < 0:
             raise ConfigError(f"bridge_objects must be >= 0 (cells; 0: every ground sample counts), got "
                               f"{self.bridge_objects!r}")
+        object.__setattr__(self, "min_component_cells", finite_number("min_component_cells",
+                                                                      self.min_component_cells))
+        if self.min_component_cells < 0:
+            raise ConfigError(f"min_component_cells must be >= 0 (cells; 0 keeps every part), got "
+                              f"{self.min_component_cells!r}")
         for name in ("min_points", "normal_neighbors"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1 or v >= 1 << 62:
