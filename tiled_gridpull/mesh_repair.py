@@ -8,8 +8,8 @@ from .attributes import mean_attributes
 from .kernels import graph as kg
 from .mesh import Mesh, edge_groups
 
-__all__ = ["remove_small_components", "small_component_faces", "remove_pinched_fans", "boundary_edges", "boundary_loops",
-           "close_holes"]
+__all__ = ["remove_small_components", "small_component_faces", "remove_pinched_fans", "boundary_edges",
+           "boundary_loops", "close_holes"]
 
 
 def remove_small_components(mesh: Mesh, min_extent: float) -> tuple[Mesh, int]:
