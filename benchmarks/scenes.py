@@ -446,6 +446,92 @@ def holdout(workers: int, work: Path, variants: list[str], depth: int = 10, frac
             record(gridpull_row(row, base, poisson, v, **holdout_scores(out, test, xyz[~held], cell)))
 
 
+#: trade suite: parts smaller than these many cells along every axis dropped after the fact (2: as shipped)
+TRADE_DUST = (2.0, 4.0, 6.0, 8.0)
+#: trade suite, the most closing could do: every boundary loop of a part up to this many cells across, and every
+#: loop up to ``TRADE_HOLE`` cells across, closed by a fan (after the shipped 2-cell specks go)
+TRADE_PART, TRADE_HOLE = 32.0, 10.0
+
+
+def trade(workers: int, work: Path) -> None:
+    """What the counts of issue 36 would cost on real scans: a KITTI frame (10 % of its points held out, sensor
+    at the origin) at 0.3 m and at the shipped 0.1 m cells, and the airborne files (10 % held out), each beside
+    Poisson (depth 10, trimmed) in the same run. GridPull runs once with ``min_component_cells`` 0; its mesh is
+    then cleaned after the fact: parts smaller than :data:`TRADE_DUST` cells dropped (2 cells is what the
+    shipped pipeline drops: pieces against the held-out distance), and the most closing could do for the
+    boundary edges (:data:`TRADE_PART`, :data:`TRADE_HOLE`: pinched fans removed, then each such loop closed by
+    a fan of triangles). Rows go under suite ``trade``."""
+    import numpy as np
+
+    from tiled_gridpull.io import read_mesh, read_points, write_mesh
+    from tiled_gridpull.mesh_repair import (boundary_loops, close_holes, remove_pinched_fans,
+                                            remove_small_components)
+    from tiled_gridpull.synthetic.lidar_files import write_las
+
+    def variants(raw: Path, cell: float):
+        mesh = read_mesh(raw)
+        for cells in TRADE_DUST:
+            kept, _ = remove_small_components(mesh, cells * cell)
+            yield f"min_component_cells {cells:g}" + (" (shipped)" if cells == 2.0 else ""), kept
+        kept, _ = remove_small_components(mesh, 2.0 * cell)
+        kept, _ = remove_pinched_fans(kept, max_rounds=8)
+        labels = kept.components()
+        tri = kept.vertices[kept.faces]
+        n = int(labels.max()) + 1 if len(labels) else 0
+        lo, hi = np.full((n, 3), np.inf), np.full((n, 3), -np.inf)
+        np.minimum.at(lo, labels, tri.min(axis=1))
+        np.maximum.at(hi, labels, tri.max(axis=1))
+        part = np.full(kept.n_vertices, -1)
+        part[kept.faces.reshape(-1)] = np.repeat(labels, 3)
+        across = (hi - lo).max(axis=1)
+        loops = [lp for lp in boundary_loops(kept) if across[part[lp[0]]] <= TRADE_PART * cell
+                 or np.ptp(kept.vertices[lp], axis=0).max() <= TRADE_HOLE * cell]
+        yield f"closed: parts <= {TRADE_PART:g} cells, holes <= {TRADE_HOLE:g} cells", close_holes(kept, loops)
+
+    def score(base: dict, poisson: dict, row: dict, raw: Path, test, train, cell: float) -> None:
+        for variant, mesh in variants(raw, cell):
+            path = raw.with_name(raw.stem + "_v.ply")
+            write_mesh(mesh, path)
+            record({**row, **base, **holdout_scores(path, test, train, cell), "method": "gridpull",
+                    "variant": variant, "points_per_s": base["points"] / row["wall_s"],
+                    "x_poisson_time": row["wall_s"] / poisson["wall_s"]})
+
+    kitti = REPO.parent / "shared" / "data" / "kitti" / "000000.bin"
+    if kitti.exists():
+        scan = np.fromfile(kitti, np.float32).reshape(-1, 4)
+        held = np.random.default_rng(0).random(len(scan)) < 0.1
+        (work / "kitti").mkdir(exist_ok=True)
+        train = work / "kitti" / "000000.bin"
+        scan[~held].tofile(train)
+        test = scan[held, :3].astype(np.float64)
+        pout = work / "kitti" / "poisson.ply"
+        poisson = poisson_scene(train, pout, 10, sensor=[0.0, 0.0, 0.0])
+        train_xyz = read_points(train).xyz
+        for cell in (0.3, 0.1):
+            base = {"scene": "KITTI 00 frame 0", "suite": "trade", "points": int((~held).sum()),
+                    "held_out": int(held.sum()), "workers": workers, "cell": cell}
+            record(poisson_row(base, poisson, 10, **holdout_scores(pout, test, train_xyz, cell)))
+            raw = work / "kitti" / f"gridpull_{cell:g}.ply"
+            row = reconstruct(train, raw, workers, ["--config", str(REPO / "configs" / "kitti.yaml"),
+                                                    "--voxel-size", str(cell), "--set", "min_component_cells=0"])
+            score(base, poisson, row, raw, test, train_xyz, cell)
+    else:
+        print("skip KITTI: ../shared/data/kitti/000000.bin absent", flush=True)
+    for name, cell, src in shared_lidar_files():
+        xyz = read_points(src).xyz
+        held = np.random.default_rng(0).random(len(xyz)) < 0.1
+        train = write_las(work / f"{src.stem}_train.laz", xyz[~held])
+        base = {"scene": name, "suite": "trade", "points": int((~held).sum()), "held_out": int(held.sum()),
+                "workers": workers, "cell": cell}
+        pout = work / f"{src.stem}_poisson.ply"
+        poisson = poisson_scene(train, pout, 10)
+        record(poisson_row(base, poisson, 10, **holdout_scores(pout, xyz[held], xyz[~held], cell)))
+        raw = work / f"{src.stem}_gridpull.ply"
+        row = reconstruct(train, raw, workers, [*scene_args({"min_component_cells": 0}), "--voxel-size", str(cell),
+                                                "--tile-size", str(256 * cell), "--overlap", str(32 * cell)])
+        score(base, poisson, row, raw, xyz[held], xyz[~held], cell)
+
+
 def tile_costs(mesh: Path) -> list[dict]:
     """Per-tile solve cost from a job's sidecar: points, finest-band vertices and task seconds of every tile."""
     side = json.loads(mesh.with_suffix(".json").read_text())
@@ -456,7 +542,7 @@ def tile_costs(mesh: Path) -> list[dict]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("suite", choices=("street", "workers", "lidar", "tiles", "wide", "holdout", "classes", "thin",
-                                      "footprint"))
+                                      "footprint", "trade"))
     ap.add_argument("--grid", action="store_true", help="footprint: also the 1M-point grid of streets")
     ap.add_argument("--grid-only", action="store_true", help="footprint: the 1M-point grid of streets alone")
     ap.add_argument("--synthetic-only", action="store_true", help="footprint: the synthetic streets alone")
@@ -490,6 +576,8 @@ def main() -> None:
             holdout(a.workers, work, a.variants, a.depth or 10)
         elif a.suite == "thin":
             thin_walls(a.workers, work)
+        elif a.suite == "trade":
+            trade(a.workers, work)
         elif a.suite == "footprint":
             footprint(a.workers, work, a.grid, a.synthetic_only, a.grid_only)
         elif a.suite == "classes":
@@ -609,6 +697,21 @@ def render_holdout(rows: list[dict]) -> str:
                                   ("holdout_within_cell", "share within 1 cell", ".3f"),
                                   ("area_far_share", "area > 2 cells from points", ".3f"),
                                   ("boundary_edges", "boundary edges", ""), ("components", "pieces", "")])
+
+
+def render_trade(rows: list[dict]) -> str:
+    """Markdown table of the ``trade`` suite: each real scan's Poisson row, then GridPull's mesh cleaned after the
+    fact (:func:`trade`), held-out distance beside boundary edges and pieces."""
+    runs = [r for r in rows if r.get("suite") == "trade"]
+    if not runs:
+        return ""
+    table = [{**r, "what": "Poisson (trimmed)" if r["method"] == "poisson" else f"GridPull, {r['variant']}"}
+             for r in runs]
+    return markdown_table(table, [
+        ("date", "date", ""), ("scene", "file", ""), ("cell", "cell", "g"), ("what", "method", ""),
+        ("holdout_mean", "held-out mean", ".4f"), ("holdout_median", "median", ".4f"),
+        ("holdout_p90", "90th pct", ".4f"), ("boundary_edges", "boundary edges", ""),
+        ("components", "pieces", ""), ("area_far_share", "area > 2 cells from points", ".3f")])
 
 
 def render_footprint(rows: list[dict]) -> str:
