@@ -461,12 +461,22 @@ def test_specks_leave_the_mesh_the_tile_meshes_and_the_tileset_alike(tmp_path):
         assert finest == pieces == read_mesh(tmp_path / f"m{cells}.ply").n_faces == mesh.n_faces
         out[cells] = mesh
     kept, every = out[2.0], out[0.0]
+    # each tile's record counts what it keeps, and a tile left with specks only leaves no PLY, even where an
+    # earlier run wrote one (the same run again into the first run's tile folder)
+    assert sum(m.get("faces") or 0 for m in kept.metadata["mesh_summaries"]) == kept.n_faces
+    assert sum(m.get("small_faces_dropped", 0) for m in kept.metadata["mesh_summaries"]) == \
+        every.n_faces - kept.n_faces
+    assert len(list((tmp_path / "tiles0.0").glob("*.ply"))) > len(list((tmp_path / "tiles2.0").glob("*.ply")))
+    tiling = TilingConfig(voxel_size=0.2, tile_size=3.2, overlap=1.6, trim_distance=2.0)
+    again = reconstruct_scene([str(tmp_path / "g.npy")], tmp_path / "again.ply", tiling, SOLVER, tmp_path / "job",
+                              tile_meshes=tmp_path / "tiles0.0")
+    assert sum(read_mesh(p).n_faces for p in (tmp_path / "tiles0.0").glob("*.ply")) == again.n_faces == kept.n_faces
     labels = every.components()
     tri = every.vertices[every.faces]
     extent = np.array([np.ptp(tri[labels == c].reshape(-1, 3), axis=0).max() for c in range(labels.max() + 1)])
     small = extent < 0.4
-    assert small.sum() == kept.metadata["mesh"]["small_components_dropped"] > 0
+    assert small.sum() == kept.metadata["small_components_removed"] > 0
     assert kept.n_faces == every.n_faces - np.isin(labels, np.flatnonzero(small)).sum()
     assert kept.metadata["mesh"]["components"] == (~small).sum() >= 2  # the ground and the larger ball
-    assert every.metadata["mesh"]["small_components_dropped"] == 0
+    assert every.metadata["small_components_removed"] == 0
     assert every.metadata["reused"]["solves"] == every.metadata["tiles"]["solved"]

@@ -179,13 +179,15 @@ def drop_small_components(pieces: list[MeshPiece], min_extent: float) -> tuple[l
     """
     if min_extent <= 0:
         return list(pieces), 0
-    welded, owner = _weld(pieces)
+    welded, _ = _weld(pieces)
     small, removed = small_component_faces(welded, min_extent)
     if not removed:
         return list(pieces), 0
+    # the welded faces are the pieces' faces in order
+    ends = np.cumsum([0] + [len(p.faces) for p in pieces])
     out = []
     for i, p in enumerate(pieces):
-        drop = small[owner == i]
+        drop = small[ends[i]:ends[i + 1]]
         if not drop.any():
             out.append(p)
             continue

@@ -513,10 +513,12 @@ def finish_job(pieces: Iterable[Path], metadata: dict, *, float32: bool = False,
     with its sidecar as one commit (:func:`~tiled_gridpull.io.write_mesh_and_sidecar`).
 
     ``min_extent``: connected parts smaller than this (world units) along every axis are dropped first, each
-    judged whole across the tiles it spans (:func:`~tiled_gridpull.stitch.drop_small_components`); their count
-    goes to ``metadata["mesh"]["small_components_dropped"]``.
+    judged whole across the tiles it spans (:func:`~tiled_gridpull.stitch.drop_small_components`). How many goes
+    to ``metadata["small_components_removed"]`` (as in the one-shape mode); each tile's entry of
+    ``metadata["mesh_summaries"]`` then counts the faces and vertices it keeps, and ``small_faces_dropped``.
     ``tile_meshes``: also write each tile's piece as ``<dir>/<tile>.ply`` (input coordinates; pieces share their
-    border vertices exactly, so they fit together without gaps).
+    border vertices exactly, so they fit together without gaps); a tile left without faces has none (one an
+    earlier run wrote there is removed).
 
     Returns
     -------
@@ -525,16 +527,29 @@ def finish_job(pieces: Iterable[Path], metadata: dict, *, float32: bool = False,
         The tiles' pieces as welded (in the order of ``pieces``): what 3D Tiles are cut from.
     """
     paths = [Path(p) for p in pieces]
-    kept, dropped = drop_small_components([load_piece(p) for p in paths], min_extent)
+    loaded = [load_piece(p) for p in paths]
+    kept, dropped = drop_small_components(loaded, min_extent)
+    summaries = {m.get("tile"): m for m in metadata.get("mesh_summaries", [])}
+    for p, before, after in zip(paths, loaded, kept):
+        entry = summaries.get(p.stem)
+        if dropped and entry is not None:
+            entry.update(faces=len(after.faces), vertices=len(after.vertices),
+                         small_faces_dropped=len(before.faces) - len(after.faces))
     if tile_meshes is not None:
         out_dir = Path(tile_meshes)
         out_dir.mkdir(parents=True, exist_ok=True)
         for p, piece in zip(paths, kept):
             if len(piece.faces):
                 write_mesh(piece.mesh(), out_dir / f"{p.stem}.ply", float32=float32)
+            else:
+                (out_dir / f"{p.stem}.ply").unlink(missing_ok=True)
+    if dropped and not any(len(piece.faces) for piece in kept):
+        log.warning("every part of the mesh is smaller than min_component_cells along every axis: the mesh is "
+                    "empty (set a smaller min_component_cells, or 0 to keep every part)")
     mesh = weld_pieces(kept)
     mesh.metadata.update(metadata)
-    mesh.metadata["mesh"] = {**mesh.topology.to_dict(), "small_components_dropped": dropped}
+    mesh.metadata["mesh"] = mesh.topology.to_dict()
+    mesh.metadata["small_components_removed"] = dropped
     return mesh, kept
 
 
