@@ -602,7 +602,7 @@ def main() -> None:
 def render(rows: list[dict]) -> str:
     """Markdown table of every scene run (newest last)."""
     runs = [r for r in rows if r.get("scene") not in (None, "machine")
-            and r.get("suite") not in ("tiles", "wide", "holdout", "classes", "thin", "footprint")]
+            and r.get("suite") not in ("tiles", "wide", "holdout", "classes", "thin", "footprint", "trade")]
     if not runs:
         return ""
     out = ["| date | scene | coarse thinning | query pool | points | workers | tiles | wall s | points/s | "
