@@ -342,8 +342,6 @@ def footprint(workers: int, work: Path, grid: bool = False, synthetic_only: bool
     shipped configs and with ``bridge 0``, same run. The synthetic scenes are reconstructed with their trajectory
     (sensor origins, as a mapping car delivers them: walls face the street, shadows stay unbridged) and scored
     also over what some sensor position sees."""
-    import numpy as np
-
     from tiled_gridpull.io import read_points
     from tiled_gridpull.synthetic.street_sample import make_street_sample
 
@@ -371,18 +369,11 @@ def footprint(workers: int, work: Path, grid: bool = False, synthetic_only: bool
                                 **footprint_scores_of(out, sample["gt_mesh"], sample["laz"], traj)))
     if synthetic_only or grid_only:
         return
-    kitti = REPO.parent / "shared" / "data" / "kitti" / "000000.bin"
-    if kitti.exists():
-        scan = np.fromfile(kitti, np.float32).reshape(-1, 4)
-        held = np.random.default_rng(0).random(len(scan)) < 0.1
-        (work / "kitti").mkdir(exist_ok=True)
-        train = work / "kitti" / "000000.bin"
-        scan[~held].tofile(train)
-        test = scan[held, :3].astype(np.float64)
-        base = {"scene": "KITTI 00 frame 0", "suite": "footprint", "points": int((~held).sum()),
-                "held_out": int(held.sum()), "workers": workers, "cell": 0.3}
-        pout = work / "kitti" / "poisson.ply"
-        poisson = poisson_scene(train, pout, 10, sensor=[0.0, 0.0, 0.0])
+    kitti = kitti_held_out(work)
+    if kitti is not None:
+        train, test, pout, poisson = kitti
+        base = {"scene": "KITTI 00 frame 0", "suite": "footprint", "points": len(read_points(train).xyz),
+                "held_out": len(test), "workers": workers, "cell": 0.3}
         record(poisson_row(base, poisson, 10, **holdout_scores(pout, test, read_points(train).xyz, 0.3)))
         for v in ("default", "objects 0", "no bridge"):
             out = work / "kitti" / f"gridpull_{v.replace(' ', '_')}.ply"
@@ -391,9 +382,26 @@ def footprint(workers: int, work: Path, grid: bool = False, synthetic_only: bool
                                                     *[a for k, val in VARIANTS[v].items()
                                                       for a in ("--set", f"{k}={json.dumps(val)}")]])
             record(gridpull_row(row, base, poisson, v, **holdout_scores(out, test, read_points(train).xyz, 0.3)))
-    else:
-        print("skip KITTI: ../shared/data/kitti/000000.bin absent", flush=True)
     holdout(workers, work, ["default", "no bridge"], 10, suite="footprint")
+
+
+def kitti_held_out(work: Path):
+    """KITTI frame 0 of the shared data with 10 % of its points held out (seeded): ``(train, test, poisson_mesh,
+    poisson)``, the rest written as ``work/kitti/000000.bin``, the held-out (M, 3) float64 points, and Poisson
+    (depth 10, normals towards the sensor at the origin) on the rest; None (and a line) where the frame is absent."""
+    import numpy as np
+
+    kitti = REPO.parent / "shared" / "data" / "kitti" / "000000.bin"
+    if not kitti.exists():
+        print("skip KITTI: ../shared/data/kitti/000000.bin absent", flush=True)
+        return None
+    scan = np.fromfile(kitti, np.float32).reshape(-1, 4)
+    held = np.random.default_rng(0).random(len(scan)) < 0.1
+    (work / "kitti").mkdir(exist_ok=True)
+    train = work / "kitti" / "000000.bin"
+    scan[~held].tofile(train)
+    pout = work / "kitti" / "poisson.ply"
+    return train, scan[held, :3].astype(np.float64), pout, poisson_scene(train, pout, 10, sensor=[0.0, 0.0, 0.0])
 
 
 def holdout_scores(mesh_path: Path, test, train, cell: float) -> dict:
@@ -496,27 +504,18 @@ def trade(workers: int, work: Path) -> None:
                     "variant": variant, "points_per_s": base["points"] / row["wall_s"],
                     "x_poisson_time": row["wall_s"] / poisson["wall_s"]})
 
-    kitti = REPO.parent / "shared" / "data" / "kitti" / "000000.bin"
-    if kitti.exists():
-        scan = np.fromfile(kitti, np.float32).reshape(-1, 4)
-        held = np.random.default_rng(0).random(len(scan)) < 0.1
-        (work / "kitti").mkdir(exist_ok=True)
-        train = work / "kitti" / "000000.bin"
-        scan[~held].tofile(train)
-        test = scan[held, :3].astype(np.float64)
-        pout = work / "kitti" / "poisson.ply"
-        poisson = poisson_scene(train, pout, 10, sensor=[0.0, 0.0, 0.0])
+    kitti = kitti_held_out(work)
+    if kitti is not None:
+        train, test, pout, poisson = kitti
         train_xyz = read_points(train).xyz
         for cell in (0.3, 0.1):
-            base = {"scene": "KITTI 00 frame 0", "suite": "trade", "points": int((~held).sum()),
-                    "held_out": int(held.sum()), "workers": workers, "cell": cell}
+            base = {"scene": "KITTI 00 frame 0", "suite": "trade", "points": len(train_xyz),
+                    "held_out": len(test), "workers": workers, "cell": cell}
             record(poisson_row(base, poisson, 10, **holdout_scores(pout, test, train_xyz, cell)))
             raw = work / "kitti" / f"gridpull_{cell:g}.ply"
             row = reconstruct(train, raw, workers, ["--config", str(REPO / "configs" / "kitti.yaml"),
                                                     "--voxel-size", str(cell), "--set", "min_component_cells=0"])
             score(base, poisson, row, raw, test, train_xyz, cell)
-    else:
-        print("skip KITTI: ../shared/data/kitti/000000.bin absent", flush=True)
     for name, cell, src in shared_lidar_files():
         xyz = read_points(src).xyz
         held = np.random.default_rng(0).random(len(xyz)) < 0.1
