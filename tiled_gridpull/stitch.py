@@ -125,21 +125,17 @@ def weld_pieces(pieces: list[MeshPiece]) -> Mesh:
     Vertices with the same key come from the same lattice edge with bit-identical blended values, so their
     positions agree; the first occurrence is kept, with its attributes (each tile interpolated them from its own
     points, its overlap included, so a shared vertex's values agree up to the float32 rounding of the tiles'
-    spill coordinates). Attributes that some piece with vertices lacks are dropped.
+    spill coordinates). Attributes that some piece with vertices lacks are dropped. The faces are the pieces'
+    faces, in order.
     """
-    return _weld(pieces)[0]
-
-
-def _weld(pieces: list[MeshPiece]) -> tuple[Mesh, np.ndarray]:
-    """:func:`weld_pieces`, and the index of the piece each face of the welded mesh comes from, (F,) int64."""
-    verts, faces, keys, owner = [], [], [], []
+    verts, faces, keys = [], [], []
     with_vertices = [p for p in pieces if len(p.vertices)]
     names = [n for n in (with_vertices[0].attributes if with_vertices else {})
              if all(n in p.attributes for p in with_vertices)]
     attrs: dict = {n: [] for n in names}
     base = 0
     private = 0
-    for i, p in enumerate(pieces):
+    for p in pieces:
         k = p.keys.copy()
         neg = k < 0
         # private vertices get ids no other piece uses
@@ -149,17 +145,15 @@ def _weld(pieces: list[MeshPiece]) -> tuple[Mesh, np.ndarray]:
         for n in names:
             attrs[n].append(p.attributes[n] if len(p.vertices) else np.zeros(0, with_vertices[0].attributes[n].dtype))
         faces.append(p.faces + base)
-        owner.append(np.full(len(p.faces), i, np.int64))
         keys.append(k)
         base += len(p.vertices)
     if not verts:
-        return Mesh(np.zeros((0, 3)), np.zeros((0, 3), np.int64)), np.zeros(0, np.int64)
+        return Mesh(np.zeros((0, 3)), np.zeros((0, 3), np.int64))
     V = np.concatenate(verts)
     F = np.concatenate(faces)
     K = np.concatenate(keys)
     uniq, first, inverse = np.unique(K, return_index=True, return_inverse=True)
-    return (Mesh(V[first], inverse[F], {}, {n: np.concatenate(parts)[first] for n, parts in attrs.items()}),
-            np.concatenate(owner))
+    return Mesh(V[first], inverse[F], {}, {n: np.concatenate(parts)[first] for n, parts in attrs.items()})
 
 
 def drop_small_components(pieces: list[MeshPiece], min_extent: float) -> tuple[list[MeshPiece], int]:
@@ -179,8 +173,7 @@ def drop_small_components(pieces: list[MeshPiece], min_extent: float) -> tuple[l
     """
     if min_extent <= 0:
         return list(pieces), 0
-    welded, _ = _weld(pieces)
-    small, removed = small_component_faces(welded, min_extent)
+    small, removed = small_component_faces(weld_pieces(pieces), min_extent)
     if not removed:
         return list(pieces), 0
     # the welded faces are the pieces' faces in order
