@@ -185,9 +185,13 @@ def drop_small_components(pieces: list[MeshPiece], min_extent: float) -> tuple[l
             out.append(p)
             continue
         faces = p.faces[~drop]
-        used, inverse = np.unique(faces, return_inverse=True)
-        out.append(MeshPiece(p.vertices[used], inverse.reshape(-1, 3).astype(np.int64), p.keys[used], dict(p.info),
-                             take_attributes(p.attributes, used)))
+        # the kept vertices in their order, renumbered by a running count (np.unique sorted them 10x slower)
+        used = np.zeros(len(p.vertices), bool)
+        used[faces.reshape(-1)] = True
+        new_id = np.cumsum(used) - 1
+        keep = np.flatnonzero(used)
+        out.append(MeshPiece(p.vertices[keep], new_id[faces].astype(np.int64), p.keys[keep], dict(p.info),
+                             take_attributes(p.attributes, keep)))
     return out, removed
 
 
