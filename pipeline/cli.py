@@ -312,7 +312,7 @@ def resolve_settings(args, quality: str | None = None) -> tuple:
         solver_settings.setdefault("normal_weight", NORMALS_WEIGHT)
     if getattr(args, "attributes", None) is not None:  # the option wins over a config file's key
         settings["attributes"] = args.attributes
-    for key in ("attributes", "drop_outliers"):
+    for key in ("attributes", "drop_outliers", "min_component_cells"):
         if key in settings and "voxel_size" not in settings:
             # one-shape mode takes it as reconstruct's keyword (checked there), not as a tiling setting
             setattr(args, key, settings.pop(key))
@@ -398,12 +398,17 @@ def cmd_reconstruct(args) -> int:
         mesh = reconstruct(cloud, config=cfg, progress=bar.update if bar else None,
                            band_edges=getattr(args, "band_edges", None) or "trim",
                            attributes=getattr(args, "attributes", None) or "all",
-                           drop_outliers=getattr(args, "drop_outliers", None) or False)
+                           drop_outliers=getattr(args, "drop_outliers", None) or False,
+                           **({} if getattr(args, "min_component_cells", None) is None
+                              else {"min_component_cells": args.min_component_cells}))
     finally:
         if bar:
             bar.close()
     if mesh.n_faces == 0:
         # nothing to write: an empty file would look like a finished mesh
+        if mesh.metadata.get("small_components_removed"):
+            raise InputError(f"{args.inputs[0]}: every part of the mesh is smaller than min_component_cells along "
+                             "every axis (an empty mesh; nothing written): set a smaller min_component_cells")
         raise InputError(f"{args.inputs[0]}: the solve found no surface in these points (an empty mesh; nothing "
                          "written): check the cloud's extent and --resolution")
     from tiled_gridpull.io.remote import recorded

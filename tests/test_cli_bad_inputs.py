@@ -187,3 +187,35 @@ def test_a_directory_as_the_config_file_is_named_as_such(survey, tmp_path, capsy
     code, _, err = run(["reconstruct", str(clean), "-o", str(tmp_path / "m.ply"), "--config", str(tmp_path)], capsys)
     assert code == 2
     _one_error_line(err, "a directory, not a YAML file")
+
+
+def test_one_shape_takes_min_component_cells_from_the_command_line(survey, tmp_path, capsys):
+    """``--set min_component_cells`` reaches the one-shape mode (it once answered "need voxel_size"): this short
+    solve leaves specks that 2 cells (the default, as in tiled mode) drop and 0 keeps; more cells than the sphere is
+    across drop it all, said as such, nothing written; a bad value is one line."""
+    import json
+
+    from tiled_gridpull.io import read_mesh
+
+    pts, clean, _ = survey
+    removed, faces = {}, {}
+    for value in ("0", "2", None):
+        out = tmp_path / f"m{value}.ply"
+        code, _, err = run(["reconstruct", str(clean), "-o", str(out), *FAST,
+                            *(["--set", f"min_component_cells={value}"] if value else [])], capsys)
+        assert code == 0, err
+        removed[value] = json.loads(out.with_suffix(".json").read_text())["small_components_removed"]
+        faces[value] = read_mesh(out).n_faces
+    assert removed["0"] == 0 < removed["2"] == removed[None] and faces["0"] > faces["2"] == faces[None]
+    out = tmp_path / "none.ply"
+    code, _, err = run(["reconstruct", str(clean), "-o", str(out), *FAST, "--set", "min_component_cells=60"], capsys)
+    assert code != 0
+    _one_error_line(err, "smaller than min_component_cells")
+    assert not out.exists() and not out.with_suffix(".json").exists()
+    for bad in ("abc", "-1", ".nan", "true"):
+        code, _, err = run(["reconstruct", str(clean), "-o", str(out), *FAST, "--set", f"min_component_cells={bad}"],
+                           capsys)
+        assert code == 2, (bad, err)
+        _one_error_line(err, "min_component_cells")
+    with pytest.raises(Exception, match="min_component_cells must be a finite number"):
+        reconstruct(pts, resolution=32, iterations=10, min_component_cells="2")

@@ -18,7 +18,7 @@ import numpy as np
 from ._version import __version__
 from .attributes import ATTRIBUTE_NEIGHBORS, attribute_layout, check_mode, interpolate_attributes, select_attributes
 from .cloud import PointCloud, as_points, clean_points, colors_of
-from .config import NOISE_PRESETS, NOISE_SETTINGS, NORMALS_WEIGHT, SolverConfig, split_settings
+from .config import NOISE_PRESETS, NOISE_SETTINGS, NORMALS_WEIGHT, SolverConfig, finite_number, split_settings
 from .errors import ConfigError, InputError
 from .isosurface import extract_mesh, relax_on_field
 from .kernels.graph import vertex_components
@@ -259,6 +259,7 @@ def reconstruct(points: Any, *, config: SolverConfig | None = None, normals: np.
     # unoriented, e.g. Open3D's) are treated like a PointCloud's, used when a weight is set
     if normals is not None and cfg.losses.normal_weight == 0 and "normal_weight" not in split_settings(options)[0]:
         cfg = cfg.replace(normal_weight=NORMALS_WEIGHT)
+    min_component_cells = finite_number("min_component_cells", min_component_cells)
     if min_component_cells < 0:
         raise ConfigError(f"min_component_cells must be >= 0, got {min_component_cells!r}")
     check_mode(attributes)
