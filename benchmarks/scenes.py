@@ -372,16 +372,17 @@ def footprint(workers: int, work: Path, grid: bool = False, synthetic_only: bool
     kitti = kitti_held_out(work)
     if kitti is not None:
         train, test, pout, poisson = kitti
-        base = {"scene": "KITTI 00 frame 0", "suite": "footprint", "points": len(read_points(train).xyz),
+        train_xyz = read_points(train).xyz
+        base = {"scene": "KITTI 00 frame 0", "suite": "footprint", "points": len(train_xyz),
                 "held_out": len(test), "workers": workers, "cell": 0.3}
-        record(poisson_row(base, poisson, 10, **holdout_scores(pout, test, read_points(train).xyz, 0.3)))
+        record(poisson_row(base, poisson, 10, **holdout_scores(pout, test, train_xyz, 0.3)))
         for v in ("default", "objects 0", "no bridge"):
             out = work / "kitti" / f"gridpull_{v.replace(' ', '_')}.ply"
             row = reconstruct(train, out, workers, ["--config", str(REPO / "configs" / "kitti.yaml"),
                                                     "--voxel-size", "0.3",
                                                     *[a for k, val in VARIANTS[v].items()
                                                       for a in ("--set", f"{k}={json.dumps(val)}")]])
-            record(gridpull_row(row, base, poisson, v, **holdout_scores(out, test, read_points(train).xyz, 0.3)))
+            record(gridpull_row(row, base, poisson, v, **holdout_scores(out, test, train_xyz, 0.3)))
     holdout(workers, work, ["default", "no bridge"], 10, suite="footprint")
 
 
@@ -431,6 +432,22 @@ def holdout(workers: int, work: Path, variants: list[str], depth: int = 10, frac
     """Real scans without a ground truth: hold out ``fraction`` of each shared LiDAR file's points (seeded), run
     Poisson and each GridPull variant on the rest, and score the distance of the held-out points to each mesh
     (:func:`holdout_scores`), same run; rows are recorded under ``suite``."""
+    for name, cell, train, train_xyz, test, pout, poisson in lidar_held_out(work, depth, fraction):
+        base = {"scene": name, "suite": suite, "points": len(train_xyz), "held_out": len(test),
+                "workers": workers, "cell": cell}
+        record(poisson_row(base, poisson, depth, **holdout_scores(pout, test, train_xyz, cell)))
+        for v in variants:
+            out = work / f"{train.stem}_{v.replace(' ', '_')}.ply"
+            row = reconstruct(train, out, workers, [*scene_args(VARIANTS[v]),
+                                                    "--voxel-size", str(cell), "--tile-size", str(256 * cell),
+                                                    "--overlap", str(32 * cell)])
+            record(gridpull_row(row, base, poisson, v, **holdout_scores(out, test, train_xyz, cell)))
+
+
+def lidar_held_out(work: Path, depth: int, fraction: float = 0.1):
+    """Each shared LiDAR file with ``fraction`` of its points held out (seeded): yields ``(name, cell, train,
+    train_xyz, test, poisson_mesh, poisson)``, the rest written as ``work/<stem>_train.laz`` and its (N, 3)
+    points, the held-out (M, 3) points, and Poisson (``depth``, normals up) on the rest."""
     import numpy as np
 
     from tiled_gridpull.io import read_points
@@ -440,18 +457,8 @@ def holdout(workers: int, work: Path, variants: list[str], depth: int = 10, frac
         xyz = read_points(src).xyz
         held = np.random.default_rng(0).random(len(xyz)) < fraction
         train = write_las(work / f"{src.stem}_train.laz", xyz[~held])
-        test = xyz[held]
-        base = {"scene": name, "suite": suite, "points": int((~held).sum()), "held_out": int(held.sum()),
-                "workers": workers, "cell": cell}
         pout = work / f"{src.stem}_poisson.ply"
-        poisson = poisson_scene(train, pout, depth)
-        record(poisson_row(base, poisson, depth, **holdout_scores(pout, test, xyz[~held], cell)))
-        for v in variants:
-            out = work / f"{src.stem}_{v.replace(' ', '_')}.ply"
-            row = reconstruct(train, out, workers, [*scene_args(VARIANTS[v]),
-                                                    "--voxel-size", str(cell), "--tile-size", str(256 * cell),
-                                                    "--overlap", str(32 * cell)])
-            record(gridpull_row(row, base, poisson, v, **holdout_scores(out, test, xyz[~held], cell)))
+        yield name, cell, Path(train), xyz[~held], xyz[held], pout, poisson_scene(train, pout, depth)
 
 
 #: trade suite: parts smaller than these many cells along every axis dropped after the fact (2: as shipped)
@@ -472,9 +479,8 @@ def trade(workers: int, work: Path) -> None:
     import numpy as np
 
     from tiled_gridpull.io import read_mesh, read_points, write_mesh
-    from tiled_gridpull.mesh_repair import (boundary_loops, close_holes, remove_pinched_fans,
+    from tiled_gridpull.mesh_repair import (boundary_loops, close_holes, component_boxes, remove_pinched_fans,
                                             remove_small_components)
-    from tiled_gridpull.synthetic.lidar_files import write_las
 
     def variants(raw: Path, cell: float):
         mesh = read_mesh(raw)
@@ -483,14 +489,7 @@ def trade(workers: int, work: Path) -> None:
             yield f"min_component_cells {cells:g}" + (" (shipped)" if cells == 2.0 else ""), kept
         kept, _ = remove_small_components(mesh, 2.0 * cell)
         kept, _ = remove_pinched_fans(kept, max_rounds=8)
-        labels = kept.components()
-        tri = kept.vertices[kept.faces]
-        n = int(labels.max()) + 1 if len(labels) else 0
-        lo, hi = np.full((n, 3), np.inf), np.full((n, 3), -np.inf)
-        np.minimum.at(lo, labels, tri.min(axis=1))
-        np.maximum.at(hi, labels, tri.max(axis=1))
-        part = np.full(kept.n_vertices, -1)
-        part[kept.faces.reshape(-1)] = np.repeat(labels, 3)
+        part, lo, hi = component_boxes(kept)
         across = (hi - lo).max(axis=1)
         loops = [lp for lp in boundary_loops(kept) if across[part[lp[0]]] <= TRADE_PART * cell
                  or np.ptp(kept.vertices[lp], axis=0).max() <= TRADE_HOLE * cell]
@@ -516,19 +515,14 @@ def trade(workers: int, work: Path) -> None:
             row = reconstruct(train, raw, workers, ["--config", str(REPO / "configs" / "kitti.yaml"),
                                                     "--voxel-size", str(cell), "--set", "min_component_cells=0"])
             score(base, poisson, row, raw, test, train_xyz, cell)
-    for name, cell, src in shared_lidar_files():
-        xyz = read_points(src).xyz
-        held = np.random.default_rng(0).random(len(xyz)) < 0.1
-        train = write_las(work / f"{src.stem}_train.laz", xyz[~held])
-        base = {"scene": name, "suite": "trade", "points": int((~held).sum()), "held_out": int(held.sum()),
+    for name, cell, train, train_xyz, test, pout, poisson in lidar_held_out(work, 10):
+        base = {"scene": name, "suite": "trade", "points": len(train_xyz), "held_out": len(test),
                 "workers": workers, "cell": cell}
-        pout = work / f"{src.stem}_poisson.ply"
-        poisson = poisson_scene(train, pout, 10)
-        record(poisson_row(base, poisson, 10, **holdout_scores(pout, xyz[held], xyz[~held], cell)))
-        raw = work / f"{src.stem}_gridpull.ply"
+        record(poisson_row(base, poisson, 10, **holdout_scores(pout, test, train_xyz, cell)))
+        raw = work / f"{train.stem}_gridpull.ply"
         row = reconstruct(train, raw, workers, [*scene_args({"min_component_cells": 0}), "--voxel-size", str(cell),
                                                 "--tile-size", str(256 * cell), "--overlap", str(32 * cell)])
-        score(base, poisson, row, raw, xyz[held], xyz[~held], cell)
+        score(base, poisson, row, raw, test, train_xyz, cell)
 
 
 def tile_costs(mesh: Path) -> list[dict]:

@@ -8,8 +8,8 @@ from .attributes import mean_attributes
 from .kernels import graph as kg
 from .mesh import Mesh, edge_groups
 
-__all__ = ["remove_small_components", "small_component_faces", "remove_pinched_fans", "boundary_edges",
-           "boundary_loops", "close_holes"]
+__all__ = ["remove_small_components", "small_component_faces", "component_boxes", "remove_pinched_fans",
+           "boundary_edges", "boundary_loops", "close_holes"]
 
 
 def remove_small_components(mesh: Mesh, min_extent: float) -> tuple[Mesh, int]:
@@ -40,21 +40,37 @@ def small_component_faces(mesh: Mesh, min_extent: float) -> tuple[np.ndarray, in
     """
     if mesh.n_faces == 0:
         return np.zeros(0, bool), 0
-    vlabels, _ = kg.vertex_components(mesh.n_vertices, mesh.faces)
-    # each part's box from its vertices, grouped by sorting (ufunc.at over every face's corners cost 0.5 s a
-    # million faces, most of a tiled job's merge)
+    labels, lo, hi = component_boxes(mesh)
+    small = np.isfinite(lo[:, 0]) & np.all(hi - lo < min_extent, axis=1)
+    return small[labels[mesh.faces[:, 0]]], int(small.sum())
+
+
+def component_boxes(mesh: Mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each connected piece's bounding box.
+
+    Returns
+    -------
+    labels : (V,) int64
+        Piece of every vertex (unreferenced vertices are pieces of their own).
+    lo, hi : (P, 3) float64
+        Box corners of each piece, by label; +inf / -inf for a label without faces.
+    """
+    labels, _ = kg.vertex_components(mesh.n_vertices, mesh.faces)
+    n = int(labels.max()) + 1 if len(labels) else 0
+    lo, hi = np.full((n, 3), np.inf), np.full((n, 3), -np.inf)
+    if mesh.n_faces == 0:
+        return labels, lo, hi
+    # grouped by sorting (ufunc.at over every face's corners cost 0.5 s a million faces, most of a tiled job's merge)
     used = np.zeros(mesh.n_vertices, bool)
     used[mesh.faces.reshape(-1)] = True
-    part = vlabels[used]
+    part = labels[used]
     order = np.argsort(part, kind="stable")
     part = part[order]
     xyz = mesh.vertices[used][order]
     starts = np.flatnonzero(np.r_[True, part[1:] != part[:-1]])
-    lo = np.minimum.reduceat(xyz, starts, axis=0)
-    hi = np.maximum.reduceat(xyz, starts, axis=0)
-    small = np.zeros(int(vlabels.max()) + 1, bool)
-    small[part[starts]] = np.all(hi - lo < min_extent, axis=1)
-    return small[vlabels[mesh.faces[:, 0]]], int(small.sum())
+    lo[part[starts]] = np.minimum.reduceat(xyz, starts, axis=0)
+    hi[part[starts]] = np.maximum.reduceat(xyz, starts, axis=0)
+    return labels, lo, hi
 
 
 def remove_pinched_fans(mesh: Mesh, max_rounds: int = 4) -> tuple[Mesh, int]:
