@@ -437,8 +437,8 @@ def _run(inputs, output, tiling: TilingConfig, solver: SolverConfig, paths: JobP
     meta["tiles"]["not_solved"] += [{"tile": m["tile"], "status": "failed", "reason": m.get("reason")}
                                     for m in mesh_summaries if m.get("status") == "failed"]
     meta["reused"] = {"partition": bool(scan.get("partition_reused")), "solves": n_solve, "meshes": n_mesh}
-    pieces = [paths.piece(by_index[tuple(m["index"])]) for m in mesh_summaries if m.get("status") == "meshed"]
-    mesh, pieces = finish_job(pieces, meta, float32=float32, tile_meshes=tile_meshes,
+    meshed = [by_index[tuple(m["index"])] for m in mesh_summaries if m.get("status") == "meshed"]
+    mesh, pieces = finish_job([paths.piece(s) for s in meshed], meta, float32=float32, tile_meshes=tile_meshes,
                               min_extent=tiling.min_component_cells * plan.lattice.cell_size)
     mesh.metadata["timings_s"]["merge"] = time.perf_counter() - t_mesh
     if tileset is not None:
@@ -446,7 +446,6 @@ def _run(inputs, output, tiling: TilingConfig, solver: SolverConfig, paths: JobP
 
         t_tiles = time.perf_counter()
         out_dir, crs, crs_source = tileset
-        meshed = [by_index[tuple(m["index"])] for m in mesh_summaries if m.get("status") == "meshed"]
         summary = write_tileset(job_tiles([(s.name, s.index, p) for s, p in zip(meshed, pieces)]), out_dir, crs,
                                 metadata=mesh.metadata, crs_source=crs_source)
         mesh.metadata["tiles3d"] = {"dir": str(out_dir), **summary}
@@ -529,12 +528,12 @@ def finish_job(pieces: Iterable[Path], metadata: dict, *, float32: bool = False,
     paths = [Path(p) for p in pieces]
     loaded = [load_piece(p) for p in paths]
     kept, dropped = drop_small_components(loaded, min_extent)
-    summaries = {m.get("tile"): m for m in metadata.get("mesh_summaries", [])}
-    for p, before, after in zip(paths, loaded, kept):
-        entry = summaries.get(p.stem)
-        if dropped and entry is not None:
-            entry.update(faces=len(after.faces), vertices=len(after.vertices),
-                         small_faces_dropped=len(before.faces) - len(after.faces))
+    if dropped:
+        summaries = {m.get("tile"): m for m in metadata.get("mesh_summaries", [])}
+        for p, before, after in zip(paths, loaded, kept):
+            if p.stem in summaries:
+                summaries[p.stem].update(faces=len(after.faces), vertices=len(after.vertices),
+                                         small_faces_dropped=len(before.faces) - len(after.faces))
     if tile_meshes is not None:
         out_dir = Path(tile_meshes)
         out_dir.mkdir(parents=True, exist_ok=True)
